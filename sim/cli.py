@@ -1,0 +1,89 @@
+"""``tupa scenarios ...`` and ``tupa sim ...``: scenario files and the network model."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from sim.config import QUEUEING_CHOICES
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    scenarios = subparsers.add_parser("scenarios", help="generate and inspect scenario files")
+    scenarios_sub = scenarios.add_subparsers(dest="scenarios_command", required=True)
+    generate = scenarios_sub.add_parser(
+        "generate",
+        help="draw a seeded set of scenarios (users' positions and loads) and write it as JSON",
+    )
+    generate.add_argument("--n", type=int, default=500, help="number of scenarios (default 500)")
+    generate.add_argument("--users", type=int, default=3, help="users per scenario (default 3)")
+    generate.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    generate.add_argument(
+        "--total-load-mbps",
+        type=float,
+        default=40.0,
+        help="sum of the users' offered loads in Mbit/s (default 40, the paper's Λ)",
+    )
+    generate.add_argument("--out", type=Path, required=True, help="output file (JSON)")
+    generate.set_defaults(handler=_generate)
+
+    sim = subparsers.add_parser("sim", help="run the network model")
+    sim_sub = sim.add_subparsers(dest="sim_command", required=True)
+    evaluate = sim_sub.add_parser(
+        "evaluate",
+        help="simulate given UAV positions (a tupa-cases/1 file) and write per-user metrics",
+    )
+    evaluate.add_argument("cases", type=Path, help="case file (tupa-cases/1 JSON)")
+    evaluate.add_argument("--out", type=Path, required=True, help="output file (JSON)")
+    evaluate.add_argument("--seed", type=int, default=0, help="fading seed (default 0)")
+    evaluate.add_argument(
+        "--expected", action="store_true", help="deterministic expected mode (no fading draws)"
+    )
+    evaluate.add_argument("--queueing", choices=QUEUEING_CHOICES, default="fq-codel")
+    evaluate.add_argument("--warmup-s", type=float, default=0.5, help="warm-up (default 0.5 s)")
+    evaluate.add_argument(
+        "--measure-s", type=float, default=2.0, help="measurement window (default 2 s)"
+    )
+    evaluate.set_defaults(handler=_evaluate)
+
+
+def _generate(args: argparse.Namespace) -> int:
+    from sim.config import AreaConfig
+    from sim.errors import InputError
+    from sim.files import save_scenarios
+    from sim.scenarios import format_heterogeneity_histogram, generate_scenarios
+
+    if args.n < 1:
+        raise InputError(f"--n: must be at least 1, got {args.n}")
+    if args.users < 1:
+        raise InputError(f"--users: must be at least 1, got {args.users}")
+    if not args.total_load_mbps > 0:
+        raise InputError(f"--total-load-mbps: must be positive, got {args.total_load_mbps}")
+    area = AreaConfig()
+    scenarios = generate_scenarios(
+        args.n, args.users, seed=args.seed, area=area, total_load_bps=args.total_load_mbps * 1e6
+    )
+    save_scenarios(args.out, area, scenarios)
+    print(f"wrote {len(scenarios)} scenarios with {args.users} users each to {args.out}")
+    print(format_heterogeneity_histogram(scenarios, area))
+    return 0
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from sim.errors import InputError
+    from sim.evaluate import evaluate_cases_file
+
+    if not args.warmup_s >= 0:
+        raise InputError(f"--warmup-s: must be >= 0, got {args.warmup_s}")
+    if not args.measure_s > 0:
+        raise InputError(f"--measure-s: must be > 0, got {args.measure_s}")
+    summary = evaluate_cases_file(
+        args.cases,
+        args.out,
+        seed=None if args.expected else args.seed,
+        queueing=args.queueing,
+        warmup_s=args.warmup_s,
+        measure_s=args.measure_s,
+    )
+    print(summary)
+    return 0

@@ -1,0 +1,221 @@
+"""Configuration dataclasses. Defaults are the paper's Table I and ns-3's defaults for that network.
+
+Every parameter a user might want to change lives here, grouped by layer, frozen so a config can be
+shared between environments, the oracle and the service without defensive copies.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+Queueing = Literal["fq-codel", "mac-only"]
+QUEUEING_CHOICES: tuple[str, ...] = ("fq-codel", "mac-only")
+
+
+@dataclass(frozen=True)
+class AreaConfig:
+    """The coverage area (paper §II): a rectangle of square zones, and the UAV's altitude band.
+
+    Area frame: origin at the south-west corner, x east, y north, z up, metres.
+    Altitude levels are spaced one zone apart (25, 50, 75, 100 m by default), the grid the discrete
+    actions move on.
+    """
+
+    size_x_m: float = 500.0
+    size_y_m: float = 500.0
+    zone_m: float = 25.0
+    z_min_m: float = 25.0
+    z_max_m: float = 100.0
+    user_height_m: float = 1.5
+
+    def __post_init__(self) -> None:
+        for name in ("size_x_m", "size_y_m", "zone_m"):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value <= 0:
+                raise ValueError(f"area.{name}: must be a positive number, got {value!r}")
+        for name, size in (("size_x_m", self.size_x_m), ("size_y_m", self.size_y_m)):
+            ratio = size / self.zone_m
+            if abs(ratio - round(ratio)) > 1e-9:
+                raise ValueError(
+                    f"area.{name}: {size} m is not a multiple of zone_m ({self.zone_m} m)"
+                )
+        if not (np.isfinite(self.z_min_m) and np.isfinite(self.z_max_m)):
+            raise ValueError("area.z_min_m/z_max_m: must be finite")
+        if not 0 < self.z_min_m <= self.z_max_m:
+            raise ValueError(
+                f"area.z_min_m/z_max_m: need 0 < z_min_m <= z_max_m, "
+                f"got {self.z_min_m} and {self.z_max_m}"
+            )
+        ratio_z = (self.z_max_m - self.z_min_m) / self.zone_m
+        if abs(ratio_z - round(ratio_z)) > 1e-9:
+            raise ValueError(
+                f"area.z_max_m: altitude band {self.z_min_m}-{self.z_max_m} m is not a multiple "
+                f"of zone_m ({self.zone_m} m)"
+            )
+
+    @property
+    def n_zones_x(self) -> int:
+        return round(self.size_x_m / self.zone_m)
+
+    @property
+    def n_zones_y(self) -> int:
+        return round(self.size_y_m / self.zone_m)
+
+    @property
+    def n_levels_z(self) -> int:
+        return round((self.z_max_m - self.z_min_m) / self.zone_m) + 1
+
+    @property
+    def diagonal_m(self) -> float:
+        return float(np.hypot(self.size_x_m, self.size_y_m))
+
+    def zone_centres_x_m(self) -> np.ndarray:
+        return (np.arange(self.n_zones_x) + 0.5) * self.zone_m
+
+    def zone_centres_y_m(self) -> np.ndarray:
+        return (np.arange(self.n_zones_y) + 0.5) * self.zone_m
+
+    def altitude_levels_m(self) -> np.ndarray:
+        return self.z_min_m + np.arange(self.n_levels_z) * self.zone_m
+
+    def grid_positions_m(self) -> np.ndarray:
+        """Every zone centre at every altitude level, shape (n_x * n_y * n_z, 3), x-major order."""
+        gx, gy, gz = np.meshgrid(
+            self.zone_centres_x_m(),
+            self.zone_centres_y_m(),
+            self.altitude_levels_m(),
+            indexing="ij",
+        )
+        return np.stack([gx.ravel(), gy.ravel(), gz.ravel()], axis=1)
+
+    def to_dict(self) -> dict[str, float]:
+        return {
+            "size_x_m": self.size_x_m,
+            "size_y_m": self.size_y_m,
+            "zone_m": self.zone_m,
+            "z_min_m": self.z_min_m,
+            "z_max_m": self.z_max_m,
+        }
+
+
+@dataclass(frozen=True)
+class RadioConfig:
+    """Channel: Friis path loss, Rician fast fading, thermal noise plus a receiver noise figure."""
+
+    frequency_hz: float = 5.18e9  # channel 36
+    bandwidth_hz: float = 20e6
+    tx_power_dbm: float = 20.0
+    noise_figure_db: float = 7.0  # ns-3 YansWifiPhy default
+    rician_k_db: float = 13.0
+    min_rssi_dbm: float = -90.0  # minimum preamble RSSI: below it a user cannot associate
+
+    @property
+    def noise_dbm(self) -> float:
+        thermal_dbm = 10.0 * np.log10(1.380649e-23 * 290.0 * self.bandwidth_hz) + 30.0
+        return float(thermal_dbm + self.noise_figure_db)
+
+
+@dataclass(frozen=True)
+class PhyConfig:
+    """IEEE 802.11ac, 20 MHz, one spatial stream, long guard interval, VHT MCS 0-8.
+
+    ``ideal_threshold_db`` is the SNR at which ns-3's IdealWifiManager starts using each MCS;
+    ``per_mid_snr_db`` the SNR at which a 512-byte-payload MPDU fails half the time, and
+    ``per_slope_per_db`` the steepness of that waterfall. These three are the model's fitted
+    constants (see docs/network-model.md); everything else is from the standard.
+    """
+
+    rates_bps: tuple[float, ...] = (6.5e6, 13e6, 19.5e6, 26e6, 39e6, 52e6, 58.5e6, 65e6, 78e6)
+    # Highest mandatory non-HT rate not above the data rate: the rate of the Block Ack reply.
+    control_rates_bps: tuple[float, ...] = (6e6, 12e6, 12e6, 24e6, 24e6, 24e6, 24e6, 24e6, 24e6)
+    ideal_threshold_db: tuple[float, ...] = (2.0, 5.0, 7.5, 11.0, 14.0, 18.5, 20.0, 21.5, 25.5)
+    per_mid_snr_db: tuple[float, ...] = (-0.5, 2.5, 5.0, 8.5, 11.5, 16.0, 17.5, 19.0, 23.0)
+    per_slope_per_db: float = 2.0
+    symbol_s: float = 4e-6
+    vht_preamble_s: float = 40e-6  # L-STF, L-LTF, L-SIG, VHT-SIG-A, VHT-STF, one VHT-LTF, VHT-SIG-B
+    legacy_preamble_s: float = 20e-6
+    service_tail_bits: int = 22
+    max_ppdu_s: float = 5.484e-3
+
+    @property
+    def n_mcs(self) -> int:
+        return len(self.rates_bps)
+
+
+@dataclass(frozen=True)
+class MacConfig:
+    """EDCA best effort, A-MPDU with Block Ack, no RTS/CTS, 802.11ac timing."""
+
+    slot_s: float = 9e-6
+    sifs_s: float = 16e-6
+    aifsn: int = 3
+    cw_min: int = 15
+    cw_max: int = 1023
+    retry_limit: int = 7
+    ba_window: int = 64
+    max_ampdu_bytes: int = 65535
+    block_ack_bytes: int = 32
+    mac_overhead_bytes: int = 26 + 4  # QoS data header + FCS
+    llc_ip_udp_bytes: int = 8 + 20 + 8
+    ampdu_delimiter_bytes: int = 4
+
+    @property
+    def aifs_s(self) -> float:
+        return self.sifs_s + self.aifsn * self.slot_s
+
+
+@dataclass(frozen=True)
+class QueueConfig:
+    """Each station's queues: the Wi-Fi MAC queue and, with ``fq-codel``, the queue disc above."""
+
+    queueing: Queueing = "fq-codel"
+    mac_queue_packets: int = 500
+    mac_max_delay_s: float = 0.5
+    qdisc_limit_packets: int = 10240
+    codel_target_s: float = 0.005
+    codel_interval_s: float = 0.1
+    # Delay reported for a user with traffic that got nothing through in a step.
+    unserved_delay_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.queueing not in QUEUEING_CHOICES:
+            raise ValueError(
+                f"queueing: must be one of {', '.join(QUEUEING_CHOICES)}, got {self.queueing!r}"
+            )
+
+
+@dataclass(frozen=True)
+class TrafficConfig:
+    """Uplink UDP constant bit rate from every user to the UAV."""
+
+    packet_bytes: int = 512
+    total_load_bps: float = 40e6
+
+
+@dataclass(frozen=True)
+class UtilityConfig:
+    """Paper eq. 1. ``delay_ref_s`` normalises the mean delay (docs/network-model.md: why 1 s)."""
+
+    weight_throughput: float = 0.6
+    weight_delay: float = 0.3
+    weight_loss: float = 0.1
+    delay_ref_s: float = 1.0
+
+
+@dataclass(frozen=True)
+class NetworkConfig:
+    """Everything the network model needs, the paper's values by default."""
+
+    radio: RadioConfig = field(default_factory=RadioConfig)
+    phy: PhyConfig = field(default_factory=PhyConfig)
+    mac: MacConfig = field(default_factory=MacConfig)
+    queue: QueueConfig = field(default_factory=QueueConfig)
+    traffic: TrafficConfig = field(default_factory=TrafficConfig)
+
+    def with_queueing(self, queueing: Queueing) -> NetworkConfig:
+        from dataclasses import replace
+
+        return replace(self, queue=replace(self.queue, queueing=queueing))
