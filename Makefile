@@ -16,8 +16,11 @@ $(STAMP): $(BIN)/python pyproject.toml
 	$(BIN)/pip install -e '.[dev]'
 	touch $(STAMP)
 
+# Until the closed-loop demo exists: the three baselines on 100 generated scenarios.
 run: $(STAMP)
-	$(BIN)/tupa demo
+	$(BIN)/tupa scenarios generate --n 100 --users 3 --seed 1 --out runs/demo/scenarios.json
+	$(BIN)/tupa eval --policy min-distance --policy load-weighted --policy oracle \
+		--scenarios runs/demo/scenarios.json --json runs/demo/eval.json
 
 test: $(STAMP)
 	$(BIN)/ruff check .

@@ -2,7 +2,8 @@
 
 ``tupa/FapDiscrete-v0``   13 sequential moves on the zone grid (stay; ±1 or ±5 zones along x, y,
                           z); moves that would leave the volume are masked (``action_masks()``,
-                          ``info["action_mask"]``) and refused if taken.
+                          ``info["action_mask"]``); one taken anyway leaves the UAV where it is
+                          and sets ``info["refused_move"]``.
 ``tupa/FapContinuous-v0`` ``Box(0, 1, (3,))``: absolute coordinates in the volume.
 
 An episode is ``episode_steps`` (T = 100) steps of ``step_s`` (S = 1 s) on one scenario; the
@@ -291,6 +292,7 @@ class FapDiscreteEnv(_FapEnv):
         super().__init__(scenarios, config, model)
         self.action_space = spaces.Discrete(len(MOVES))
         self._set_target_index(np.zeros(3, dtype=np.int64))
+        self._refused = False
 
     def action_masks(self) -> np.ndarray:
         """Boolean mask of the moves that keep the UAV inside the volume (``stay`` always)."""
@@ -327,16 +329,14 @@ class FapDiscreteEnv(_FapEnv):
         ):
             raise ValueError(f"action: must be an integer in [0, {len(MOVES) - 1}], got {action!r}")
         a = int(action)
-        if not self._mask[a]:
-            raise ValueError(
-                f"action: move {a} ({MOVE_NAMES[a]}) would leave the volume from zone "
-                f"{tuple(int(i) for i in self._target_index)}; check action_masks()"
-            )
-        self._set_target_index(self._target_index + MOVES[a])
+        self._refused = not self._mask[a]
+        if not self._refused:
+            self._set_target_index(self._target_index + MOVES[a])
         return self._position_of(self._target_index)
 
     def _extra_info(self) -> dict[str, Any]:
-        return {"action_mask": self.action_masks()}
+        refused, self._refused = self._refused, False
+        return {"action_mask": self.action_masks(), "refused_move": refused}
 
 
 class FapContinuousEnv(_FapEnv):

@@ -1,0 +1,281 @@
+"""Static placement policies: the paper's baseline, a load-weighted variant, and the registry.
+
+A *static* policy looks at one scenario — the users' ground positions and their offered loads,
+which is what the service will know from the users' reports — and returns one UAV position
+(area frame, metres) to hold for the whole episode. It never sees network metrics.
+
+* ``min-distance`` (the paper's baseline, §IV): the point at the minimum altitude that minimises
+  the mean **3-D** distance from the UAV to the users (users at ``area.user_height_m``). At a fixed
+  altitude that is the geometric median of the users' ground positions under the distance
+  ``sqrt(d_ground² + h²)``, h = z_min − user height; minimising distance is what maximises the
+  mean SNR under Friis path loss, which is why the paper calls it SNR-optimal and traffic-blind.
+  The minimum altitude is where every distance is shortest. ``metric="ground"`` gives the plain
+  2-D geometric median instead (the two differ by metres at most in the paper's area).
+* ``load-weighted``: the same, each user's distance weighted by its offered load, so the UAV
+  leans toward the heavy users. Traffic-aware, but still blind to the MAC (airtime, queues).
+* ``oracle`` (:mod:`policies.oracle`): exhaustive search with the network model itself, the upper
+  bound every static policy is measured against.
+
+``BASELINES`` maps each name to a factory; :func:`make_policy` builds one by name.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal, Protocol, runtime_checkable
+
+import numpy as np
+
+from sim.config import AreaConfig, NetworkConfig, UtilityConfig
+
+DistanceMetric = Literal["3d", "ground"]
+
+
+class UsersLike(Protocol):
+    """Anything carrying users' positions and offered loads: a ``sim.scenarios.Scenario``, a
+    ``Case``, or the service's latest reports."""
+
+    @property
+    def users_xy_m(self) -> np.ndarray:
+        """(U, 2) ground positions in the area frame, metres."""
+        ...
+
+    @property
+    def load_bps(self) -> np.ndarray:
+        """(U,) uplink offered load of each user, bit/s."""
+        ...
+
+
+@runtime_checkable
+class PlacementPolicy(Protocol):
+    """A static placement policy: users' positions and loads in, one UAV position out.
+
+    ``place`` returns a float64 array (3,) — x, y, z in metres, area frame — inside the volume
+    ``[0, size_x_m] × [0, size_y_m] × [z_min_m, z_max_m]`` of the policy's area.
+    """
+
+    name: str
+
+    def place(self, scenario: UsersLike) -> np.ndarray: ...
+
+
+# --------------------------------------------------------------------------------------------
+# Geometric median
+
+
+@dataclass(frozen=True)
+class MedianConfig:
+    """Stopping rule of the Weiszfeld iteration in :func:`geometric_median`."""
+
+    max_iterations: int = 200
+    tolerance_m: float = 1e-4  # stop when an iteration moves the point less than this
+    coincident_m: float = 1e-9  # a user closer than this to the iterate counts as "at" it
+
+
+# Up to this many users every user is tested as the median first (U² work); beyond, only the
+# one the iteration ends next to.
+_VERTEX_CHECK_MAX_USERS = 256
+# Multiples of the Weiszfeld step tried at each iteration (1 keeps the classic step).
+_STRETCH = 2.0 ** np.arange(0, 7)
+
+
+def geometric_median(
+    points_xy_m: np.ndarray,
+    weights: np.ndarray | None = None,
+    height_m: float = 0.0,
+    config: MedianConfig = MedianConfig(),
+) -> np.ndarray:
+    """The point p (2,) minimising ``Σ w_i · sqrt(|p − x_i|² + height_m²)``.
+
+    With ``height_m = 0`` this is the weighted geometric median of ``points_xy_m`` (U, 2); with
+    ``height_m > 0`` it is the ground position of a point at that height above the points that
+    minimises the weighted 3-D distance to them (the objective is then smooth and strictly
+    convex, so the minimiser is unique even for collinear users). With ``height_m = 0`` a user
+    that is itself the median (e.g. one holding half the weight or more) is found exactly by
+    its optimality condition first, where Weiszfeld would only crawl toward it.
+
+    Weiszfeld's iteration ``p ← Σ (w_i / D_i) x_i / Σ (w_i / D_i)`` (D_i the current distances),
+    started from the weighted centroid, vectorised over users, at most
+    ``config.max_iterations`` iterations. Each iteration tries 1, 2, 4, ... 64 times the
+    Weiszfeld step along its direction and keeps the best (the plain step is slow where the
+    objective is flat), so the objective never increases. When the
+    iterate lands on a user (only possible with ``height_m = 0``) the Vardi-Zhang modification
+    decides whether that user is the median or steps off it, so there is no division by zero.
+
+    ``weights`` default to equal; negative weights are an error, zero weights drop the user.
+    If every weight is zero, the users count equally.
+    """
+    points = np.asarray(points_xy_m, dtype=float).reshape(-1, 2)
+    if points.shape[0] == 0:
+        raise ValueError("points_xy_m: need at least one user")
+    if weights is None:
+        w = np.ones(points.shape[0])
+    else:
+        w = np.asarray(weights, dtype=float).reshape(-1)
+        if w.shape[0] != points.shape[0]:
+            raise ValueError(f"weights: {w.shape[0]} weights for {points.shape[0]} users")
+        if not np.all(np.isfinite(w)) or np.any(w < 0):
+            raise ValueError("weights: must be finite and >= 0")
+    if not np.all(np.isfinite(points)):
+        raise ValueError("points_xy_m: must be finite")
+    keep = w > 0
+    if not np.any(keep):
+        keep = np.ones_like(keep)
+        w = np.ones_like(w)
+    points, w = points[keep], w[keep] / np.sum(w[keep])
+    if points.shape[0] == 1:
+        return points[0].copy()
+
+    h2 = float(height_m) ** 2
+    if h2 == 0.0 and len(points) <= _VERTEX_CHECK_MAX_USERS:
+        # Weiszfeld crawls (sublinearly) toward a median that sits on a user: test the users.
+        optimal = _optimal_users(points, w, np.arange(len(points)), config.coincident_m)
+        if len(optimal):
+            return points[optimal[0]].copy()
+    p = w @ points  # weighted centroid: a good start, and exact for two equal users
+    for _ in range(config.max_iterations):
+        diff = points - p
+        distance = np.sqrt(np.einsum("ij,ij->i", diff, diff) + h2)
+        at = distance < config.coincident_m
+        inv = np.where(at, 0.0, w / np.where(at, 1.0, distance))
+        new = inv @ points / np.sum(inv) if np.any(inv > 0) else p
+        if np.any(at):
+            # Vardi & Zhang (2000): the users at p pull with total weight eta; p is optimal if
+            # the others' resultant pull is weaker, otherwise step part of the way to T(p).
+            eta = float(np.sum(w[at]))
+            pull = inv @ diff
+            strength = float(np.hypot(pull[0], pull[1]))
+            if strength <= eta:
+                return p.copy()
+            new = (1.0 - eta / strength) * new + (eta / strength) * p
+        else:
+            # Over-relaxation: Weiszfeld's step is a descent direction but can be very short
+            # (a flat objective, a median next to a heavy user); take the best multiple.
+            trial = p + _STRETCH[:, None] * (new - p)  # (L, 2); the first is Weiszfeld's
+            gap = trial[:, None, :] - points[None, :, :]
+            cost = np.sqrt(np.sum(gap**2, axis=-1) + h2) @ w
+            new = trial[int(np.argmin(cost))]
+        step = float(np.hypot(*(new - p)))
+        p = new
+        if step < config.tolerance_m:
+            break
+    if h2 == 0.0:  # many users: test the one the iteration ended next to
+        nearest = np.array([np.argmin(np.sum((points - p) ** 2, axis=1))])
+        if len(_optimal_users(points, w, nearest, config.coincident_m)):
+            return points[nearest[0]].copy()
+    return p
+
+
+def _optimal_users(
+    points: np.ndarray, w: np.ndarray, candidates: np.ndarray, coincident_m: float
+) -> np.ndarray:
+    """The ``candidates`` (user indices) that are weighted geometric medians (ground metric).
+
+    User j (with total weight eta_j at its spot) is a median iff the others' resultant pull,
+    ``|Σ w_i (x_i − x_j) / |x_i − x_j||``, is at most eta_j (the subgradient condition).
+    """
+    diff = points[None, :, :] - points[candidates, None, :]  # [c, i] = x_i - x_c
+    distance = np.sqrt(np.sum(diff**2, axis=-1))
+    same = distance < coincident_m
+    eta = np.sum(np.where(same, w[None, :], 0.0), axis=1)
+    unit = diff / np.where(same, 1.0, distance)[..., None]
+    pull = np.sum(np.where(same[..., None], 0.0, w[None, :, None] * unit), axis=1)
+    strength = np.sqrt(np.sum(pull**2, axis=-1))
+    return candidates[strength <= eta * (1.0 + 1e-12)]
+
+
+def clip_to_volume(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
+    """``xyz_m`` (…, 3) clipped into the UAV's volume of ``area``."""
+    lower = np.array([0.0, 0.0, area.z_min_m])
+    upper = np.array([area.size_x_m, area.size_y_m, area.z_max_m])
+    return np.clip(np.asarray(xyz_m, dtype=float), lower, upper)
+
+
+# --------------------------------------------------------------------------------------------
+# Baselines
+
+
+@dataclass(frozen=True)
+class MinDistancePolicy:
+    """The paper's baseline: minimum mean distance to the users, at the minimum altitude.
+
+    ``load_weighted=True`` weights each user's distance by its offered load (``load-weighted``).
+    ``metric="3d"`` (default) minimises the 3-D distance from the UAV at ``z_min_m`` to users at
+    ``user_height_m``; ``"ground"`` the ground distance (plain geometric median).
+    """
+
+    area: AreaConfig = field(default_factory=AreaConfig)
+    load_weighted: bool = False
+    metric: DistanceMetric = "3d"
+    median: MedianConfig = field(default_factory=MedianConfig)
+
+    def __post_init__(self) -> None:
+        if self.metric not in ("3d", "ground"):
+            raise ValueError(f"metric: must be '3d' or 'ground', got {self.metric!r}")
+
+    @property
+    def name(self) -> str:
+        return "load-weighted" if self.load_weighted else "min-distance"
+
+    def place(self, scenario: UsersLike) -> np.ndarray:
+        area = self.area
+        height_m = area.z_min_m - area.user_height_m if self.metric == "3d" else 0.0
+        weights = np.asarray(scenario.load_bps, dtype=float) if self.load_weighted else None
+        xy_m = geometric_median(scenario.users_xy_m, weights, max(height_m, 0.0), self.median)
+        return clip_to_volume(np.array([xy_m[0], xy_m[1], area.z_min_m]), area)
+
+
+# --------------------------------------------------------------------------------------------
+# Registry
+
+PolicyFactory = Callable[[AreaConfig, NetworkConfig, UtilityConfig, int], PlacementPolicy]
+
+
+def _min_distance(
+    area: AreaConfig, network: NetworkConfig, utility: UtilityConfig, episode_steps: int
+) -> PlacementPolicy:
+    return MinDistancePolicy(area)
+
+
+def _load_weighted(
+    area: AreaConfig, network: NetworkConfig, utility: UtilityConfig, episode_steps: int
+) -> PlacementPolicy:
+    return MinDistancePolicy(area, load_weighted=True)
+
+
+def _oracle(
+    area: AreaConfig, network: NetworkConfig, utility: UtilityConfig, episode_steps: int
+) -> PlacementPolicy:
+    from policies.oracle import OracleConfig, OraclePolicy
+
+    return OraclePolicy(
+        area, network, utility, OracleConfig(episode_steps=episode_steps, step_s=1.0)
+    )
+
+
+BASELINES: dict[str, PolicyFactory] = {
+    "min-distance": _min_distance,
+    "load-weighted": _load_weighted,
+    "oracle": _oracle,
+}
+
+
+def make_policy(
+    name: str,
+    area: AreaConfig = AreaConfig(),
+    network: NetworkConfig = NetworkConfig(),
+    utility: UtilityConfig = UtilityConfig(),
+    episode_steps: int = 100,
+) -> PlacementPolicy:
+    """Build the static policy registered as ``name`` (a key of :data:`BASELINES`).
+
+    ``network``, ``utility`` and ``episode_steps`` matter to the oracle only: it optimises the
+    utility of an episode of that length under that network configuration (use the queueing the
+    evaluation runs with). Raises ``ValueError`` naming the choices for an unknown name.
+    """
+    try:
+        factory = BASELINES[name]
+    except KeyError:
+        raise ValueError(f"unknown policy {name!r} (choices: {', '.join(BASELINES)})") from None
+    return factory(area, network, utility, episode_steps)

@@ -1,0 +1,144 @@
+"""evaluate_policy: result shape, determinism, the acting-policy seam, and the tables."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pytest
+
+from policies.baselines import make_policy
+from policies.evaluation import (
+    EpisodePolicy,
+    evaluate_policy,
+    format_results,
+    heterogeneity_bin,
+    position_to_action_f64,
+)
+from sim.config import AreaConfig
+from sim.scenarios import Scenario, generate_scenarios
+from sim.utility import heterogeneity_index
+
+AREA = AreaConfig()
+STEPS = 20
+CENTRE_M = np.array([262.5, 262.5, 25.0])  # the environments' default start
+
+
+@pytest.fixture(scope="module")
+def scenarios() -> list[Scenario]:
+    return generate_scenarios(6, 3, seed=4, area=AREA)
+
+
+def run(policy: Any, scenarios: list[Scenario], **kwargs: Any) -> dict[str, Any]:
+    kwargs = {"episode_steps": STEPS, "progress": False, **kwargs}
+    return evaluate_policy(policy, scenarios, AREA, **kwargs)
+
+
+def test_result_shape(scenarios: list[Scenario]) -> None:
+    result = run(make_policy("min-distance", AREA), scenarios)
+    assert list(result) == [
+        "policy",
+        "n_scenarios",
+        "mean_utility",
+        "median_utility",
+        "p25_utility",
+        "scenarios",
+    ]
+    assert result["policy"] == "min-distance"
+    assert result["n_scenarios"] == len(scenarios)
+    rows = result["scenarios"]
+    assert [r["id"] for r in rows] == [s.id for s in scenarios]
+    for row, scenario in zip(rows, scenarios, strict=True):
+        assert list(row) == ["id", "utility", "heterogeneity", "throughput_bps", "delay_s", "plr"]
+        assert all(type(row[k]) is float for k in list(row)[1:])
+        assert 0.0 <= row["utility"] <= 1.0
+        assert 0.0 <= row["plr"] <= 1.0
+        assert row["delay_s"] >= 0.0
+        assert 0.0 <= row["throughput_bps"] <= scenario.load_bps.sum() * 1.5
+        assert row["heterogeneity"] == heterogeneity_index(
+            scenario.users_xy_m, scenario.load_bps, AREA
+        )
+    values = np.array([r["utility"] for r in rows])
+    assert result["mean_utility"] == pytest.approx(values.mean())
+    assert result["median_utility"] == pytest.approx(np.median(values))
+    assert result["p25_utility"] == pytest.approx(np.percentile(values, 25))
+    json.dumps(result, allow_nan=False)  # plain JSON
+
+
+def test_same_seed_same_json_other_seed_differs(scenarios: list[Scenario]) -> None:
+    policy = make_policy("load-weighted", AREA)
+    first = json.dumps(run(policy, scenarios, seed=3))
+    assert json.dumps(run(policy, scenarios, seed=3)) == first
+    assert json.dumps(run(policy, scenarios, seed=4)) != first
+
+
+@dataclass
+class FixedPlacement:
+    name: str
+    position_m: np.ndarray
+
+    def place(self, scenario: Any) -> np.ndarray:
+        return self.position_m
+
+
+@dataclass
+class HoverAtStart:
+    """An acting policy (the seam a trained agent plugs into): default start, then hold."""
+
+    env_kind: str
+    name: str = "hover"
+
+    def begin_episode(self, scenario: Any, area: AreaConfig) -> None:
+        return None
+
+    def act(self, observation: np.ndarray, info: dict[str, Any]) -> Any:
+        assert observation.shape == (6, AREA.n_zones_x, AREA.n_zones_y)
+        if self.env_kind == "discrete":
+            assert info["action_mask"][0]
+            return 0  # stay
+        return position_to_action_f64(CENTRE_M, AREA)
+
+
+@pytest.mark.parametrize("env_kind", ["continuous", "discrete"])
+def test_acting_policy_runs_in_the_same_loop(scenarios: list[Scenario], env_kind: str) -> None:
+    agent = HoverAtStart(env_kind)
+    assert isinstance(agent, EpisodePolicy)
+    acted = run(agent, scenarios, seed=9)
+    static = run(FixedPlacement("hover", CENTRE_M), scenarios, seed=9)
+    assert acted == static
+
+
+def test_every_policy_sees_the_same_random_numbers(scenarios: list[Scenario]) -> None:
+    # Two policies that pick the same position get the same episode, whatever their names.
+    a = run(FixedPlacement("a", np.array([100.0, 200.0, 50.0])), scenarios, seed=1)
+    b = run(FixedPlacement("b", np.array([100.0, 200.0, 50.0])), scenarios, seed=1)
+    assert a["scenarios"] == b["scenarios"]
+
+
+def test_bad_arguments(scenarios: list[Scenario]) -> None:
+    policy = make_policy("min-distance", AREA)
+    with pytest.raises(ValueError, match="empty"):
+        evaluate_policy(policy, [], AREA, progress=False)
+    with pytest.raises(ValueError, match="episode_steps"):
+        evaluate_policy(policy, scenarios, AREA, episode_steps=0, progress=False)
+
+
+def test_heterogeneity_bins() -> None:
+    assert heterogeneity_bin(0.0) == 0
+    assert heterogeneity_bin(0.1) == 2
+    assert heterogeneity_bin(0.149999) == 2
+    assert heterogeneity_bin(1.0) == 19
+
+
+def test_tables_name_policies_bins_and_gains(scenarios: list[Scenario]) -> None:
+    results = [run(make_policy(n, AREA), scenarios) for n in ("min-distance", "load-weighted")]
+    text = format_results(results)
+    assert "min-distance" in text and "load-weighted" in text
+    assert "load-weighted/min-distance" in text
+    bins = {heterogeneity_bin(r["heterogeneity"]) for r in results[0]["scenarios"]}
+    for b in bins:
+        assert f"[{b * 0.05:.2f}, {(b + 1) * 0.05:.2f})" in text
+    # Without the reference there is no gain column.
+    assert "/min-distance" not in format_results(results[1:])
