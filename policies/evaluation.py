@@ -134,7 +134,9 @@ def evaluate_policy(
     """Run one episode per scenario and summarise (see the module doc for the protocol).
 
     Returns ``{"policy", "n_scenarios", "mean_utility", "median_utility", "p25_utility",
-    "scenarios": [{"id", "utility", "heterogeneity", "throughput_bps", "delay_s", "plr"}]}``,
+    "seed", "queueing", "episode_steps", "mode", "scenarios": [{"id", "utility",
+    "heterogeneity", "throughput_bps", "delay_s", "plr", "uav_xyz_m"}]}`` (``uav_xyz_m``: where
+    the UAV ended the episode),
     plain floats and strings, ready for JSON. Deterministic given the arguments.
     ``network`` defaults to the paper's configuration; ``queueing`` overrides its queueing.
     ``expected=True`` runs the deterministic expected model instead (no fading draws): the
@@ -186,6 +188,7 @@ def evaluate_policy(
                 "throughput_bps": float(throughput.mean()),
                 "delay_s": float(delay.mean()),
                 "plr": float(plr.mean()),
+                "uav_xyz_m": [float(v) for v in info["uav_xyz_m"]],
             }
         )
     values = np.array([row["utility"] for row in rows])
@@ -195,6 +198,10 @@ def evaluate_policy(
         "mean_utility": float(values.mean()),
         "median_utility": float(np.median(values)),
         "p25_utility": float(np.percentile(values, 25)),
+        "seed": seed,
+        "queueing": queueing,
+        "episode_steps": episode_steps,
+        "mode": "expected" if expected else "stochastic",
         "scenarios": rows,
     }
 

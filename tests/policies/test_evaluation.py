@@ -44,6 +44,10 @@ def test_result_shape(scenarios: list[Scenario]) -> None:
         "mean_utility",
         "median_utility",
         "p25_utility",
+        "seed",
+        "queueing",
+        "episode_steps",
+        "mode",
         "scenarios",
     ]
     assert result["policy"] == "min-distance"
@@ -51,8 +55,19 @@ def test_result_shape(scenarios: list[Scenario]) -> None:
     rows = result["scenarios"]
     assert [r["id"] for r in rows] == [s.id for s in scenarios]
     for row, scenario in zip(rows, scenarios, strict=True):
-        assert list(row) == ["id", "utility", "heterogeneity", "throughput_bps", "delay_s", "plr"]
-        assert all(type(row[k]) is float for k in list(row)[1:])
+        assert list(row) == [
+            "id",
+            "utility",
+            "heterogeneity",
+            "throughput_bps",
+            "delay_s",
+            "plr",
+            "uav_xyz_m",
+        ]
+        assert all(type(row[k]) is float for k in list(row)[1:-1])
+        np.testing.assert_allclose(
+            row["uav_xyz_m"], make_policy("min-distance", AREA).place(scenario)
+        )
         assert 0.0 <= row["utility"] <= 1.0
         assert 0.0 <= row["plr"] <= 1.0
         assert row["delay_s"] >= 0.0
