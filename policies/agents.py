@@ -1,0 +1,57 @@
+"""A trained checkpoint as an acting policy, for evaluation now and for the service later."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from policies.baselines import UsersLike
+from policies.checkpoints import load_checkpoint
+from sim.config import AreaConfig
+
+
+class TrainedAgent:
+    """A DDQN or DDPG checkpoint answering every step from the observation (deterministic).
+
+    DDQN acts in ``tupa/FapDiscrete`` (13 moves, masked with ``info["action_mask"]``), DDPG in
+    ``tupa/FapContinuous`` (absolute coordinates). Episodes start at the environment's default
+    start, as in training's evaluation.
+    """
+
+    def __init__(self, model: Any, metadata: dict[str, Any], name: str | None = None) -> None:
+        self.model = model
+        self.metadata = metadata
+        self.algorithm: str = metadata["algorithm"]
+        self.env_kind = "discrete" if self.algorithm == "ddqn" else "continuous"
+        self.name = name or default_name(metadata, None)
+
+    @classmethod
+    def load(
+        cls,
+        path: Path,
+        area: AreaConfig = AreaConfig(),
+        name: str | None = None,
+        device: str = "auto",
+    ) -> TrainedAgent:
+        """Load a checkpoint (``InputError`` naming the file and the problem if it is unusable)."""
+        model, metadata = load_checkpoint(path, area, device=device)
+        return cls(model, metadata, name or default_name(metadata, Path(path)))
+
+    def begin_episode(self, scenario: UsersLike, area: AreaConfig) -> np.ndarray | None:
+        return None
+
+    def act(self, observation: np.ndarray, info: dict[str, Any]) -> Any:
+        if self.algorithm == "ddqn":
+            return int(self.model.masked_predict(observation[None], info["action_mask"][None])[0])
+        action, _ = self.model.predict(observation, deterministic=True)
+        return np.asarray(action, dtype=np.float32)
+
+
+def default_name(metadata: dict[str, Any], path: Path | None) -> str:
+    """``ddqn-gen10k`` style: algorithm and training strategy, else the file's name."""
+    algorithm, strategy = metadata.get("algorithm"), metadata.get("strategy")
+    if algorithm and strategy:
+        return f"{algorithm}-{strategy}"
+    return path.stem if path is not None else str(algorithm)

@@ -1,0 +1,442 @@
+"""Offline training of a TUPA policy, top to bottom: data, environment, agent, callbacks, save.
+
+``train(config)`` is what ``tupa train`` runs:
+
+1. **Scenarios** by strategy (paper §IV-A): ``spec`` trains on the test set cycled in order;
+   ``gen10k`` on as many unique generated scenarios as episodes, each once; ``gen500`` on 500
+   unique scenarios cycled. Generated training scenarios use seed ``TRAIN_SEED_OFFSET + seed``,
+   far from the seeds test sets are drawn with.
+2. **Environment**: ``tupa/FapDiscrete`` for DDQN, ``tupa/FapContinuous`` for DDPG, with the
+   preset's training episode (length and start), stochastic network model.
+3. **Agent** from the preset (``policies.presets``) with the paper's CNN
+   (``policies.networks.ZoneMapsCNN``); GPU when torch sees one, CPU otherwise.
+4. **Callbacks**: a progress bar (episodes, recent utility, ETA), TensorBoard logs, a checkpoint
+   every ``checkpoint_every`` episodes (``checkpoints/latest.zip``), and evaluations on part of
+   the test set at 100, 200, 500, 1000, … episodes for the learning curve.
+5. **Save**: ``model.zip`` and ``model.json`` (metadata with the final evaluation on the whole
+   test set, beside min-distance and the oracle), written atomically.
+
+Ctrl-C saves ``checkpoints/latest.zip`` (with the replay buffer) and stops; ``resume(out_dir)``
+continues from it with the same step counter.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import deque
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.noise import NormalActionNoise
+
+from policies.agents import TrainedAgent
+from policies.baselines import make_policy
+from policies.checkpoints import algorithm_class, git_commit, save_checkpoint
+from policies.evaluation import evaluate_policy
+from policies.networks import ZoneMapsCNN
+from policies.presets import NetworkPreset, Preset, get_preset
+from sim.config import AreaConfig, NetworkConfig, Queueing
+from sim.envs import EnvConfig, FapContinuousEnv, FapDiscreteEnv, ScenarioCycle
+from sim.errors import InputError
+from sim.files import atomic_write_json, load_scenarios, scenario_set_hash
+from sim.observation import observation_shape
+from sim.scenarios import Scenario, generate_scenarios
+
+STRATEGIES: tuple[str, ...] = ("spec", "gen10k", "gen500")
+TRAIN_SEED_OFFSET = 1_000_000
+GEN500_UNIQUE = 500
+CURVE_POINTS: tuple[int, ...] = (100, 200, 500, 1_000, 2_000, 5_000, 10_000, 20_000, 50_000)
+RUN_FILE = "run.json"
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """One training run. ``preset`` holds every hyper-parameter (see ``policies.presets``)."""
+
+    algorithm: str
+    strategy: str
+    episodes: int
+    preset: Preset
+    seed: int
+    test_scenarios: Path
+    out_dir: Path
+    queueing: Queueing = "fq-codel"
+    checkpoint_every: int = 500
+    curve_scenarios: int = 100
+    final_eval: bool = True
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if self.strategy not in STRATEGIES:
+            raise InputError(
+                f"--strategy: must be one of {', '.join(STRATEGIES)}, got {self.strategy!r}"
+            )
+        if self.episodes < 1:
+            raise InputError(f"--episodes: must be at least 1, got {self.episodes}")
+        if self.checkpoint_every < 1:
+            raise InputError(f"--checkpoint-every: must be at least 1, got {self.checkpoint_every}")
+        if self.seed < 0:
+            raise InputError(f"--seed: must be >= 0, got {self.seed}")
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["test_scenarios"] = str(self.test_scenarios)
+        d["out_dir"] = str(self.out_dir)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
+        d = dict(d)
+        p = dict(d.pop("preset"))
+        p["network"] = NetworkPreset(
+            **{**p["network"], "channels": tuple(p["network"]["channels"])}
+        )
+        return cls(
+            **{
+                **d,
+                "preset": Preset(**p),
+                "test_scenarios": Path(d["test_scenarios"]),
+                "out_dir": Path(d["out_dir"]),
+            }
+        )
+
+
+def training_scenarios(
+    strategy: str, episodes: int, test: list[Scenario], area: AreaConfig, seed: int
+) -> list[Scenario]:
+    """The scenarios a strategy trains on, in the order the episodes visit them (cycled)."""
+    if strategy == "spec":
+        return list(test)
+    n_users = test[0].n_users
+    count = episodes if strategy == "gen10k" else min(GEN500_UNIQUE, episodes)
+    return generate_scenarios(count, n_users, seed=TRAIN_SEED_OFFSET + seed, area=area)
+
+
+def make_env(
+    algorithm: str, scenarios: list[Scenario], preset: Preset, area: AreaConfig, queueing: Queueing
+) -> gym.Env:
+    config = EnvConfig(
+        episode_steps=preset.train_episode_steps,
+        start=preset.train_start,
+        network=NetworkConfig().with_queueing(queueing),
+        area=area,
+    )
+    env_class = FapDiscreteEnv if algorithm == "ddqn" else FapContinuousEnv
+    return Monitor(env_class(ScenarioCycle(scenarios), config=config))
+
+
+def build_model(
+    algorithm: str, env: gym.Env, preset: Preset, seed: int, tensorboard_log: Path | None
+) -> Any:
+    """The SB3 agent for ``preset`` on ``env`` (CUDA when available)."""
+    optimizer = th.optim.RMSprop if preset.optimizer == "rmsprop" else th.optim.Adam
+    net = preset.network
+    extractor_kwargs = {
+        "channels": net.channels,
+        "hidden": net.hidden,
+        "features_dim": net.features_dim,
+        "dropout": net.dropout,
+    }
+    common: dict[str, Any] = {
+        "learning_rate": preset.learning_rate,
+        "buffer_size": preset.buffer_size,
+        "learning_starts": preset.learning_starts,
+        "batch_size": preset.batch_size,
+        "tau": preset.tau,
+        "gamma": preset.gamma,
+        "train_freq": preset.train_freq,
+        "gradient_steps": preset.gradient_steps,
+        "seed": seed,
+        "device": "auto",
+        "tensorboard_log": str(tensorboard_log) if tensorboard_log else None,
+        "verbose": 0,
+    }
+    if algorithm == "ddqn":
+        return algorithm_class("ddqn")(
+            "CnnPolicy",
+            env,
+            target_update_interval=preset.target_update_interval,
+            epsilon_start=preset.epsilon_start,
+            epsilon_decay_per_episode=preset.epsilon_decay_per_episode,
+            epsilon_min=preset.epsilon_min,
+            loss=preset.loss,
+            policy_kwargs={
+                "features_extractor_class": ZoneMapsCNN,
+                "features_extractor_kwargs": extractor_kwargs,
+                "net_arch": [],
+                "normalize_images": False,
+                "optimizer_class": optimizer,
+            },
+            **common,
+        )
+    n_actions = env.action_space.shape[0]
+    return algorithm_class("ddpg")(
+        "CnnPolicy",
+        env,
+        target_update_interval=preset.target_update_interval,
+        loss=preset.loss,
+        action_noise=NormalActionNoise(
+            np.zeros(n_actions), preset.action_noise_sigma * np.ones(n_actions)
+        ),
+        policy_kwargs={
+            "features_extractor_class": ZoneMapsCNN,
+            "features_extractor_kwargs": extractor_kwargs,
+            "net_arch": [],
+            "normalize_images": False,
+            "optimizer_class": optimizer,
+        },
+        **common,
+    )
+
+
+class TrainingCallback(BaseCallback):
+    """Progress bar, periodic checkpoints and learning-curve evaluations, counted in episodes."""
+
+    def __init__(self, run: _Run) -> None:
+        super().__init__()
+        self.run = run
+        self.recent_utility: deque[float] = deque(maxlen=50)
+        self.bar: Any = None
+
+    def _on_training_start(self) -> None:
+        if self.run.config.progress:
+            from tqdm import tqdm
+
+            self.bar = tqdm(
+                total=self.run.config.episodes,
+                initial=self.run.episodes_done,
+                desc=f"{self.run.config.algorithm}-{self.run.config.strategy}",
+                unit="ep",
+                dynamic_ncols=True,
+            )
+
+    def _on_step(self) -> bool:
+        for info in self.locals.get("infos", []):
+            episode = info.get("episode")
+            if episode is None:
+                continue
+            self.run.episodes_done += 1
+            self.recent_utility.append(episode["r"] / max(episode["l"], 1))
+            if self.bar is not None:
+                self.bar.update(1)
+                self.bar.set_postfix(utility=f"{np.mean(self.recent_utility):.3f}")
+            self.logger.record("rollout/episode_utility", float(np.mean(self.recent_utility)))
+            done = self.run.episodes_done
+            if done % self.run.config.checkpoint_every == 0 and done < self.run.config.episodes:
+                self.run.save_latest(self.model)
+            if done in CURVE_POINTS and done <= self.run.config.episodes:
+                self.run.add_curve_point(self.model, done)
+        return self.run.episodes_done < self.run.config.episodes
+
+    def _on_training_end(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+class _Run:
+    """State of one run shared by the trainer and its callback: data, counters, files."""
+
+    def __init__(
+        self, config: TrainConfig, episodes_done: int = 0, wall_time_s: float = 0.0
+    ) -> None:
+        self.config = config
+        self.area, self.test = load_scenarios(config.test_scenarios)
+        self.train_set = training_scenarios(
+            config.strategy, config.episodes, self.test, self.area, config.seed
+        )
+        self.episodes_done = episodes_done
+        self.wall_time_before_s = wall_time_s
+        self.started = time.monotonic()
+        self.curve_path = config.out_dir / "learning_curve.json"
+        self.curve_test = self.test[: config.curve_scenarios]
+
+    @property
+    def wall_time_s(self) -> float:
+        return self.wall_time_before_s + time.monotonic() - self.started
+
+    def metadata(self, model: Any, evaluation: dict[str, Any] | None = None) -> dict[str, Any]:
+        c = self.config
+        return {
+            "algorithm": c.algorithm,
+            "strategy": c.strategy,
+            "preset": c.preset.to_dict(),
+            "episodes": self.episodes_done,
+            "timesteps": int(model.num_timesteps),
+            "seed": c.seed,
+            "queueing": c.queueing,
+            "n_users": self.test[0].n_users,
+            "observation_shape": list(observation_shape(self.area)),
+            "area": self.area.to_dict(),
+            "scenario_set_hash": scenario_set_hash(self.area, self.train_set),
+            "test_set_hash": scenario_set_hash(self.area, self.test),
+            "git_commit": git_commit(),
+            "device": str(model.device),
+            "wall_time_s": round(self.wall_time_s, 1),
+            "evaluation": evaluation,
+        }
+
+    def save_latest(self, model: Any, with_replay_buffer: bool = False) -> None:
+        checkpoint = self.config.out_dir / "checkpoints" / "latest.zip"
+        save_checkpoint(model, checkpoint, self.metadata(model))
+        if with_replay_buffer:
+            model.save_replay_buffer(checkpoint.with_name("latest_replay.pkl"))
+        atomic_write_json(
+            self.config.out_dir / RUN_FILE,
+            {
+                "config": self.config.to_dict(),
+                "episodes_done": self.episodes_done,
+                "wall_time_s": self.wall_time_s,
+            },
+        )
+
+    def evaluate(self, model: Any, scenarios: list[Scenario]) -> dict[str, Any]:
+        agent = TrainedAgent(
+            model, {"algorithm": self.config.algorithm, "strategy": self.config.strategy}
+        )
+        return evaluate_policy(
+            agent, scenarios, self.area, seed=0, queueing=self.config.queueing, progress=False
+        )
+
+    def add_curve_point(self, model: Any, episodes: int) -> None:
+        from policies.report import write_learning_curve
+
+        result = self.evaluate(model, self.curve_test)
+        curve = json.loads(self.curve_path.read_text()) if self.curve_path.exists() else None
+        points = curve["curves"][0]["points"] if curve else []
+        points = [p for p in points if p["episodes"] != episodes]
+        points.append(
+            {
+                "episodes": episodes,
+                "median_utility": result["median_utility"],
+                "mean_utility": result["mean_utility"],
+            }
+        )
+        reference = curve["reference"] if curve else self.reference_medians()
+        label = f"{self.config.algorithm}-{self.config.strategy}"
+        write_learning_curve(
+            self.curve_path,
+            [{"label": label, "points": sorted(points, key=lambda p: p["episodes"])}],
+            reference,
+        )
+
+    def reference_medians(self) -> dict[str, float]:
+        network = NetworkConfig().with_queueing(self.config.queueing)
+        medians = {}
+        for name in ("min-distance", "oracle"):
+            policy = make_policy(name, self.area, network)
+            medians[name] = evaluate_policy(
+                policy,
+                self.curve_test,
+                self.area,
+                seed=0,
+                queueing=self.config.queueing,
+                progress=False,
+            )["median_utility"]
+        return medians
+
+
+def train(config: TrainConfig, resume: bool = False) -> dict[str, Any]:
+    """Run (or, with ``resume``, continue) a training run; returns the final metadata."""
+    run_state = _read_run(config.out_dir) if resume else None
+    run = _Run(config, *(run_state or (0, 0.0)))
+    if not run.test:
+        raise InputError(f"{config.test_scenarios}: scenarios: empty")
+    env = make_env(config.algorithm, run.train_set, config.preset, run.area, config.queueing)
+    latest = config.out_dir / "checkpoints" / "latest.zip"
+    if resume:
+        model = algorithm_class(config.algorithm).load(latest, env=env, device="auto")
+        replay = latest.with_name("latest_replay.pkl")
+        if replay.exists():
+            model.load_replay_buffer(replay)
+        # Episodes visit the training set in order: continue where the run stopped.
+        env.unwrapped.scenarios._next = run.episodes_done % len(run.train_set)
+    else:
+        config.out_dir.mkdir(parents=True, exist_ok=True)
+        model = build_model(
+            config.algorithm, env, config.preset, config.seed, config.out_dir / "tb"
+        )
+    total_timesteps = config.episodes * config.preset.train_episode_steps
+    callback = TrainingCallback(run)
+    try:
+        model.learn(
+            total_timesteps=max(total_timesteps - model.num_timesteps, 1),
+            callback=callback,
+            reset_num_timesteps=not resume,
+            tb_log_name=f"{config.algorithm}-{config.strategy}",
+        )
+    except KeyboardInterrupt:
+        run.save_latest(model, with_replay_buffer=True)
+        raise
+    evaluation = final_evaluation(run, model) if config.final_eval else None
+    metadata = run.metadata(model, evaluation)
+    save_checkpoint(model, config.out_dir / "model.zip", metadata)
+    run.save_latest(model)
+    return metadata
+
+
+def final_evaluation(run: _Run, model: Any) -> dict[str, Any]:
+    """The trained policy on the whole test set, beside min-distance and the oracle."""
+    network = NetworkConfig().with_queueing(run.config.queueing)
+    summary: dict[str, Any] = {}
+    per_policy = {}
+    for name in ("min-distance", "oracle"):
+        per_policy[name] = evaluate_policy(
+            make_policy(name, run.area, network),
+            run.test,
+            run.area,
+            seed=0,
+            queueing=run.config.queueing,
+            progress=False,
+        )
+    per_policy["policy"] = run.evaluate(model, run.test)
+    for name, result in per_policy.items():
+        summary[name] = {k: result[k] for k in ("mean_utility", "median_utility", "p25_utility")}
+    oracle = per_policy["oracle"]["mean_utility"]
+    summary["ratio_to_oracle"] = per_policy["policy"]["mean_utility"] / oracle
+    summary["n_scenarios"] = len(run.test)
+    return summary
+
+
+def _read_run(out_dir: Path) -> tuple[int, float]:
+    path = out_dir / RUN_FILE
+    if not (out_dir / "checkpoints" / "latest.zip").exists() or not path.exists():
+        raise InputError(
+            f"--resume: {out_dir} holds no interrupted run (no checkpoints/latest.zip)"
+        )
+    state = json.loads(path.read_text())
+    return int(state["episodes_done"]), float(state["wall_time_s"])
+
+
+def resume_config(out_dir: Path, episodes: int | None = None) -> TrainConfig:
+    """The configuration of the run in ``out_dir`` (optionally with a new episode target)."""
+    path = out_dir / RUN_FILE
+    if not path.exists():
+        raise InputError(f"--resume: {out_dir} holds no training run ({RUN_FILE} missing)")
+    config = TrainConfig.from_dict(json.loads(path.read_text())["config"])
+    return replace(config, episodes=episodes) if episodes else config
+
+
+def config_from_args(
+    algorithm: str,
+    strategy: str,
+    episodes: int,
+    preset: str,
+    seed: int,
+    test_scenarios: Path,
+    out_dir: Path,
+    **kwargs: Any,
+) -> TrainConfig:
+    try:
+        chosen = get_preset(preset, algorithm)
+    except ValueError as exc:
+        raise InputError(f"--{exc}") from None
+    return TrainConfig(
+        algorithm, strategy, episodes, chosen, seed, test_scenarios, out_dir, **kwargs
+    )

@@ -1,0 +1,214 @@
+"""DDQN masking and target, DDPG, checkpoints, training and resume (small, fast runs)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch as th
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from policies.agents import TrainedAgent
+from policies.checkpoints import load_checkpoint, save_checkpoint
+from policies.ddqn import double_dqn_targets
+from policies.evaluation import evaluate_policy
+from policies.presets import NetworkPreset, get_preset
+from policies.training import TrainConfig, build_model, make_env, train
+from service.cli import main
+from sim.config import AreaConfig
+from sim.errors import InputError
+from sim.files import save_scenarios
+from sim.scenarios import Scenario, generate_scenarios
+
+AREA = AreaConfig()
+TINY_NET = NetworkPreset(channels=(8,), hidden=32, features_dim=32, dropout=0.0)
+
+
+def tiny_preset(algorithm: str, **changes):
+    base = get_preset("fast", algorithm)
+    return replace(
+        base, network=TINY_NET, buffer_size=5_000, learning_starts=64, batch_size=32, **changes
+    )
+
+
+@pytest.fixture(scope="module")
+def test_file(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("data") / "test.json"
+    save_scenarios(path, AREA, generate_scenarios(6, 3, seed=99))
+    return path
+
+
+def test_double_dqn_target_follows_the_formula():
+    rewards = th.tensor([[0.5], [0.2], [1.0]])
+    dones = th.tensor([[0.0], [0.0], [1.0]])
+    online = th.tensor([[1.0, 3.0, 2.0], [5.0, 1.0, 0.0], [0.0, 0.0, 9.0]])
+    target = th.tensor([[10.0, 20.0, 30.0], [7.0, 8.0, 9.0], [1.0, 1.0, 1.0]])
+    masks = th.tensor([[True, True, True], [False, True, True], [True, True, True]])
+    y = double_dqn_targets(rewards, dones, 0.9, online, target, masks)
+    # Row 0: online argmax is action 1 → target value 20 (vanilla DQN would take max 30).
+    # Row 1: action 0 is masked; online argmax among {1, 2} is 1 → target value 8.
+    # Row 2: terminal → reward only.
+    expected = th.tensor([[0.5 + 0.9 * 20.0], [0.2 + 0.9 * 8.0], [1.0]])
+    th.testing.assert_close(y, expected)
+    vanilla = rewards + (1 - dones) * 0.9 * target.max(dim=1, keepdim=True).values
+    assert not th.allclose(y, vanilla)
+
+
+@pytest.fixture(scope="module")
+def random_ddqn(test_file):
+    from sim.files import load_scenarios
+
+    _, scenarios = load_scenarios(test_file)
+    env = make_env("ddqn", scenarios, tiny_preset("ddqn"), AREA, "fq-codel")
+    return build_model("ddqn", env, tiny_preset("ddqn"), seed=0, tensorboard_log=None)
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    masks=st.lists(st.lists(st.booleans(), min_size=13, max_size=13), min_size=1, max_size=8),
+    epsilon=st.sampled_from([0.0, 0.5, 1.0]),
+    seed=st.integers(0, 1000),
+)
+def test_ddqn_never_picks_a_masked_move(random_ddqn, masks, epsilon, seed):
+    masks = np.array(masks, dtype=bool)
+    masks[:, 0] = True  # "stay" is always valid in the environment
+    rng = np.random.default_rng(seed)
+    obs = rng.random((len(masks), *random_ddqn.observation_space.shape), dtype=np.float32)
+    actions = random_ddqn.masked_predict(obs, masks, epsilon=epsilon)
+    assert np.all(masks[np.arange(len(masks)), actions])
+
+
+def test_ddqn_acting_in_the_environment_respects_masks(random_ddqn):
+    env = random_ddqn.get_env()
+    random_ddqn.exploration_rate = 0.3
+    random_ddqn._last_obs = env.reset()
+    for _ in range(60):
+        masks = np.stack(env.env_method("action_masks"))
+        actions, _ = random_ddqn._sample_action(learning_starts=0)
+        assert masks[0, actions[0]]
+        random_ddqn._last_obs, *_ = env.step(actions)
+
+
+def small_config(
+    test_file: Path, out: Path, algorithm: str, episodes: int, **changes
+) -> TrainConfig:
+    return TrainConfig(
+        algorithm=algorithm,
+        strategy="spec",
+        episodes=episodes,
+        preset=tiny_preset(algorithm, **changes),
+        seed=3,
+        test_scenarios=test_file,
+        out_dir=out,
+        checkpoint_every=5,
+        final_eval=False,
+        progress=False,
+    )
+
+
+@pytest.mark.slow
+def test_short_ddqn_training_beats_a_random_walk(tmp_path):
+    """On one scenario whose single heavy user is far from the start, a few hundred training
+    steps teach the agent to move towards it; a random (valid) walk does not."""
+    scenario = Scenario("corner", np.array([[30.0, 30.0]]), np.array([40e6]))
+    path = tmp_path / "one.json"
+    save_scenarios(path, AREA, [scenario])
+    config = replace(
+        small_config(path, tmp_path / "run", "ddqn", 40, train_episode_steps=20),
+        preset=tiny_preset(
+            "ddqn", train_episode_steps=20, train_start="centre", epsilon_decay_per_episode=0.1
+        ),
+    )
+    train(config)
+    agent = TrainedAgent.load(tmp_path / "run")
+
+    class RandomWalk:
+        name, env_kind = "random", "discrete"
+
+        def __init__(self):
+            self.rng = np.random.default_rng(0)
+
+        def begin_episode(self, scenario, area):
+            return None
+
+        def act(self, observation, info):
+            return int(self.rng.choice(np.flatnonzero(info["action_mask"])))
+
+    kwargs = {"area": AREA, "seed": 0, "episode_steps": 20, "progress": False}
+    trained = evaluate_policy(agent, [scenario], **kwargs)["mean_utility"]
+    random = evaluate_policy(RandomWalk(), [scenario], **kwargs)["mean_utility"]
+    assert trained > random + 0.05
+
+
+@pytest.mark.slow
+def test_checkpoint_round_trip_and_resume_continues_the_step_counter(tmp_path, test_file):
+    out = tmp_path / "run"
+    first = train(small_config(test_file, out, "ddqn", 10))
+    assert first["episodes"] == 10
+    assert first["timesteps"] == 10 * 30
+    meta = json.loads((out / "model.json").read_text())
+    assert meta["algorithm"] == "ddqn" and meta["observation_shape"] == [6, 20, 20]
+    model, loaded_meta = load_checkpoint(out / "model.zip", AREA)
+    assert loaded_meta["episodes"] == 10
+    obs = np.random.default_rng(0).random((4, 6, 20, 20), dtype=np.float32)
+    masks = np.ones((4, 13), dtype=bool)
+    original = TrainedAgent.load(out).model
+    np.testing.assert_array_equal(
+        model.masked_predict(obs, masks), original.masked_predict(obs, masks)
+    )
+
+    resumed = train(replace(small_config(test_file, out, "ddqn", 16)), resume=True)
+    assert resumed["episodes"] == 16
+    assert resumed["timesteps"] == 16 * 30  # the counter continued, it did not restart
+
+
+@pytest.mark.slow
+def test_ddpg_trains_and_acts_inside_the_volume(tmp_path, test_file):
+    out = tmp_path / "ddpg"
+    meta = train(small_config(test_file, out, "ddpg", 6))
+    assert meta["algorithm"] == "ddpg"
+    agent = TrainedAgent.load(out)
+    result = evaluate_policy(
+        agent, generate_scenarios(2, 3, seed=5), AREA, episode_steps=5, progress=False
+    )
+    for row in result["scenarios"]:
+        x, y, z = row["uav_xyz_m"]
+        assert 0 <= x <= 500 and 0 <= y <= 500 and 25 <= z <= 100
+
+
+def test_bad_checkpoints_are_refused_with_one_line(tmp_path, random_ddqn):
+    good = tmp_path / "good.zip"
+    meta = {"algorithm": "ddqn", "strategy": "spec", "observation_shape": [6, 20, 20]}
+    save_checkpoint(random_ddqn, good, meta)
+    load_checkpoint(good, AREA)  # fine
+    with pytest.raises(InputError, match="no such checkpoint"):
+        load_checkpoint(tmp_path / "missing.zip", AREA)
+    with pytest.raises(InputError, match="algorithm: expected ddpg"):
+        load_checkpoint(good, AREA, algorithm="ddpg")
+    with pytest.raises(InputError, match="observation_shape"):
+        load_checkpoint(good, AreaConfig(size_x_m=250, size_y_m=250))
+    corrupt = tmp_path / "corrupt.zip"
+    corrupt.write_bytes(good.read_bytes()[:200])
+    corrupt.with_suffix(".json").write_text(good.with_suffix(".json").read_text())
+    with pytest.raises(InputError, match="corrupt"):
+        load_checkpoint(corrupt, AREA)
+    no_meta = tmp_path / "nometa.zip"
+    no_meta.write_bytes(good.read_bytes())
+    with pytest.raises(InputError, match="metadata"):
+        load_checkpoint(no_meta, AREA)
+    for message in ("corrupt", "metadata", "observation_shape"):
+        assert "\n" not in message
+
+
+def test_train_cli_refuses_bad_arguments(tmp_path, test_file, capsys):
+    assert main(["train", "--algo", "ddqn", "--episodes", "5"]) == 2
+    assert "required" in capsys.readouterr().err
+    args = ["train", "--algo", "ddqn", "--strategy", "spec", "--test-scenarios", str(test_file)]
+    assert main([*args, "--episodes", "0", "--out", str(tmp_path / "x")]) == 2
+    assert "--episodes" in capsys.readouterr().err
+    assert not (tmp_path / "x" / "model.zip").exists()
+    assert main(["train", "--resume", str(tmp_path / "nothing")]) == 2
