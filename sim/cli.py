@@ -40,6 +40,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--expected", action="store_true", help="deterministic expected mode (no fading draws)"
     )
     evaluate.add_argument("--queueing", choices=QUEUEING_CHOICES, default="fq-codel")
+    evaluate.add_argument(
+        "--backend",
+        choices=("fast", "ns3"),
+        default="fast",
+        help="fast: the embedded model (default); ns3: ns-3 3.44 (pip install 'tupa[ns3]')",
+    )
     evaluate.add_argument("--warmup-s", type=float, default=0.5, help="warm-up (default 0.5 s)")
     evaluate.add_argument(
         "--measure-s", type=float, default=2.0, help="measurement window (default 2 s)"
@@ -77,6 +83,21 @@ def _evaluate(args: argparse.Namespace) -> int:
         raise InputError(f"--warmup-s: must be >= 0, got {args.warmup_s}")
     if not args.measure_s > 0:
         raise InputError(f"--measure-s: must be > 0, got {args.measure_s}")
+    if args.backend == "ns3":
+        if args.expected:
+            raise InputError("--expected: not available with --backend ns3 (ns-3 draws its fading)")
+        from sim.ns3_backend import evaluate_cases_file_ns3  # InputError if ns-3 is missing
+
+        summary, n_failed = evaluate_cases_file_ns3(
+            args.cases,
+            args.out,
+            seed=args.seed,
+            queueing=args.queueing,
+            warmup_s=args.warmup_s,
+            measure_s=args.measure_s,
+        )
+        print(summary)
+        return 1 if n_failed else 0
     summary = evaluate_cases_file(
         args.cases,
         args.out,

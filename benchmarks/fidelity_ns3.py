@@ -1,0 +1,579 @@
+"""How faithful is the fast network model? Its numbers against ns-3 3.44 on the calibration set.
+
+Reads the committed ns-3 results (``sim/calibration/ns3_<queueing>.json``, built by
+``python -m sim.calibration.build run``), evaluates the same cases with the fast model in
+expected mode under the same protocol (0.5 s warm-up from empty queues, 2 s measured) and
+writes ``benchmarks/results/fidelity_ns3.json`` and ``fidelity_ns3.png``:
+
+* per-user throughput relative error ``|fast − ns3| / ns3`` (ns-3 throughput floored at
+  10 kbit/s), median and p90, for all users and for the congested ones (ns-3 loss > 1 %),
+  on the held-out cases and on all cases; the same normalised by the user's offered load;
+* absolute error of the per-user loss ratio and of the case utility; delay error (absolute and
+  as a log10 ratio);
+* placement agreement: for each group of candidate UAV positions of one scenario, the ns-3
+  utility at the candidate the fast model ranks best over the best ns-3 utility among them;
+* the ns-3 seed-to-seed spread (the noise floor any model meets), errors by case family;
+* the 10 s runs: mean delay per 1 s interval, ns-3 vs the fast model stepping 1 s at a time
+  with its queue state carried over (how FqCoDel delays grow);
+* why ns-3 loses packets, from its drop traces: lost packets by cause, and for light users
+  beside backlogged ones (the case the fast model misses) their backoffs and longest gaps;
+* the speed anchor: wall time per simulated second, ns-3 (a few cases timed live, same run)
+  vs the fast model on the same cases.
+
+Run (ns-3 needed only for the live timing; ``--no-live`` uses the calibration's timings)::
+
+    nice -n 19 .venv/bin/python benchmarks/fidelity_ns3.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sim.config import NetworkConfig
+from sim.evaluate import CaseMetrics, evaluate_case
+from sim.files import load_cases
+from sim.network import NetworkModel
+from sim.scenarios import Case
+
+ROOT = Path(__file__).resolve().parent.parent
+CALIBRATION = ROOT / "sim" / "calibration"
+RESULTS = ROOT / "benchmarks" / "results" / "fidelity_ns3.json"
+FIGURE = ROOT / "benchmarks" / "results" / "fidelity_ns3.png"
+VARIANTS = ("fq-codel", "mac-only")
+THROUGHPUT_FLOOR_BPS = 1e4
+CONGESTED_PLR = 0.01
+PACKET_BYTES = 512
+TURNOVER_PPS = 500 / 0.5  # WifiMacQueue MaxSize / MaxDelay
+SPEED_CASES = (
+    "single-d450-z25-L40",
+    "p3-s0002-centroid",
+    "many-u12-L40-centroid",
+    "many-u20-L40-centroid",
+)
+TARGETS = {
+    "throughput_rel_error_median": 0.10,
+    "throughput_rel_error_p90": 0.25,
+    "congested_throughput_rel_error_median": 0.15,
+    "utility_abs_error_median": 0.05,
+    "placement_agreement_mean": 0.97,
+    "speedup_per_simulated_second": 10_000,
+}
+
+
+def summary(values: np.ndarray) -> dict[str, float | int]:
+    """Count, median, p90 and mean of ``values`` (NaN-free), rounded for the JSON."""
+    v = np.asarray(values, dtype=float)
+    if v.size == 0:
+        return {"n": 0}
+    return {
+        "n": int(v.size),
+        "median": round(float(np.median(v)), 4),
+        "p90": round(float(np.percentile(v, 90)), 4),
+        "mean": round(float(np.mean(v)), 4),
+    }
+
+
+def load_ns3(queueing: str, long: bool = False) -> dict[str, Any]:
+    name = f"ns3_long_{queueing}.json" if long else f"ns3_{queueing}.json"
+    path = CALIBRATION / name
+    if not path.exists():
+        return {}
+    return json.loads(path.read_text(encoding="utf-8"))
+
+
+def user_rows(
+    cases: dict[str, Case],
+    ns3: dict[str, Any],
+    fast: dict[str, CaseMetrics],
+    meta: dict[str, Any],
+) -> list[dict[str, Any]]:
+    """One row per (case, user) with both backends' metrics."""
+    held_out = set(meta["held_out"])
+    rows = []
+    for entry in ns3.get("cases", []):
+        case = cases[entry["id"]]
+        f = fast[entry["id"]]
+        seeds = entry["per_seed"]
+        for u, user in enumerate(entry["users"]):
+            per_seed_tput = [s["users"][u]["throughput_bps"] for s in seeds]
+            rows.append(
+                {
+                    "id": entry["id"],
+                    "family": meta["family"][entry["id"]],
+                    "held_out": entry["id"] in held_out,
+                    "n_users": case.n_users,
+                    "load_bps": float(case.load_bps[u]),
+                    "ns3_tput": user["throughput_bps"],
+                    "ns3_delay": user["delay_s"],
+                    "ns3_plr": user["plr"],
+                    "fast_tput": float(f.throughput_bps[u]),
+                    "fast_delay": float(f.delay_s[u]),
+                    "fast_plr": float(f.plr[u]),
+                    "seed_spread": (
+                        (max(per_seed_tput) - min(per_seed_tput))
+                        / max(np.mean(per_seed_tput), THROUGHPUT_FLOOR_BPS)
+                        if len(seeds) > 1
+                        else np.nan
+                    ),
+                    "detail": seeds[0]["users"][u].get("ns3", {}),
+                }
+            )
+    return rows
+
+
+def errors(rows: list[dict[str, Any]], ns3_cases: list[dict[str, Any]], fast, ids) -> dict:
+    """The error figures over the users of ``rows`` and the cases in ``ids``."""
+    if not rows:
+        return {"n_users": 0}
+    ns3_t = np.array([r["ns3_tput"] for r in rows])
+    fast_t = np.array([r["fast_tput"] for r in rows])
+    load = np.array([r["load_bps"] for r in rows])
+    rel = np.abs(fast_t - ns3_t) / np.maximum(ns3_t, THROUGHPUT_FLOOR_BPS)
+    over_load = np.abs(fast_t - ns3_t) / load
+    congested = np.array([r["ns3_plr"] > CONGESTED_PLR for r in rows])
+    plr_err = np.abs(np.array([r["fast_plr"] - r["ns3_plr"] for r in rows]))
+    ns3_d = np.maximum([r["ns3_delay"] for r in rows], 1e-5)
+    fast_d = np.maximum([r["fast_delay"] for r in rows], 1e-5)
+    util_err = np.array(
+        [abs(fast[c["id"]].utility - c["utility"]) for c in ns3_cases if c["id"] in ids]
+    )
+    util_bias = np.array(
+        [fast[c["id"]].utility - c["utility"] for c in ns3_cases if c["id"] in ids]
+    )
+    return {
+        "n_cases": len(util_err),
+        "n_users": len(rows),
+        "n_congested_users": int(congested.sum()),
+        "throughput_rel_error": {
+            "all_users": summary(rel),
+            "congested_users": summary(rel[congested]),
+            "uncongested_users": summary(rel[~congested]),
+        },
+        "throughput_error_over_load": {
+            "all_users": summary(over_load),
+            "congested_users": summary(over_load[congested]),
+        },
+        "throughput_bias_fast_minus_ns3_over_load_mean": round(
+            float(np.mean((fast_t - ns3_t) / load)), 4
+        ),
+        "loss_abs_error": {
+            "all_users": summary(plr_err),
+            "congested_users": summary(plr_err[congested]),
+        },
+        "delay_abs_error_s": summary(np.abs(fast_d - ns3_d)),
+        "delay_log10_ratio_fast_over_ns3": summary(np.log10(fast_d / ns3_d)),
+        "utility_abs_error": summary(util_err),
+        "utility_bias_fast_minus_ns3_mean": round(float(np.mean(util_bias)), 4),
+    }
+
+
+def placement(meta, ns3_by_id, fast) -> dict[str, Any]:
+    """Per group: ns-3 utility at the fast model's best candidate / best ns-3 utility."""
+    held = set(meta["held_out"])
+    groups = {}
+    for group, ids in meta["groups"].items():
+        if not all(i in ns3_by_id for i in ids):
+            continue
+        ns3_u = np.array([ns3_by_id[i]["utility"] for i in ids])
+        fast_u = np.array([fast[i].utility for i in ids])
+        choice = int(np.argmax(fast_u))
+        groups[group] = {
+            "held_out": ids[0] in held,
+            "fast_choice": ids[choice],
+            "ns3_best": ids[int(np.argmax(ns3_u))],
+            "ratio": round(float(ns3_u[choice] / ns3_u.max()), 4),
+            "ns3_utilities": [round(float(x), 4) for x in ns3_u],
+            "fast_utilities": [round(float(x), 4) for x in fast_u],
+        }
+    ratios = [g["ratio"] for g in groups.values()]
+    held_ratios = [g["ratio"] for g in groups.values() if g["held_out"]]
+    return {
+        "groups": groups,
+        "mean_ratio": round(float(np.mean(ratios)), 4) if ratios else None,
+        "min_ratio": round(float(np.min(ratios)), 4) if ratios else None,
+        "mean_ratio_held_out": round(float(np.mean(held_ratios)), 4) if held_ratios else None,
+    }
+
+
+def drop_causes(rows: list[dict[str, Any]], variant: str) -> dict[str, Any]:
+    """Where ns-3's lost packets were dropped (seed 0), all users and light users apart.
+
+    A *light* user offers at most half the mean load Λ/U of its case and shares the cell with
+    at least one congested user (ns-3 loss > 1 %).
+    """
+    causes = {
+        "queue disc (FqCoDel) drop": "drop_qdisc",
+        "MAC queue full (no queue disc: TcDrop)": "drop_tc",
+        "MAC lifetime expired (MaxDelay 500 ms)": "drop_mac_expired",
+        "Block Ack window passed (QOS_OLD_PACKET)": "drop_mac_old_packet",
+        "retry limit": "drop_mac_retry_limit",
+        "not associated / MacTxDrop": "drop_mac_tx",
+        "ARP pending queue": "drop_arp",
+    }
+
+    def shares(subset: list[dict[str, Any]]) -> dict[str, Any]:
+        totals = {
+            name: sum(r["detail"].get(key, 0) for r in subset) for name, key in causes.items()
+        }
+        total = sum(totals.values())
+        expired = totals["MAC lifetime expired (MaxDelay 500 ms)"]
+        unsent = sum(r["detail"].get("expired_unsent", 0) for r in subset)
+        return {
+            "lost_packets": int(total),
+            "share_by_cause": {k: round(v / total, 4) for k, v in totals.items()} if total else {},
+            "expired_never_transmitted_share": round(unsent / expired, 4) if expired else None,
+        }
+
+    by_case: dict[str, list[dict[str, Any]]] = {}
+    for r in rows:
+        by_case.setdefault(r["id"], []).append(r)
+    light, heavy = [], []
+    for users in by_case.values():
+        if len(users) < 2 or not any(u["ns3_plr"] > CONGESTED_PLR for u in users):
+            continue
+        mean_load = np.mean([u["load_bps"] for u in users])
+        for u in users:
+            (light if u["load_bps"] <= 0.5 * mean_load else heavy).append(u)
+
+    def profile(subset: list[dict[str, Any]]) -> dict[str, Any]:
+        def per_user(key_num: str, key_den: str | None = None) -> np.ndarray:
+            out = []
+            for r in subset:
+                d = r["detail"]
+                num = d.get(key_num, 0)
+                out.append(num / max(d.get(key_den, 0), 1) if key_den else num)
+            return np.array(out)
+
+        return {
+            "n_users": len(subset),
+            "ns3_plr": summary(np.array([r["ns3_plr"] for r in subset])),
+            "ns3_delay_s": summary(np.array([r["ns3_delay"] for r in subset])),
+            "fast_plr": summary(np.array([r["fast_plr"] for r in subset])),
+            "missed_response_per_data_ppdu": summary(per_user("response_timeouts", "data_ppdus")),
+            "mean_backoff_slots": summary(per_user("backoff_slots_sum", "backoff_draws")),
+            "backoffs_with_cw_ge_127_per_2s": summary(per_user("backoff_long_draws")),
+            "longest_gap_between_data_ppdus_s": summary(per_user("max_tx_gap_s")),
+            **shares(subset),
+        }
+
+    # Check of the mechanism behind most fq-codel losses: with packets waiting in the queue disc
+    # the 500-packet MAC queue stays full, so once the station's service is below 500 packets /
+    # 0.5 s MaxDelay = 1000 packets/s its head-of-line packets expire: it loses about
+    # min(arrival, 1000) - service packets/s however large the queue disc.
+    congested = [r for r in rows if r["ns3_plr"] > CONGESTED_PLR]
+    bits = 8.0 * PACKET_BYTES
+    predicted = np.array(
+        [
+            max(min(r["load_bps"] / bits, TURNOVER_PPS) - r["ns3_tput"] / bits, 0.0)
+            / (r["load_bps"] / bits)
+            for r in congested
+        ]
+    )
+    observed = np.array([r["ns3_plr"] for r in congested])
+    hard = sorted(
+        (r for r in light if r["ns3_plr"] > 0.2 and r["ns3_delay"] < 0.15),
+        key=lambda r: -r["ns3_plr"],
+    )
+    examples = [
+        {
+            "case": r["id"],
+            "load_bps": r["load_bps"],
+            "ns3_plr": round(r["ns3_plr"], 3),
+            "ns3_delay_s": round(r["ns3_delay"], 3),
+            "fast_plr": round(r["fast_plr"], 3),
+            "seed0_expired": r["detail"].get("drop_mac_expired", 0),
+            "seed0_expired_never_sent": r["detail"].get("expired_unsent", 0),
+            "seed0_old_packet": r["detail"].get("drop_mac_old_packet", 0),
+            "seed0_backoffs_cw_ge_127": r["detail"].get("backoff_long_draws", 0),
+            "seed0_longest_gap_s": r["detail"].get("max_tx_gap_s", 0),
+        }
+        for r in hard[:6]
+    ]
+    out = {
+        "all_users": shares(rows),
+        "light_users_losing_over_20pct_with_delay_under_150ms": {
+            "n_users": len(hard),
+            "share_of_light_users": round(len(hard) / len(light), 4) if light else None,
+            "examples": examples,
+        },
+        "light_users_beside_congested": profile(light),
+        "other_users_in_those_cases": profile(heavy),
+    }
+    if variant == "fq-codel":
+        out["mac_lifetime_turnover_check"] = {
+            "rule": "loss = (min(arrival, 1000 pkt/s) - ns-3 service) / arrival, congested users",
+            "n_users": len(congested),
+            "observed_plr": summary(observed),
+            "abs_error_of_rule": summary(np.abs(predicted - observed)),
+            "abs_error_of_fast_model_plr": summary(
+                np.abs(np.array([r["fast_plr"] for r in congested]) - observed)
+            ),
+        }
+    return out
+
+
+def long_runs(cases: dict[str, Case], queueing: str) -> dict[str, Any]:
+    """Mean user delay per 1 s interval over 10 s: ns-3 vs the fast model stepping 1 s."""
+    doc = load_ns3(queueing, long=True)
+    model = NetworkModel(NetworkConfig().with_queueing(queueing))
+    out = {}
+    for entry in doc.get("cases", []):
+        case = cases[entry["id"]]
+        intervals = entry["per_seed"][0].get("intervals", [])
+        ns3_delay = [float(np.mean([u["delay_s"] for u in i["users"]])) for i in intervals]
+        ns3_plr = [float(np.mean([u["plr"] for u in i["users"]])) for i in intervals]
+        uav = case.uav_xyz_m[None, :]
+        state = model.step(uav, case.users_xy_m, case.load_bps, None, None, 0.5).state
+        fast_delay, fast_plr = [], []
+        for _ in intervals:
+            step = model.step(uav, case.users_xy_m, case.load_bps, state, None, 1.0)
+            state = step.state
+            fast_delay.append(float(step.delay_s[0].mean()))
+            fast_plr.append(float(step.plr[0].mean()))
+        out[entry["id"]] = {
+            "ns3_mean_delay_s": [round(x, 4) for x in ns3_delay],
+            "fast_mean_delay_s": [round(x, 4) for x in fast_delay],
+            "ns3_mean_plr": [round(x, 4) for x in ns3_plr],
+            "fast_mean_plr": [round(x, 4) for x in fast_plr],
+        }
+    return out
+
+
+def speed(cases: dict[str, Case], live: bool, ns3_docs: dict[str, Any]) -> dict[str, Any]:
+    """Wall time per simulated second: ns-3 (live, a few cases) vs the fast model, same cases."""
+    warmup_s, measure_s, association_s = 0.5, 2.0, 1.0
+    traffic_s = warmup_s + measure_s
+    chosen = [cases[i] for i in SPEED_CASES]
+    model = NetworkModel()
+    evaluate_case(model, chosen[0], None)  # compile
+    fast_s = {}
+    # Best of several batches on both sides: the machine is shared, the minimum is the cost.
+    for case in chosen:
+        batches = []
+        for _ in range(5):
+            started = time.perf_counter()
+            for _ in range(1000):
+                evaluate_case(model, case, None, warmup_s, measure_s)
+            batches.append((time.perf_counter() - started) / 1000)
+        fast_s[case.id] = min(batches)
+    out: dict[str, Any] = {
+        "protocol": (
+            f"per case: {association_s} s association (no traffic), {warmup_s} s warm-up, "
+            f"{measure_s} s measured; 'per traffic second' divides by the {traffic_s} s with "
+            "traffic, the fast model's time covers its two steps (warm-up, window); best of 3 "
+            "ns-3 runs and of 5 batches of 1000 fast evaluations, same process, same machine"
+        ),
+        "fast_wall_s_per_traffic_second": {
+            k: float(f"{v / traffic_s:.3g}") for k, v in fast_s.items()
+        },
+    }
+    calib = [
+        c["wall_s"] / (association_s + traffic_s) for c in ns3_docs["fq-codel"].get("cases", [])
+    ]
+    out["ns3_calibration_wall_s_per_simulated_second"] = summary(np.array(calib))
+    if live:
+        from sim.ns3_backend import Ns3Runner, Ns3Settings, ns3_available
+
+        if ns3_available():
+            ns3_s = {}
+            with Ns3Runner(niceness=0) as runner:
+                started = time.perf_counter()
+                runner.run(chosen[0], Ns3Settings(measure_s=0.1, warmup_s=0.0))
+                out["ns3_worker_start_s"] = round(time.perf_counter() - started, 2)
+                for case in chosen:
+                    runs = []
+                    for _ in range(3):
+                        started = time.perf_counter()
+                        runner.run(case, Ns3Settings(warmup_s=warmup_s, measure_s=measure_s))
+                        runs.append(time.perf_counter() - started)
+                    ns3_s[case.id] = min(runs)
+            out["ns3_wall_s_per_traffic_second"] = {
+                k: round(v / traffic_s, 4) for k, v in ns3_s.items()
+            }
+            ratios = [ns3_s[k] / fast_s[k] for k in ns3_s]
+            out["speedup_per_simulated_second"] = {k: round(ns3_s[k] / fast_s[k]) for k in ns3_s}
+            out["speedup_min"] = round(min(ratios))
+            out["speedup_median"] = round(float(np.median(ratios)))
+    return out
+
+
+def scatter(rows_by_variant: dict[str, list[dict[str, Any]]], path: Path) -> None:
+    """Fast vs ns-3 per user: throughput (top) and delay (bottom), log axes, one column per
+    queueing variant; held-out users filled, congested users (ns-3 loss > 1 %) in red."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(11, 10), dpi=110)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(2, 2)
+    for col, variant in enumerate(VARIANTS):
+        rows = rows_by_variant.get(variant, [])
+        for row_i, (key, label, floor) in enumerate(
+            (("tput", "throughput (Mbit/s)", 1e-2), ("delay", "mean delay (s)", 1e-4))
+        ):
+            ax = axes[row_i][col]
+            scale = 1e-6 if key == "tput" else 1.0
+            for congested, colour in ((False, "tab:blue"), (True, "tab:red")):
+                for held, face in ((False, "none"), (True, colour)):
+                    sel = [
+                        r
+                        for r in rows
+                        if (r["ns3_plr"] > CONGESTED_PLR) == congested and r["held_out"] == held
+                    ]
+                    if not sel:
+                        continue
+                    x = np.maximum([r[f"ns3_{key}"] * scale for r in sel], floor)
+                    y = np.maximum([r[f"fast_{key}"] * scale for r in sel], floor)
+                    ax.scatter(
+                        x,
+                        y,
+                        s=14,
+                        facecolors=face,
+                        edgecolors=colour,
+                        linewidths=0.8,
+                        label=("congested" if congested else "uncongested")
+                        + (", held out" if held else ""),
+                    )
+            lo = floor
+            hi = 100.0 if key == "tput" else 10.0
+            ax.plot([lo, hi], [lo, hi], color="black", lw=0.8)
+            if key == "tput":
+                ax.plot([lo, hi], [lo * 1.25, hi * 1.25], color="grey", lw=0.5, ls="--")
+                ax.plot([lo, hi], [lo * 0.75, hi * 0.75], color="grey", lw=0.5, ls="--")
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_xlim(lo, hi)
+            ax.set_ylim(lo, hi)
+            ax.set_xlabel(f"ns-3 {label}")
+            ax.set_ylabel(f"fast model {label}")
+            ax.set_title(f"{variant}: per-user {label.split(' (')[0]}")
+            ax.grid(True, which="major", lw=0.3)
+            if row_i == 0 and col == 0:
+                ax.legend(fontsize=8, loc="upper left")
+    fig.suptitle("Fast model vs ns-3 3.44, calibration set (dashed: ±25 %)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--no-live", action="store_true", help="skip the live ns-3 timing (speed anchor)"
+    )
+    args = parser.parse_args(argv)
+
+    _, case_list = load_cases(CALIBRATION / "cases.json")
+    cases = {c.id: c for c in case_list}
+    doc = json.loads((CALIBRATION / "cases.json").read_text(encoding="utf-8"))
+    meta = {k: doc[k] for k in ("family", "held_out", "groups", "long_runs")}
+    held = set(meta["held_out"])
+
+    ns3_docs = {q: load_ns3(q) for q in VARIANTS}
+    result: dict[str, Any] = {
+        "benchmark": "fidelity_ns3",
+        "machine": {"cpu": platform.machine(), "python": platform.python_version()},
+        "ns3_version": ns3_docs["fq-codel"].get("ns3_version"),
+        "calibration": {
+            "cases": "sim/calibration/cases.json",
+            "n_cases": len(case_list),
+            "n_held_out": len(held),
+            "seeds": ns3_docs["fq-codel"].get("seeds"),
+        },
+        "fast_model": "expected mode (rng=None), current constants, same warm-up and window",
+        "definitions": {
+            "throughput_rel_error": "|fast - ns3| / max(ns3, 10 kbit/s), per user",
+            "congested_user": "ns-3 loss ratio > 1 % in the window",
+            "ns3_metrics": "mean over seeds of each user's throughput, delay and loss; utility: "
+            "mean of the per-seed utilities",
+            "placement_agreement": "ns-3 utility at the fast model's best candidate / best ns-3 "
+            "utility among the group's candidates",
+        },
+        "targets": TARGETS,
+        "variants": {},
+    }
+    rows_by_variant = {}
+    for variant in VARIANTS:
+        ns3 = ns3_docs[variant]
+        if not ns3:
+            continue
+        model = NetworkModel(NetworkConfig().with_queueing(variant))
+        fast = {c["id"]: evaluate_case(model, cases[c["id"]], None) for c in ns3["cases"]}
+        rows = user_rows(cases, ns3, fast, meta)
+        rows_by_variant[variant] = rows
+        ids_all = {c["id"] for c in ns3["cases"]}
+        ids_held = ids_all & held
+        by_id = {c["id"]: c for c in ns3["cases"]}
+        held_rows = [r for r in rows if r["held_out"]]
+        families = sorted({r["family"] for r in rows})
+        by_family = {}
+        for fam in families:
+            fam_rows = [r for r in rows if r["family"] == fam]
+            fam_ids = {r["id"] for r in fam_rows}
+            e = errors(fam_rows, ns3["cases"], fast, fam_ids)
+            by_family[fam] = {
+                "n_cases": e["n_cases"],
+                "throughput_rel_error_median": e["throughput_rel_error"]["all_users"]["median"],
+                "congested_throughput_rel_error_median": e["throughput_rel_error"][
+                    "congested_users"
+                ].get("median"),
+                "loss_abs_error_median": e["loss_abs_error"]["all_users"]["median"],
+                "utility_abs_error_median": e["utility_abs_error"]["median"],
+                "utility_bias_fast_minus_ns3_mean": e["utility_bias_fast_minus_ns3_mean"],
+            }
+        spread = np.array([r["seed_spread"] for r in rows if np.isfinite(r["seed_spread"])])
+        held_errors = errors(held_rows, ns3["cases"], fast, ids_held)
+        place = placement(meta, by_id, fast)
+        t = held_errors["throughput_rel_error"]
+        met = {
+            "throughput_rel_error_median": t["all_users"]["median"]
+            <= TARGETS["throughput_rel_error_median"],
+            "throughput_rel_error_p90": t["all_users"]["p90"]
+            <= TARGETS["throughput_rel_error_p90"],
+            "congested_throughput_rel_error_median": t["congested_users"].get("median", 0)
+            <= TARGETS["congested_throughput_rel_error_median"],
+            "utility_abs_error_median": held_errors["utility_abs_error"]["median"]
+            <= TARGETS["utility_abs_error_median"],
+            "placement_agreement_mean": (place["mean_ratio"] or 0)
+            >= TARGETS["placement_agreement_mean"],
+        }
+        result["variants"][variant] = {
+            "n_cases_simulated": len(ids_all),
+            "held_out": held_errors,
+            "all": errors(rows, ns3["cases"], fast, ids_all),
+            "by_family": by_family,
+            "ns3_seed_spread_of_user_throughput": summary(spread),
+            "placement": place,
+            "targets_met_on_held_out": met,
+            "long_runs_10s": long_runs(cases, variant),
+            "ns3_drop_causes": drop_causes(rows, variant),
+        }
+        print(
+            f"{variant}: held-out throughput rel. error median {t['all_users']['median']:.3f} "
+            f"p90 {t['all_users']['p90']:.3f}, congested median "
+            f"{t['congested_users'].get('median', float('nan')):.3f}; utility abs. error median "
+            f"{held_errors['utility_abs_error']['median']:.3f}; placement agreement "
+            f"{place['mean_ratio']}"
+        )
+    result["speed"] = speed(cases, not args.no_live, ns3_docs)
+    if "speedup_min" in result["speed"]:
+        result["speed"]["target_met"] = (
+            result["speed"]["speedup_min"] >= TARGETS["speedup_per_simulated_second"]
+        )
+        print(f"speed: fast model {result['speed']['speedup_min']}x+ faster per simulated second")
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
+    scatter(rows_by_variant, FIGURE)
+    print(f"wrote {RESULTS} and {FIGURE}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,50 @@
+"""Fixtures for the sitl_mock tests: mocks on free loopback ports (port 0) and raw-pymavlink
+clients to them. Every mock and client a test starts is stopped at teardown, also on failure."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+
+from sitl_mock.config import VehicleConfig
+from sitl_mock.server import MockAutopilot
+from tests.sitl_mock.helpers import MavClient
+
+
+@pytest.fixture
+def start_mock() -> Iterator[Callable[..., MockAutopilot]]:
+    """Factory: ``start_mock(flavour, listen=..., signing_key=..., **VehicleConfig fields)``."""
+    mocks: list[MockAutopilot] = []
+
+    def _start(
+        flavour: str = "ardupilot",
+        listen: str = "tcp:127.0.0.1:0",
+        signing_key: bytes | None = None,
+        **config: Any,
+    ) -> MockAutopilot:
+        config.setdefault("ready_delay_s", 0.3)
+        mock = MockAutopilot(listen, flavour, VehicleConfig(**config), signing_key=signing_key)
+        mocks.append(mock)
+        return mock.start()
+
+    yield _start
+    for mock in mocks:
+        mock.stop()
+
+
+@pytest.fixture
+def connect() -> Iterator[Callable[..., MavClient]]:
+    """Factory: ``connect(mock, **MavClient options)``: a raw-pymavlink client to the mock."""
+    clients: list[MavClient] = []
+
+    def _connect(mock: MockAutopilot, **options: Any) -> MavClient:
+        kind = "tcp" if mock.listen.kind == "tcp" else "udp"
+        client = MavClient(("127.0.0.1", mock.port), kind=kind, **options)
+        clients.append(client)
+        return client
+
+    yield _connect
+    for client in clients:
+        client.close()
