@@ -1,0 +1,244 @@
+"""The service's MAVLink link against the sitl_mock autopilot, both flavours, on loopback.
+
+Every mock and link a test starts is stopped at teardown (also on failure); every wait is on a
+condition with a timeout, never a fixed sleep.
+"""
+
+from __future__ import annotations
+
+import math
+import socket
+import time
+from collections.abc import Callable, Iterator
+from typing import Any, TypeVar
+
+import pytest
+
+from service.frames import FrameConfig, area_to_ned
+from service.mavlink_link import LinkConfig, MavlinkLink, signing_key_from_passphrase
+from sim.config import AreaConfig
+from sitl_mock.config import VehicleConfig
+from sitl_mock.server import MockAutopilot
+
+T = TypeVar("T")
+
+AREA = AreaConfig(size_x_m=60.0, size_y_m=60.0, zone_m=5.0, z_min_m=5.0, z_max_m=20.0)
+FRAMES = FrameConfig(area_origin_north_m=-20.0, area_origin_east_m=-10.0)
+"""Home (the vehicle's NED origin) is at area (10, 20, 0)."""
+HOME_AREA_M = (10.0, 20.0, 0.0)
+FAST_VEHICLE = {"accel_h_mps2": 5.0, "accel_v_mps2": 5.0, "max_speed_up_mps": 5.0}
+
+
+def wait_for(
+    condition: Callable[[], T],
+    timeout_s: float = 5.0,
+    interval_s: float = 0.02,
+    message: str = "condition",
+) -> T:
+    """Poll ``condition`` until it returns something truthy (returned) or ``timeout_s`` passes."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {message}")
+        time.sleep(interval_s)
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@pytest.fixture
+def start_mock() -> Iterator[Callable[..., MockAutopilot]]:
+    """Factory: ``start_mock(flavour, listen=..., signing_key=..., **VehicleConfig fields)``."""
+    mocks: list[MockAutopilot] = []
+
+    def _start(
+        flavour: str = "ardupilot",
+        listen: str = "tcp:127.0.0.1:0",
+        signing_key: bytes | None = None,
+        **config: Any,
+    ) -> MockAutopilot:
+        config.setdefault("ready_delay_s", 0.5)
+        mock = MockAutopilot(listen, flavour, VehicleConfig(**config), signing_key=signing_key)
+        mocks.append(mock)
+        return mock.start()
+
+    yield _start
+    for mock in mocks:
+        mock.stop()
+
+
+@pytest.fixture
+def open_link() -> Iterator[Callable[..., MavlinkLink]]:
+    """Factory: ``open_link(url, **LinkConfig fields)``: a started link, closed at teardown."""
+    links: list[MavlinkLink] = []
+
+    def _open(url: str, **options: Any) -> MavlinkLink:
+        options.setdefault("area", AREA)
+        options.setdefault("frames", FRAMES)
+        link = MavlinkLink(LinkConfig(url, **options))
+        links.append(link)
+        return link.start()
+
+    yield _open
+    for link in links:
+        link.close()
+
+
+def tcp_url(mock: MockAutopilot) -> str:
+    return f"tcp:127.0.0.1:{mock.port}"
+
+
+def mock_in_area_m(mock: MockAutopilot) -> tuple[float, float, float]:
+    """The mock's true position, converted to the area frame independently of service.frames."""
+    ned = mock.state().position_ned_m
+    return (ned.e - FRAMES.area_origin_east_m, ned.n - FRAMES.area_origin_north_m, -ned.d)
+
+
+@pytest.mark.parametrize(
+    ("flavour", "transport", "mode"),
+    [("ardupilot", "tcp", "STABILIZE"), ("px4", "udp", "AUTO.LOITER")],
+)
+def test_link_comes_up_and_reports_flavour_mode_and_position(
+    start_mock, open_link, flavour, transport, mode
+):
+    if transport == "tcp":
+        mock = start_mock(flavour)
+        link = open_link(tcp_url(mock))
+    else:  # as PX4 SITL: the autopilot sends to a fixed port, the client listens there
+        port = free_udp_port()
+        mock = start_mock(flavour, listen=f"udpout:127.0.0.1:{port}")
+        link = open_link(f"udpin:127.0.0.1:{port}")
+    state = wait_for(
+        lambda: (s := link.state()).link == "up" and s.position_m is not None and s,
+        5.0,
+        message="link up with a position",
+    )
+    assert state.flavour == flavour
+    assert state.mode == mode
+    assert not state.armed
+    assert state.heartbeat_age_s is not None and state.heartbeat_age_s < 1.5
+    assert math.dist(state.position_m, HOME_AREA_M) < 0.1
+    wait_for(lambda: mock.stats["gcs_heartbeats"] >= 1, 3.0, message="our HEARTBEAT at the mock")
+    assert mock.stats["handler_errors"] == 0
+
+
+def test_unreachable_vehicle_keeps_connecting_without_blocking(open_link):
+    port = free_udp_port()  # nothing listens on this TCP port either (almost surely)
+    started = time.monotonic()
+    link = open_link(f"tcp:127.0.0.1:{port}", reconnect_min_s=0.05, reconnect_max_s=0.2)
+    future = link.arm_and_takeoff(timeout_s=0.5)
+    assert time.monotonic() - started < 0.5  # nothing blocks the caller
+    wait_for(lambda: link.counters["connect_failures"] >= 3, 3.0, message="connection attempts")
+    assert link.state().link == "connecting"
+    assert isinstance(future.exception(timeout=3.0), TimeoutError)
+    assert link.state().takeoff.startswith("failed")
+
+
+def test_targets_are_geofenced_and_non_finite_targets_refused():
+    link = MavlinkLink(LinkConfig("tcp:127.0.0.1:1", area=AREA, frames=FRAMES))  # not started
+    assert link.set_target((30.0, 30.0, 10.0)) == (30.0, 30.0, 10.0)
+    assert link.counters["geofence_clamps"] == 0
+    assert link.set_target((-5.0, 99.0, 500.0)) == (0.0, 60.0, 20.0)
+    assert link.counters["geofence_clamps"] == 1
+    with pytest.raises(ValueError, match="finite"):
+        link.set_target((math.nan, 1.0, 10.0))
+    assert link.state().target_m == (0.0, 60.0, 20.0)
+    assert link.counters["targets_rejected"] == 1
+    with pytest.raises(ValueError, match="signing_key"):
+        LinkConfig("tcp:127.0.0.1:1", signing_key=b"short")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("flavour", ["ardupilot", "px4"])
+def test_arm_takeoff_and_fly_to_a_point_at_the_streamed_rate(start_mock, open_link, flavour):
+    mock = start_mock(flavour, **FAST_VEHICLE)
+    link = open_link(tcp_url(mock))
+    link.arm_and_takeoff().result(timeout=20.0)
+    assert mock.state().alt_m >= 0.9 * AREA.z_min_m - 0.5
+    assert mock.stats.get("takeoffs_cancelled", 0) == 0
+
+    target = (25.0, 35.0, 8.0)
+    assert link.set_target(target) == target
+    wait_for(
+        lambda: math.dist(mock_in_area_m(mock), target) < 1.5,
+        20.0,
+        0.05,
+        message="the vehicle at target",
+    )
+    state = wait_for(
+        lambda: math.dist((s := link.state()).position_m, target) < 1.5 and s,
+        2.0,
+        message="the link's telemetry at target",
+    )
+    assert state.mode == {"ardupilot": "GUIDED", "px4": "OFFBOARD"}[flavour]
+    assert state.armed and state.streaming
+    assert mock.state().target_ned_m == pytest.approx(area_to_ned(*target, FRAMES))
+
+    # The rate the mock measures: 20 setpoints must arrive within 2.5 s (>= 8 Hz).
+    before = mock.stats["setpoints_received"]
+    started = time.monotonic()
+    wait_for(
+        lambda: mock.stats["setpoints_received"] >= before + 20, 2.5, 0.01, message="20 setpoints"
+    )
+    rate_hz = (mock.stats["setpoints_received"] - before) / (time.monotonic() - started)
+    assert rate_hz >= 8.0
+    assert mock.stats["setpoints_rejected_fence"] == 0
+    assert mock.stats["setpoints_rejected_invalid"] == 0
+    assert mock.stats["failsafe_offboard"] == 0
+
+
+@pytest.mark.slow
+def test_link_loss_stops_streaming_and_a_restarted_vehicle_gets_it_again(start_mock, open_link):
+    mock = start_mock("ardupilot")
+    port = mock.port
+    link = open_link(tcp_url(mock), reconnect_min_s=0.1, reconnect_max_s=0.5)
+    wait_for(lambda: link.state().link == "up", 5.0, message="link up")
+    link.set_target((20.0, 20.0, 10.0))
+    wait_for(lambda: mock.stats["setpoints_received"] >= 5, 3.0, message="setpoints at the mock")
+
+    mock.stop()
+    stopped = time.monotonic()
+    wait_for(lambda: link.state().link == "link_lost", 4.0, message="link_lost")
+    assert time.monotonic() - stopped <= 3.6
+    assert not link.state().streaming
+    sent = link.counters["setpoints_sent"]
+    failures = link.counters["connect_failures"]
+    wait_for(lambda: link.counters["connect_failures"] >= failures + 2, 3.0, message="retries")
+    assert link.counters["setpoints_sent"] == sent  # nothing streams into the void
+
+    again = start_mock("ardupilot", listen=f"tcp:127.0.0.1:{port}")
+    wait_for(lambda: link.state().link == "up", 5.0, message="link up again")
+    wait_for(lambda: again.stats["setpoints_received"] >= 5, 3.0, message="streaming resumed")
+    assert link.counters["reconnects"] >= 1
+    assert link.counters["setpoints_sent"] > sent
+    state = wait_for(lambda: (s := link.state()).position_m is not None and s, 3.0)
+    assert state.flavour == "ardupilot"
+
+
+def test_signing_with_the_right_key_works_and_a_wrong_key_moves_nothing(start_mock, open_link):
+    key = signing_key_from_passphrase("tupa")
+    good = start_mock("px4", signing_key=key)
+    link = open_link(tcp_url(good), signing_key=key)
+    wait_for(lambda: link.state().position_m is not None, 5.0, message="signed telemetry")
+    assert good.stats["signing_rejected"] == 0
+
+    bad = start_mock("px4", signing_key=key)
+    intruder = open_link(tcp_url(bad), signing_key=signing_key_from_passphrase("wrong"))
+    future = intruder.arm_and_takeoff(timeout_s=1.5)
+    intruder.set_target((30.0, 30.0, 10.0))
+    # The link drops the vehicle's (differently signed) messages, so it never sees the vehicle
+    # and sends it nothing but its own HEARTBEAT.
+    wait_for(lambda: intruder.counters["bad_data"] >= 5, 5.0, message="rejected telemetry")
+    assert isinstance(future.exception(timeout=5.0), TimeoutError)
+    assert intruder.state().link == "connecting"
+    assert intruder.counters["setpoints_sent"] == 0
+    state = bad.state()
+    assert not state.armed and state.landed
+    assert bad.stats["setpoints_received"] == 0
+    assert bad.stats["commands"] == 0
