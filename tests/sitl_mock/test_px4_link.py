@@ -62,7 +62,13 @@ def test_px4_offboard_switch_needs_a_running_stream_and_fails_safe_when_it_stops
     assert any("Offboard" in text for text in client.statustexts)
 
     target = (6.0, -3.0, -4.0)
-    client.every(0.1, lambda: send_target(client, target))
+    last_sent = [0.0]
+
+    def stream() -> None:
+        send_target(client, target)
+        last_sent[0] = time.monotonic()
+
+    client.every(0.1, stream)
     deadline = time.monotonic() + 5.0
     while client.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0).result != 0:
         assert time.monotonic() < deadline, "OFFBOARD never accepted"
@@ -77,9 +83,10 @@ def test_px4_offboard_switch_needs_a_running_stream_and_fails_safe_when_it_stops
     assert client.wait("HEARTBEAT").custom_mode == OFFBOARD
 
     client.clear_tasks()  # the setpoint stream stops
-    stopped = time.monotonic()
     text = client.wait("STATUSTEXT", lambda m: "offboard" in m.text.lower(), timeout_s=3.0)
-    assert time.monotonic() - stopped >= 0.4
+    # The failsafe waits the 0.5 s timeout after the last setpoint the mock received, which
+    # was sent no earlier than the last send recorded here.
+    assert time.monotonic() - last_sent[0] >= 0.49
     assert text.severity == mavlink.MAV_SEVERITY_CRITICAL
     assert client.wait("HEARTBEAT").custom_mode == AUTO_LOITER
     assert mock.stats["failsafe_offboard"] == 1
