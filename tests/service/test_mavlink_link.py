@@ -17,8 +17,8 @@ import pytest
 from service.frames import FrameConfig, area_to_ned
 from service.mavlink_link import LinkConfig, MavlinkLink, signing_key_from_passphrase
 from sim.config import AreaConfig
-from sitl_mock.config import VehicleConfig
 from sitl_mock.server import MockAutopilot
+from tests.sitl_mock.helpers import wait_for
 
 T = TypeVar("T")
 
@@ -29,48 +29,10 @@ HOME_AREA_M = (10.0, 20.0, 0.0)
 FAST_VEHICLE = {"accel_h_mps2": 5.0, "accel_v_mps2": 5.0, "max_speed_up_mps": 5.0}
 
 
-def wait_for(
-    condition: Callable[[], T],
-    timeout_s: float = 5.0,
-    interval_s: float = 0.02,
-    message: str = "condition",
-) -> T:
-    """Poll ``condition`` until it returns something truthy (returned) or ``timeout_s`` passes."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = condition()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {message}")
-        time.sleep(interval_s)
-
-
 def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         sock.bind(("127.0.0.1", 0))
         return sock.getsockname()[1]
-
-
-@pytest.fixture
-def start_mock() -> Iterator[Callable[..., MockAutopilot]]:
-    """Factory: ``start_mock(flavour, listen=..., signing_key=..., **VehicleConfig fields)``."""
-    mocks: list[MockAutopilot] = []
-
-    def _start(
-        flavour: str = "ardupilot",
-        listen: str = "tcp:127.0.0.1:0",
-        signing_key: bytes | None = None,
-        **config: Any,
-    ) -> MockAutopilot:
-        config.setdefault("ready_delay_s", 0.5)
-        mock = MockAutopilot(listen, flavour, VehicleConfig(**config), signing_key=signing_key)
-        mocks.append(mock)
-        return mock.start()
-
-    yield _start
-    for mock in mocks:
-        mock.stop()
 
 
 @pytest.fixture

@@ -1,5 +1,5 @@
-"""Fixtures for the sitl_mock tests: mocks on free loopback ports (port 0) and raw-pymavlink
-clients to them. Every mock and client a test starts is stopped at teardown, also on failure."""
+"""Fixtures for the sitl_mock tests: raw-pymavlink clients to mocks (``start_mock`` is in
+tests/conftest.py). Every client a test starts is stopped at teardown, also on failure."""
 
 from __future__ import annotations
 
@@ -8,30 +8,8 @@ from typing import Any
 
 import pytest
 
-from sitl_mock.config import VehicleConfig
 from sitl_mock.server import MockAutopilot
 from tests.sitl_mock.helpers import MavClient
-
-
-@pytest.fixture
-def start_mock() -> Iterator[Callable[..., MockAutopilot]]:
-    """Factory: ``start_mock(flavour, listen=..., signing_key=..., **VehicleConfig fields)``."""
-    mocks: list[MockAutopilot] = []
-
-    def _start(
-        flavour: str = "ardupilot",
-        listen: str = "tcp:127.0.0.1:0",
-        signing_key: bytes | None = None,
-        **config: Any,
-    ) -> MockAutopilot:
-        config.setdefault("ready_delay_s", 0.3)
-        mock = MockAutopilot(listen, flavour, VehicleConfig(**config), signing_key=signing_key)
-        mocks.append(mock)
-        return mock.start()
-
-    yield _start
-    for mock in mocks:
-        mock.stop()
 
 
 @pytest.fixture

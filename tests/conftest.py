@@ -1,0 +1,33 @@
+"""Fixtures shared by the test packages: sitl_mock autopilots on free loopback ports (port 0),
+each stopped at teardown, also on failure."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+
+from sitl_mock.config import VehicleConfig
+from sitl_mock.server import MockAutopilot
+
+
+@pytest.fixture
+def start_mock() -> Iterator[Callable[..., MockAutopilot]]:
+    """Factory: ``start_mock(flavour, listen=..., signing_key=..., **VehicleConfig fields)``."""
+    mocks: list[MockAutopilot] = []
+
+    def _start(
+        flavour: str = "ardupilot",
+        listen: str = "tcp:127.0.0.1:0",
+        signing_key: bytes | None = None,
+        **config: Any,
+    ) -> MockAutopilot:
+        config.setdefault("ready_delay_s", 0.3)
+        mock = MockAutopilot(listen, flavour, VehicleConfig(**config), signing_key=signing_key)
+        mocks.append(mock)
+        return mock.start()
+
+    yield _start
+    for mock in mocks:
+        mock.stop()
