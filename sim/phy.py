@@ -7,11 +7,11 @@ A user's link, for the MAC model, is four numbers (all per transmit opportunity,
 - ``max_mpdus``: how many subframes fit in one A-MPDU (Block Ack window, 65,535 bytes, PPDU time);
 - ``success``: the chance that a subframe gets through (failed ones are retransmitted).
 
-ns-3's IdealWifiManager picks the MCS from the SNR of the last frame it heard, while each packet
-sees its own fading draw; that mismatch is what makes throughput fall off gradually with distance.
-The model reproduces it: the MCS is chosen on one fading draw and the subframe success is averaged
-over another. In expected mode both are averaged over a deterministic quadrature and tabulated on
-a fine SNR grid once; in stochastic mode the MCS draws are sampled each step.
+The rate manager picks the MCS from the mean SNR (its estimate averages many frames), and each
+subframe then sees its own Rician fading draw, so throughput falls off gradually with distance
+within an MCS. Expected mode averages the subframe success over a deterministic quadrature of
+the fading, tabulated on a fine SNR grid once; stochastic mode draws a few fading samples per
+user and step instead (:func:`sampled_link`).
 """
 
 from __future__ import annotations
@@ -79,15 +79,12 @@ class McsTable:
 class LinkTable:
     """Link parameters tabulated over mean SNR (dB), for fast lookups in both modes.
 
-    ``success_by_mcs`` (grid, n_mcs) is the subframe success averaged over fading at each MCS;
-    ``expected`` (grid, 4) holds (overhead_s, mpdu_s, max_mpdus, success) averaged over the MCS
-    the rate manager would pick, the expected-mode link.
+    ``expected`` (grid, 4) holds (overhead_s, mpdu_s, max_mpdus, success) at the MCS the rate
+    manager picks, the subframe success averaged over fading: the expected-mode link.
     """
 
     mcs: McsTable
-    success_by_mcs: np.ndarray
     expected: np.ndarray
-    rician_k_db: float
 
     @classmethod
     def build(
@@ -111,9 +108,8 @@ class LinkTable:
             ],
             axis=-1,
         )
-        for array in (success_by_mcs, expected):
-            array.setflags(write=False)
-        return cls(mcs, success_by_mcs, expected, radio.rician_k_db)
+        expected.setflags(write=False)
+        return cls(mcs, expected)
 
 
 @njit(cache=True)
