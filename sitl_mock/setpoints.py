@@ -70,6 +70,28 @@ def _all_finite(*values: float) -> bool:
     return all(math.isfinite(v) for v in values)
 
 
+def _checked_parts(
+    type_mask: int,
+    position: tuple[float, float, float],
+    vxyz: tuple[float, float, float],
+    yaw_rad: float,
+) -> tuple[bool, bool, bool] | str:
+    """(use position, use velocity, use yaw) from ``type_mask``, or the reason to refuse:
+    "unsupported" for a mask the mock does not handle, "rejected_invalid" for a used field that
+    is not finite."""
+    parts = mask_parts(type_mask)
+    if parts is None:
+        return "unsupported"
+    use_pos, use_vel, use_yaw = parts
+    if not (
+        (not use_pos or _all_finite(*position))
+        and (not use_vel or _all_finite(*vxyz))
+        and (not use_yaw or math.isfinite(yaw_rad))
+    ):
+        return "rejected_invalid"
+    return parts
+
+
 def _rotate_yaw(v: Vec3, yaw_rad: float) -> Vec3:
     cos_y, sin_y = math.cos(yaw_rad), math.sin(yaw_rad)
     return Vec3(v.n * cos_y - v.e * sin_y, v.n * sin_y + v.e * cos_y, v.d)
@@ -87,16 +109,10 @@ def decode_local(
 ) -> Target | str:
     """SET_POSITION_TARGET_LOCAL_NED. LOCAL_NED is relative to home; the OFFSET and BODY frames
     to the current position (BODY ones also rotated by the current yaw)."""
-    parts = mask_parts(type_mask)
-    if parts is None:
-        return "unsupported"
+    parts = _checked_parts(type_mask, xyz, vxyz, yaw_rad)
+    if isinstance(parts, str):
+        return parts
     use_pos, use_vel, use_yaw = parts
-    if not (
-        (not use_pos or _all_finite(*xyz))
-        and (not use_vel or _all_finite(*vxyz))
-        and (not use_yaw or math.isfinite(yaw_rad))
-    ):
-        return "rejected_invalid"
     if frame not in LOCAL_FRAMES:
         return "rejected_frame"
     position = Vec3(*xyz) if use_pos else None
@@ -121,17 +137,11 @@ def decode_global(
 ) -> Target | str:
     """SET_POSITION_TARGET_GLOBAL_INT (latitude and longitude in degrees): GLOBAL(_INT) altitudes
     are AMSL, RELATIVE_ALT and TERRAIN_ALT ones relative to home."""
-    parts = mask_parts(type_mask)
-    if parts is None:
-        return "unsupported"
+    parts = _checked_parts(type_mask, lat_lon_alt, vxyz, yaw_rad)
+    if isinstance(parts, str):
+        return parts
     use_pos, use_vel, use_yaw = parts
     lat_deg, lon_deg, alt_m = lat_lon_alt
-    if not (
-        (not use_pos or _all_finite(lat_deg, lon_deg, alt_m))
-        and (not use_vel or _all_finite(*vxyz))
-        and (not use_yaw or math.isfinite(yaw_rad))
-    ):
-        return "rejected_invalid"
     if use_pos and not (-90.0 <= lat_deg <= 90.0 and -180.0 <= lon_deg <= 180.0):
         return "rejected_invalid"
     if frame in GLOBAL_AMSL_FRAMES:
