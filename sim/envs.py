@@ -32,44 +32,24 @@ from sim.network import NetworkModel, QueueState, StepResult
 from sim.observation import UserReports, build_observation, observation_shape
 from sim.scenarios import Scenario, generate_scenarios
 from sim.utility import network_utility
+from sim.zones import MOVES, grid_shape, move_mask, zone_index, zone_position
+
+__all__ = [
+    "CONTINUOUS_ENV_ID",
+    "DISCRETE_ENV_ID",
+    "MOVES",
+    "EnvConfig",
+    "FapContinuousEnv",
+    "FapDiscreteEnv",
+    "ScenarioCycle",
+    "ScenarioStream",
+    "action_to_position",
+    "position_to_action",
+    "register_envs",
+]
 
 DISCRETE_ENV_ID = "tupa/FapDiscrete-v0"
 CONTINUOUS_ENV_ID = "tupa/FapContinuous-v0"
-
-# (dx, dy, dz) in zones for each discrete action; index 0 is "stay".
-MOVES: np.ndarray = np.array(
-    [
-        (0, 0, 0),
-        (1, 0, 0),
-        (-1, 0, 0),
-        (0, 1, 0),
-        (0, -1, 0),
-        (0, 0, 1),
-        (0, 0, -1),
-        (5, 0, 0),
-        (-5, 0, 0),
-        (0, 5, 0),
-        (0, -5, 0),
-        (0, 0, 5),
-        (0, 0, -5),
-    ],
-    dtype=np.int64,
-)
-MOVE_NAMES: tuple[str, ...] = (
-    "stay",
-    "east 1",
-    "west 1",
-    "north 1",
-    "south 1",
-    "up 1",
-    "down 1",
-    "east 5",
-    "west 5",
-    "north 5",
-    "south 5",
-    "up 5",
-    "down 5",
-)
 
 
 class ScenarioCycle:
@@ -146,7 +126,7 @@ class _FapEnv(gym.Env, ABC):
         self.scenarios = scenarios
         self.model = model or NetworkModel(self.config.network, area)
         self.observation_space = spaces.Box(0.0, 1.0, observation_shape(area), dtype=np.float32)
-        self._grid_shape = np.array([area.n_zones_x, area.n_zones_y, area.n_levels_z])
+        self._grid_shape = grid_shape(area)
         self.scenario: Scenario | None = None
         self.uav_xyz_m = np.zeros(3)
         self.target_xyz_m = np.zeros(3)
@@ -198,14 +178,7 @@ class _FapEnv(gym.Env, ABC):
         return self._position_of(index)
 
     def _position_of(self, index: np.ndarray) -> np.ndarray:
-        area = self.config.area
-        return np.array(
-            [
-                (index[0] + 0.5) * area.zone_m,
-                (index[1] + 0.5) * area.zone_m,
-                area.z_min_m + index[2] * area.zone_m,
-            ]
-        )
+        return zone_position(index, self.config.area)
 
     def _snap(self, xyz_m: np.ndarray) -> np.ndarray:
         """A start position given in options: kept as is (continuous) or snapped (discrete)."""
@@ -300,8 +273,7 @@ class FapDiscreteEnv(_FapEnv):
 
     def _set_target_index(self, index: np.ndarray) -> None:
         self._target_index = index
-        landing = index + MOVES
-        self._mask = np.all((landing >= 0) & (landing < self._grid_shape), axis=1)
+        self._mask = move_mask(index, self.config.area)
 
     def _snap(self, xyz_m: np.ndarray) -> np.ndarray:
         self._set_target_index(self._index_of(xyz_m))
@@ -313,15 +285,7 @@ class FapDiscreteEnv(_FapEnv):
         return position
 
     def _index_of(self, xyz_m: np.ndarray) -> np.ndarray:
-        area = self.config.area
-        raw = np.array(
-            [
-                np.floor(xyz_m[0] / area.zone_m),
-                np.floor(xyz_m[1] / area.zone_m),
-                np.rint((xyz_m[2] - area.z_min_m) / area.zone_m),
-            ]
-        ).astype(np.int64)
-        return np.clip(raw, 0, self._grid_shape - 1)
+        return zone_index(xyz_m, self.config.area)
 
     def _target_from_action(self, action: Any) -> np.ndarray:
         if not self.action_space.contains(action) and not (
