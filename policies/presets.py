@@ -69,8 +69,12 @@ class Preset:
     epsilon_start: float = 1.0
     epsilon_decay_per_episode: float = 0.02
     epsilon_min: float = 0.01
-    # DDPG exploration: Gaussian noise on the normalised coordinates.
+    # DDPG exploration: Gaussian noise on the actor's output in [-1, 1] (half that in [0, 1]).
     action_noise_sigma: float = 0.1
+    # DDPG critic: dense ReLU layers over the features concatenated with the action. Without
+    # them (SB3 with ``net_arch=[]``) the critic is linear in the action, its maximum always
+    # lies in a corner of the volume, and the actor learns to fly there.
+    critic_hidden: tuple[int, ...] = (128, 128)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -98,6 +98,8 @@ class TrainConfig:
         p["network"] = NetworkPreset(
             **{**p["network"], "channels": tuple(p["network"]["channels"])}
         )
+        if "critic_hidden" in p:
+            p["critic_hidden"] = tuple(p["critic_hidden"])
         return cls(
             **{
                 **d,
@@ -188,7 +190,9 @@ def build_model(
         policy_kwargs={
             "features_extractor_class": ZoneMapsCNN,
             "features_extractor_kwargs": extractor_kwargs,
-            "net_arch": [],
+            # The actor maps features straight to the 3 coordinates; the critic needs dense
+            # layers after the action joins the features (see Preset.critic_hidden).
+            "net_arch": {"pi": [], "qf": list(preset.critic_hidden)},
             "normalize_images": False,
             "optimizer_class": optimizer,
         },

@@ -180,6 +180,26 @@ def test_ddpg_trains_and_acts_inside_the_volume(tmp_path, test_file):
         assert 0 <= x <= 500 and 0 <= y <= 500 and 25 <= z <= 100
 
 
+def test_ddpg_critic_is_not_linear_in_the_action(test_file):
+    """With no dense layer after the action joins the features, Q is linear in the action and
+    the actor is driven to a corner of the volume; the presets put ReLU layers there."""
+    from sim.files import load_scenarios
+
+    _, scenarios = load_scenarios(test_file)
+    for name in ("paper", "fast"):
+        preset = replace(get_preset(name, "ddpg"), network=TINY_NET, buffer_size=1_000)
+        env = make_env("ddpg", scenarios, preset, AREA, "fq-codel")
+        model = build_model("ddpg", env, preset, seed=0, tensorboard_log=None)
+        q_net = model.critic.q_networks[0]
+        assert sum(isinstance(m, th.nn.ReLU) for m in q_net) == len(preset.critic_hidden) >= 1
+        obs = th.as_tensor(env.reset(seed=0)[0][None])
+        actions = th.linspace(0.0, 1.0, 21)[:, None].repeat(1, 3) * 2 - 1
+        with th.no_grad():
+            q = model.critic.q1_forward(obs.repeat(21, 1, 1, 1), actions).squeeze(1)
+        second_difference = q[2:] - 2 * q[1:-1] + q[:-2]
+        assert second_difference.abs().max() > 1e-6
+
+
 def test_bad_checkpoints_are_refused_with_one_line(tmp_path, random_ddqn):
     good = tmp_path / "good.zip"
     meta = {"algorithm": "ddqn", "strategy": "spec", "observation_shape": [6, 20, 20]}
