@@ -1,0 +1,724 @@
+"""The service's vehicle link on the native MAVSDK binding (``mavsdk`` >= 4, no mavsdk_server).
+
+:class:`MavsdkLink` is a second backend behind the interface of
+:class:`service.mavlink_link.MavlinkLink`, for PX4 users who already run MAVSDK: the same
+:class:`~service.mavlink_link.LinkConfig` in, the same :class:`~service.mavlink_link.LinkState` out,
+the same methods (``start``, ``close``, ``state``, ``set_target``, ``clear_target``,
+``arm_and_takeoff``) with the same meaning::
+
+    link = MavsdkLink(LinkConfig("udpin:0.0.0.0:14540", area=AreaConfig()))
+    link.start()
+    link.arm_and_takeoff().result(timeout=60)
+    link.set_target((250.0, 250.0, 50.0))   # area frame; clamped to the geofence
+    print(link.state())
+    link.close()
+
+How it maps onto MAVSDK:
+
+* the connection string is a pymavlink one (``tcp:HOST:PORT``, ``udpin:HOST:PORT``,
+  ``udpout:HOST:PORT``, ``/dev/ttyUSB0,57600``), translated by :func:`mavsdk_url`; MAVSDK URLs
+  (``udpin://0.0.0.0:14540``) pass through. MAVSDK sends our HEARTBEAT (system and component
+  ids from the config).
+* the vehicle's HEARTBEATs come through the MavlinkDirect plugin and are decoded exactly as the
+  pymavlink backend decodes them (flavour, mode names, armed, link health, heartbeat age);
+  positions come from the Telemetry plugin (``position_velocity_ned``, ``position``), at
+  ``telemetry_rate_hz`` asked with Telemetry's ``set_rate_*``.
+* setpoints: the Offboard plugin's ``set_position_ned`` is called at ``setpoint_rate_hz`` while a
+  target streams. MAVSDK itself also re-sends the latest setpoint every 50 ms (20 Hz) while its
+  offboard stream is active, so the vehicle sees about ``max(setpoint_rate_hz, 20)`` setpoints a
+  second; ``counters["setpoints_sent"]`` counts the link's own calls. MAVSDK always sends a yaw
+  with a position setpoint, so the link sends the heading the vehicle had when the stream started
+  (it does not turn the vehicle).
+* mode: OFFBOARD the PX4 way: the stream first, then ``Offboard.start`` after
+  ``px4_stream_lead_s``, retried every ``mode_retry_s`` during ``mode_request_window_s`` after a
+  :meth:`MavsdkLink.set_target` (on ArduPilot MAVSDK maps it to GUIDED).
+* :meth:`MavsdkLink.clear_target` stops the stream without a mode change, as the pymavlink
+  backend does, so that the vehicle's own offboard-loss failsafe acts (``Offboard.stop`` would
+  also switch to Hold). MAVSDK has no call for that, so the Offboard plugin is dropped and made
+  anew, which ends its re-sending.
+* arm and takeoff: arming through the Action plugin; the takeoff as MAV_CMD_NAV_TAKEOFF through
+  MavlinkDirect, with the altitude in param7 (AMSL on PX4, above home on ArduPilot), as the
+  pymavlink backend sends it. ``Action.takeoff`` is not used: on PX4 it climbs to MIS_TAKEOFF_ALT,
+  and ``Action.set_takeoff_altitude`` would rewrite that vehicle parameter, which a service must
+  not do behind the operator's back.
+* link loss: no vehicle HEARTBEAT for ``heartbeat_timeout_s`` -> ``link_lost``, streaming stops,
+  the MAVSDK instance is dropped and made anew with backoff (``reconnect_min_s`` to
+  ``reconnect_max_s``); the latest target streams again once the vehicle is back.
+
+Not supported: **MAVLink 2 signing**. The native binding has no signing API (MAVSDK's C++
+library has none in its public API either), so a ``signing_key`` in the config raises ValueError
+naming it: use the ``pymavlink`` backend for a signed link.
+
+All MAVSDK calls happen in this module's threads, never in the caller's; MAVSDK's callbacks only
+update the snapshot under a condition variable, and no MAVSDK call is made while holding it (a
+MAVSDK unsubscribe waits for a running callback, which may be waiting for that lock).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Any
+
+from service.frames import area_to_ned, ned_to_area
+from service.geofence import clamp_to_area
+from service.mavlink_link import (
+    ARDUPILOT_GUIDED,
+    GUIDED_MODE_NAME,
+    Flavour,
+    LinkConfig,
+    LinkHealth,
+    LinkState,
+    flavour_of,
+    mavlink,
+    mode_name,
+)
+
+log = logging.getLogger(__name__)
+
+MAV_COMP_ID_AUTOPILOT1 = 1
+COMMAND_ACK_TIMEOUT_S = 5.0
+"""How long a command may wait for MAVSDK's answer (MAVSDK retransmits within it)."""
+SIGNING_UNSUPPORTED = (
+    "signing_key: the mavsdk backend cannot sign MAVLink 2 (the native mavsdk binding has no "
+    "signing API); use mavlink_backend 'pymavlink' for a signed link, or no key"
+)
+
+
+def route_mavsdk_logs_to_python() -> None:
+    """Send MAVSDK's own log lines to the ``mavsdk`` Python logger instead of stdout.
+
+    MAVSDK has one process-wide log callback; this installs ours only when nobody installed one
+    (an application that subscribed its own keeps it). :meth:`MavsdkLink.start` calls it.
+    """
+    import mavsdk.logging as mavsdk_logging
+
+    if getattr(mavsdk_logging, "_log_callback_ref", None) is not None:
+        return
+    logger = logging.getLogger("mavsdk")
+    levels = (logging.DEBUG, logging.INFO, logging.WARNING, logging.ERROR)
+
+    def forward(level: int, message: str, file: str | None, line: int) -> bool:
+        logger.log(levels[min(max(int(level), 0), 3)], "%s (%s:%d)", message, file, line)
+        return True
+
+    mavsdk_logging.log_subscribe(forward)
+
+
+def mavsdk_url(url: str) -> str:
+    """A MAVSDK connection URL for a pymavlink connection string (MAVSDK URLs pass through).
+
+    ``tcp:H:P`` -> ``tcpout://H:P`` (client); ``tcpin:H:P`` -> ``tcpin://H:P`` (server);
+    ``udpin:H:P`` and ``udp:H:P`` -> ``udpin://H:P``; ``udpout:H:P`` -> ``udpout://H:P``;
+    a serial device ``/dev/ttyUSB0`` or ``/dev/ttyUSB0,921600`` -> ``serial:///dev/ttyUSB0:921600``
+    (57600 baud when none is given). ValueError for anything else.
+    """
+    text = url.strip()
+    if "://" in text:
+        return text
+    if text.startswith(("/", "COM")):
+        device, _, baud = text.partition(",")
+        baud = baud or "57600"
+        if not baud.isdigit():
+            raise ValueError(f"url: bad baud rate in {url!r}")
+        return f"serial://{device}:{baud}"
+    scheme, sep, rest = text.partition(":")
+    schemes = {
+        "tcp": "tcpout",
+        "tcpout": "tcpout",
+        "tcpin": "tcpin",
+        "udp": "udpin",
+        "udpin": "udpin",
+        "udpout": "udpout",
+    }
+    host, _, port = rest.rpartition(":")
+    if not sep or scheme.lower() not in schemes or not host or not port.isdigit():
+        raise ValueError(
+            f"url: expected tcp:HOST:PORT, udpin:HOST:PORT, udpout:HOST:PORT, a serial device "
+            f"or a MAVSDK URL, got {url!r}"
+        )
+    return f"{schemes[scheme.lower()]}://{host}:{port}"
+
+
+@dataclass
+class _Session:
+    """One MAVSDK instance, its connection and (once the vehicle is found) its plugins."""
+
+    sdk: Any
+    opened_at: float
+    system: Any = None
+    system_id: int | None = None
+    telemetry: Any = None
+    action: Any = None
+    offboard: Any = None
+    direct: Any = None
+    offboard_fed: bool = False
+    """The Offboard plugin got a setpoint since it was made (so MAVSDK may be re-sending it)."""
+    keep: list[Any] = field(default_factory=list)
+
+
+class MavsdkLink:
+    """The vehicle link and setpoint streamer on MAVSDK. See the module docstring."""
+
+    def __init__(self, config: LinkConfig) -> None:
+        if config.signing_key is not None:
+            raise ValueError(SIGNING_UNSUPPORTED)
+        self.config = config
+        self.mavsdk_url = mavsdk_url(config.url)
+        self._cond = threading.Condition()
+        self._sdk_lock = threading.RLock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._workers: list[threading.Thread] = []
+        self._session: _Session | None = None
+        self.counters: Counter[str] = Counter(
+            dict.fromkeys(
+                ("setpoints_sent", "geofence_clamps", "reconnects", "connect_failures"), 0
+            )
+        )
+        # Vehicle state (under self._cond).
+        self._health: LinkHealth = "connecting"
+        self._flavour: Flavour | None = None
+        self._custom_mode: int | None = None
+        self._armed = False
+        self._last_hb: float | None = None
+        self._ned: tuple[float, float, float] | None = None
+        self._position_at: float | None = None
+        self._relative_alt_m: float | None = None
+        self._home_amsl_m: float | None = None
+        self._heading_deg: float | None = None
+        # Streaming state.
+        self._target_m: tuple[float, float, float] | None = None
+        self._hold_setpoints = False
+        self._stream_since: float | None = None
+        self._stream_yaw_deg = 0.0
+        self._mode_wanted_until = 0.0
+        self._takeoff = "idle"
+
+    # ------------------------------------------------------------------ public API
+
+    def start(self) -> MavsdkLink:
+        """Start the I/O thread (returns at once; the link comes up in the background)."""
+        if self._thread is not None:
+            raise RuntimeError("already started")
+        route_mavsdk_logs_to_python()
+        self._thread = threading.Thread(target=self._run, name="mavsdk-link", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Stop every thread and drop the MAVSDK instance (safe to call twice)."""
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        for thread in [self._thread, *self._workers]:
+            if thread is not None:
+                thread.join(timeout_s)
+        self._thread = None
+        self._close_session()
+
+    def __enter__(self) -> MavsdkLink:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def state(self) -> LinkState:
+        """A consistent snapshot (never blocks on I/O)."""
+        now = time.monotonic()
+        with self._cond:
+            position = ned_to_area(*self._ned, self.config.frames) if self._ned else None
+            mode = (
+                mode_name(self._flavour, self._custom_mode)
+                if self._flavour is not None and self._custom_mode is not None
+                else None
+            )
+            return LinkState(
+                link=self._health,
+                flavour=self._flavour,
+                mode=mode,
+                armed=self._armed,
+                position_m=position,
+                relative_alt_m=self._relative_alt_m,
+                heartbeat_age_s=None if self._last_hb is None else now - self._last_hb,
+                target_m=self._target_m,
+                streaming=self._streaming_now(),
+                takeoff=self._takeoff,
+                counters=dict(self.counters),
+            )
+
+    def set_target(self, target_m: Sequence[float]) -> tuple[float, float, float]:
+        """Stream ``target_m`` (area frame, metres) from now on; returns the geofenced target.
+
+        A target outside the area volume is clamped to it (logged and counted); NaN or infinite
+        coordinates raise ValueError and change nothing.
+        """
+        try:
+            clamped, was_clamped = clamp_to_area(target_m, self.config.area)
+        except ValueError:
+            with self._cond:
+                self.counters["targets_rejected"] += 1
+            raise
+        with self._cond:
+            if was_clamped:
+                self.counters["geofence_clamps"] += 1
+                log.warning("target %s outside the geofence: clamped to %s", target_m, clamped)
+            self._target_m = clamped
+            self._mode_wanted_until = time.monotonic() + self.config.mode_request_window_s
+        return clamped
+
+    def clear_target(self) -> None:
+        """Stop streaming setpoints (the vehicle keeps its own behaviour for a lost stream)."""
+        with self._cond:
+            self._target_m = None
+            self._stream_since = None
+
+    def arm_and_takeoff(self, z_m: float | None = None, timeout_s: float = 60.0) -> Future[None]:
+        """Arm and climb to ``z_m`` (area frame; default the area's ``z_min_m``), in a worker.
+
+        As :meth:`service.mavlink_link.MavlinkLink.arm_and_takeoff`: refusals are retried with
+        backoff until ``timeout_s``; setpoints are held back until the vehicle is airborne; the
+        Future completes when airborne, or with the reason it failed.
+        """
+        area = self.config.area
+        z_m = area.z_min_m if z_m is None else min(max(float(z_m), area.z_min_m), area.z_max_m)
+        future: Future[None] = Future()
+        worker = threading.Thread(
+            target=self._takeoff_worker, args=(z_m, timeout_s, future), name="mavsdk-takeoff"
+        )
+        worker.daemon = True
+        with self._cond:
+            self._takeoff = "running"
+            self._hold_setpoints = True
+        self._workers.append(worker)
+        worker.start()
+        return future
+
+    # ------------------------------------------------------------------ the MAVSDK session
+
+    def _open_session(self, now: float) -> bool:
+        from mavsdk import Configuration, Mavsdk
+
+        config = self.config
+        configuration = Configuration.create_manual(
+            config.source_system, config.source_component, True
+        )
+        sdk = Mavsdk(configuration)
+        try:
+            sdk.add_any_connection_with_handle(self.mavsdk_url)
+        except Exception as exc:  # MAVSDK's ConnectionError: refused, cannot bind, ...
+            log.debug("cannot open %s: %s", self.mavsdk_url, exc)
+            sdk.destroy()
+            configuration.destroy()
+            return False
+        with self._sdk_lock:
+            self._session = _Session(sdk, now, keep=[configuration])
+        log.info("MAVSDK connection open: %s", self.mavsdk_url)
+        return True
+
+    def _close_session(self) -> None:
+        with self._sdk_lock:
+            session, self._session = self._session, None
+            if session is None:
+                return
+            with contextlib.suppress(Exception):
+                session.sdk.destroy()
+            for item in session.keep:
+                with contextlib.suppress(Exception):
+                    item.destroy()
+
+    def _find_vehicle(self, session: _Session) -> None:
+        """Once MAVSDK has seen an autopilot: make the plugins and subscribe."""
+        from mavsdk.plugins.action import Action
+        from mavsdk.plugins.mavlink_direct import MavlinkDirect
+        from mavsdk.plugins.offboard import Offboard
+        from mavsdk.plugins.telemetry import Telemetry
+
+        with self._sdk_lock:
+            if self._session is not session:
+                return
+            system = session.sdk.first_autopilot(0.05)
+            if system is None:
+                return
+            session.system = system
+            session.system_id = system.get_system_id()
+            session.telemetry = Telemetry(system)
+            session.action = Action(system)
+            session.offboard = Offboard(system)
+            session.direct = MavlinkDirect(system)
+            session.direct.subscribe_message("HEARTBEAT", self._on_heartbeat, session.system_id)
+            session.telemetry.subscribe_position_velocity_ned(self._on_position_ned)
+            session.telemetry.subscribe_position(self._on_position)
+            session.telemetry.subscribe_heading(self._on_heading)
+            self._request_telemetry(session)
+        log.info("MAVSDK found autopilot system %s", session.system_id)
+
+    def _request_telemetry(self, session: _Session) -> None:
+        rate_hz = self.config.telemetry_rate_hz
+        telemetry = session.telemetry
+        for name in ("set_rate_position_velocity_ned_async", "set_rate_position_async"):
+            getattr(telemetry, name)(rate_hz, self._on_rate_result)
+
+    @staticmethod
+    def _on_rate_result(result: Any, _user_data: Any) -> None:
+        log.debug("telemetry rate request: %s", getattr(result, "name", result))
+
+    # ------------------------------------------------------------------ MAVSDK callbacks
+
+    def _on_heartbeat(self, message: Any, system_id: int) -> None:
+        try:
+            fields = json.loads(message.fields_json)
+            autopilot = int(fields["autopilot"])
+            vehicle_type = int(fields["type"])
+            base_mode = int(fields["base_mode"])
+            custom_mode = int(fields["custom_mode"])
+        except (ValueError, KeyError, TypeError):
+            with self._cond:
+                self.counters["bad_data"] += 1
+            return
+        if (
+            message.system_id != system_id
+            or message.component_id != MAV_COMP_ID_AUTOPILOT1
+            or autopilot == mavlink.MAV_AUTOPILOT_INVALID
+            or vehicle_type in (mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_ONBOARD_CONTROLLER)
+        ):
+            return
+        now = time.monotonic()
+        with self._cond:
+            self._flavour = flavour_of(autopilot)
+            self._custom_mode = custom_mode
+            self._armed = bool(base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            self._last_hb = now
+            if self._health != "up":
+                log.info("vehicle HEARTBEAT (%s): link up", self._flavour)
+                self._health = "up"
+            self._cond.notify_all()
+
+    def _on_position_ned(self, position_velocity: Any, _user_data: Any) -> None:
+        p = position_velocity.position
+        with self._cond:
+            self._ned = (p.north_m, p.east_m, p.down_m)
+            self._position_at = time.monotonic()
+            self._cond.notify_all()
+
+    def _on_position(self, position: Any, _user_data: Any) -> None:
+        relative_m = position.relative_altitude_m
+        absolute_m = position.absolute_altitude_m
+        if not (math.isfinite(relative_m) and math.isfinite(absolute_m)):
+            return
+        with self._cond:
+            self._relative_alt_m = relative_m
+            self._home_amsl_m = absolute_m - relative_m
+            self._cond.notify_all()
+
+    def _on_heading(self, heading: Any, _user_data: Any) -> None:
+        if math.isfinite(heading.heading_deg):
+            with self._cond:
+                self._heading_deg = heading.heading_deg
+
+    # ------------------------------------------------------------------ the I/O loop
+
+    def _run(self) -> None:
+        config = self.config
+        backoff_s = config.reconnect_min_s
+        next_open = 0.0
+        ever_opened = False
+        next_setpoint = 0.0
+        next_mode_request = 0.0
+        setpoint_period_s = 1.0 / config.setpoint_rate_hz
+        try:
+            while not self._stop.is_set():
+                now = time.monotonic()
+                self._check_heartbeat(now)
+                session = self._session
+                if session is None:
+                    if now < next_open:
+                        self._stop.wait(min(0.05, next_open - now))
+                        continue
+                    if self._open_session(now):
+                        if ever_opened:
+                            self.counters["reconnects"] += 1
+                        ever_opened = True
+                        backoff_s = config.reconnect_min_s
+                    else:
+                        self.counters["connect_failures"] += 1
+                        next_open = now + backoff_s
+                        backoff_s = min(backoff_s * 2, config.reconnect_max_s)
+                    continue
+                if session.system is None:
+                    self._find_vehicle(session)
+                health = self._check_heartbeat(now)
+                with self._cond:
+                    silent_since = max(session.opened_at, self._last_hb or 0.0)
+                if health != "up" and now - silent_since > config.heartbeat_timeout_s:
+                    log.info("no vehicle on %s: making the MAVSDK connection anew", self.mavsdk_url)
+                    self._close_session()
+                    next_open = now + backoff_s
+                    backoff_s = min(backoff_s * 2, config.reconnect_max_s)
+                    continue
+                if health == "up" and session.system is not None:
+                    if now >= next_setpoint:
+                        next_setpoint = max(
+                            next_setpoint + setpoint_period_s, now - setpoint_period_s
+                        )
+                        self._send_setpoint(session, now)
+                    if now >= next_mode_request:
+                        next_mode_request = now + config.mode_retry_s
+                        self._request_guided_mode(session, now)
+                wait_s = min(next_setpoint, next_mode_request) - time.monotonic()
+                self._stop.wait(min(max(wait_s, 0.001), 0.05))
+        except Exception:
+            log.exception("MAVSDK link thread failed")
+            raise
+        finally:
+            self._close_session()
+
+    def _check_heartbeat(self, now: float) -> LinkHealth:
+        """Declare the link lost after ``heartbeat_timeout_s`` without a vehicle HEARTBEAT."""
+        with self._cond:
+            last_hb = self._last_hb
+            timeout_s = self.config.heartbeat_timeout_s
+            if self._health == "up" and last_hb is not None and now - last_hb > timeout_s:
+                self._health = "link_lost"
+                self._stream_since = None
+                log.warning("no HEARTBEAT for %.1f s: link lost", now - last_hb)
+            return self._health
+
+    def _streaming_now(self) -> bool:
+        return self._health == "up" and self._target_m is not None and not self._hold_setpoints
+
+    def _send_setpoint(self, session: _Session, now: float) -> None:
+        from mavsdk.plugins.offboard import PositionNedYaw
+
+        with self._cond:
+            streaming = self._streaming_now()
+            if not streaming:
+                self._stream_since = None
+            else:
+                assert self._target_m is not None
+                north_m, east_m, down_m = area_to_ned(*self._target_m, self.config.frames)
+                if self._stream_since is None:
+                    self._stream_since = now
+                    self._stream_yaw_deg = self._heading_deg or 0.0
+                yaw_deg = self._stream_yaw_deg
+        if not streaming:
+            if session.offboard_fed:
+                self._drop_offboard_stream(session)
+            return
+        setpoint = PositionNedYaw(north_m, east_m, down_m, yaw_deg)
+        with self._sdk_lock:
+            if self._session is not session or session.offboard is None:
+                return
+            try:
+                session.offboard.set_position_ned(setpoint)
+            except Exception as exc:  # OffboardError: no system, connection error
+                self.counters["setpoint_errors"] += 1
+                log.debug("set_position_ned failed: %s", exc)
+                return
+            session.offboard_fed = True
+        with self._cond:
+            self.counters["setpoints_sent"] += 1
+
+    def _drop_offboard_stream(self, session: _Session) -> None:
+        """End MAVSDK's own re-sending without a mode change: a fresh Offboard plugin."""
+        from mavsdk.plugins.offboard import Offboard
+
+        with self._sdk_lock:
+            if self._session is not session or session.system is None:
+                return
+            session.offboard.destroy()
+            session.offboard = Offboard(session.system)
+            session.offboard_fed = False
+        log.info("setpoint stream stopped")
+
+    def _request_guided_mode(self, session: _Session, now: float) -> None:
+        """``Offboard.start`` while a target streams and the request window is open (PX4: only
+        after the stream has run ``px4_stream_lead_s``)."""
+        with self._cond:
+            flavour = self._flavour
+            if (
+                flavour not in GUIDED_MODE_NAME
+                or not self._streaming_now()
+                or now > self._mode_wanted_until
+                or self._custom_mode is None
+                or mode_name(flavour, self._custom_mode) == GUIDED_MODE_NAME[flavour]
+            ):
+                return
+            if flavour == "px4" and (
+                self._stream_since is None
+                or now - self._stream_since < self.config.px4_stream_lead_s
+            ):
+                return
+            self.counters["mode_requests"] += 1
+        with self._sdk_lock:
+            if self._session is not session or not session.offboard_fed:
+                return
+            session.offboard.start_async(self._on_offboard_start)
+
+    @staticmethod
+    def _on_offboard_start(result: Any, _user_data: Any) -> None:
+        log.debug("offboard start: %s", getattr(result, "name", result))
+
+    # ------------------------------------------------------------------ commands
+
+    def _request(
+        self, start: Callable[[_Session, Callable[..., None]], None], timeout_s: float
+    ) -> tuple[Any, ...] | None:
+        """Issue an asynchronous MAVSDK call on the current session; its callback's arguments,
+        or None when there is no vehicle, the session goes away or ``timeout_s`` passes."""
+        done = threading.Event()
+        answer: list[tuple[Any, ...]] = []
+
+        def callback(*args: Any) -> None:
+            answer.append(args)
+            done.set()
+
+        with self._sdk_lock:
+            session = self._session
+            if session is None or session.system is None:
+                return None
+            start(session, callback)
+        deadline = time.monotonic() + timeout_s
+        while not done.wait(0.1):
+            if self._stop.is_set() or time.monotonic() > deadline or self._session is not session:
+                return None
+        return answer[0]
+
+    def _send_command(self, command: int, params: Sequence[float], timeout_s: float) -> int | None:
+        """COMMAND_LONG through MavlinkDirect; the MAV_RESULT of its final ACK, or None."""
+        from mavsdk.plugins.mavlink_direct import MavlinkDirectResult, MavlinkMessage
+
+        values = [*params, *([0.0] * (7 - len(params)))]
+        with self._sdk_lock:
+            session = self._session
+            system_id = session.system_id if session is not None else None
+        if system_id is None:
+            return None
+        fields: dict[str, Any] = {
+            "target_system": system_id,
+            "target_component": MAV_COMP_ID_AUTOPILOT1,
+            "command": command,
+            "confirmation": 0,
+        }
+        for index, value in enumerate(values, start=1):
+            fields[f"param{index}"] = value if math.isfinite(value) else None  # null is NaN
+        message = MavlinkMessage(
+            "COMMAND_LONG", 0, 0, system_id, MAV_COMP_ID_AUTOPILOT1, json.dumps(fields)
+        )
+        answer = self._request(
+            lambda s, cb: s.direct.send_command_async(message, lambda r, ack, _ud: cb(r, ack)),
+            timeout_s,
+        )
+        if answer is None:
+            return None
+        result, ack = answer
+        if result != MavlinkDirectResult.SUCCESS:
+            log.debug("command %d: %s", command, getattr(result, "name", result))
+            return None
+        try:
+            return int(json.loads(ack.fields_json)["result"])
+        except (ValueError, KeyError, TypeError):
+            return None
+
+    def _arm(self) -> int | None:
+        """Arm through the Action plugin; MAV_RESULT_ACCEPTED, or None when refused."""
+        from mavsdk.plugins.action import ActionResult
+
+        answer = self._request(
+            lambda s, cb: s.action.arm_async(lambda r, _ud: cb(r)), COMMAND_ACK_TIMEOUT_S
+        )
+        if answer is None:
+            return None
+        if answer[0] == ActionResult.SUCCESS:
+            return mavlink.MAV_RESULT_ACCEPTED
+        log.debug("arm: %s", getattr(answer[0], "name", answer[0]))
+        return None
+
+    def _retry(self, what: str, attempt: Callable[[], int | None], deadline: float) -> None:
+        """Call ``attempt`` until it answers MAV_RESULT_ACCEPTED, with backoff; TimeoutError."""
+        backoff_s = 0.3
+        last_result: int | None = None
+        while not self._stop.is_set():
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"{what} not accepted (last result {last_result})")
+            with self._cond:
+                self.counters["commands_sent"] += 1
+            last_result = attempt()
+            if last_result == mavlink.MAV_RESULT_ACCEPTED:
+                return
+            self._stop.wait(min(backoff_s, max(0.0, deadline - time.monotonic())))
+            backoff_s = min(backoff_s * 2, 2.0)
+        raise RuntimeError("link closed")
+
+    def _command(self, command: int, params: Sequence[float], deadline: float) -> None:
+        self._retry(
+            f"command {command}",
+            lambda: self._send_command(
+                command, params, min(COMMAND_ACK_TIMEOUT_S, max(0.1, deadline - time.monotonic()))
+            ),
+            deadline,
+        )
+
+    def _wait_for(self, condition: Callable[[], bool], deadline: float, what: str) -> None:
+        with self._cond:
+            while not condition():
+                remaining = deadline - time.monotonic()
+                if self._stop.is_set():
+                    raise RuntimeError("link closed")
+                if remaining <= 0:
+                    raise TimeoutError(f"timed out waiting for {what}")
+                self._cond.wait(min(remaining, 0.2))
+
+    def _takeoff_worker(self, z_m: float, timeout_s: float, future: Future[None]) -> None:
+        deadline = time.monotonic() + timeout_s
+        alt_rel_m = z_m - self.config.frames.area_origin_down_m
+        airborne_alt_m = max(alt_rel_m * 0.9, alt_rel_m - 1.0)
+        try:
+            self._wait_for(
+                lambda: self._health == "up" and self._home_amsl_m is not None,
+                deadline,
+                "the vehicle and its position",
+            )
+            with self._cond:
+                flavour = self._flavour
+                flying = (self._relative_alt_m or 0.0) >= airborne_alt_m and self._armed
+            if not flying:
+                if flavour == "ardupilot":
+                    self._command(
+                        mavlink.MAV_CMD_DO_SET_MODE,
+                        (mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, ARDUPILOT_GUIDED),
+                        deadline,
+                    )
+                if not self._armed:
+                    self._retry("arming", self._arm, deadline)
+                with self._cond:
+                    home_amsl_m = self._home_amsl_m or 0.0
+                alt_param = alt_rel_m + home_amsl_m if flavour == "px4" else alt_rel_m
+                self._command(
+                    mavlink.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, math.nan, 0, 0, alt_param), deadline
+                )
+                self._wait_for(
+                    lambda: (self._relative_alt_m or 0.0) >= airborne_alt_m,
+                    deadline,
+                    f"{airborne_alt_m:.1f} m above home",
+                )
+            with self._cond:
+                self._takeoff = "airborne"
+                self._hold_setpoints = False
+                self._mode_wanted_until = time.monotonic() + self.config.mode_request_window_s
+            log.info("airborne at %.1f m above home", alt_rel_m)
+            future.set_result(None)
+        except Exception as exc:
+            with self._cond:
+                self._takeoff = f"failed: {exc}"
+                self._hold_setpoints = False
+            log.warning("arm and takeoff failed: %s", exc)
+            future.set_exception(exc)
