@@ -17,6 +17,8 @@ _COMMAND_MODULES: tuple[str, ...] = (
     "sim.cli",
     "policies.cli",
     "sitl_mock.cli",
+    "api.cli",
+    "service.demo_cli",
 )
 
 

@@ -1,0 +1,129 @@
+"""The FastAPI application: routers, auth, body-size limit, metrics, and the service's lifespan.
+
+``create_app(settings)`` builds the app; its lifespan opens the placement service (policy loaded
+and checked, MAVLink link started) before the first request and stops it cleanly afterwards.
+Tests pass ``service_factory`` to start the service against a mock autopilot of their own.
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import FastAPI
+from prometheus_client import CollectorRegistry
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from api.metrics import HttpMetrics, ServiceCollector
+from api.routes import probes, v1
+from service.placement import PlacementService
+from service.settings import ServiceSettings
+
+DESCRIPTION = """\
+Traffic-aware UAV placement. A network controller POSTs per-user traffic reports; the service's
+policy decides where the flying access point should be and streams that target over MAVLink to
+the autopilot. Every `/v1` route needs `Authorization: Bearer <TUPA_API_TOKEN>`.
+"""
+
+
+class BodySizeLimit:
+    """Pure ASGI middleware: 413 for a request body over ``max_bytes`` (declared or streamed),
+    before the route reads any of it."""
+
+    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        for name, value in scope.get("headers", []):
+            if name == b"content-length":
+                try:
+                    too_big = int(value) > self.max_bytes
+                except ValueError:
+                    too_big = True
+                if too_big:
+                    await self._reject(send)
+                    return
+        received = 0
+
+        async def limited_receive() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.max_bytes:
+                    raise _BodyTooLargeError
+            return message
+
+        try:
+            await self.app(scope, limited_receive, send)
+        except _BodyTooLargeError:
+            await self._reject(send)
+
+    async def _reject(self, send: Send) -> None:
+        body = f'{{"detail":"body: over the {self.max_bytes}-byte limit"}}'.encode()
+        await send(
+            {
+                "type": "http.response.start",
+                "status": 413,
+                "headers": [
+                    (b"content-type", b"application/json"),
+                    (b"content-length", str(len(body)).encode()),
+                ],
+            }
+        )
+        await send({"type": "http.response.body", "body": body})
+
+
+class _BodyTooLargeError(Exception):
+    pass
+
+
+def create_app(
+    settings: ServiceSettings,
+    service_factory: Callable[[ServiceSettings], PlacementService] | None = None,
+) -> FastAPI:
+    """The app for ``settings``; ``ValueError`` if it may not start (no token, not insecure)."""
+    settings.check_startable()
+    factory = service_factory or PlacementService.from_settings
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        service = factory(settings).start()
+        app.state.service = service
+        try:
+            yield
+        finally:
+            app.state.service = None
+            service.stop()
+
+    app = FastAPI(
+        title="TUPA placement service",
+        version="1",
+        description=DESCRIPTION,
+        lifespan=lifespan,
+    )
+    token = settings.api_token.get_secret_value() if settings.api_token else ""
+    app.state.api_token = token or None
+    app.state.service = None
+    registry = CollectorRegistry()
+    registry.register(ServiceCollector(lambda: app.state.service))
+    app.state.registry = registry
+    http_metrics = HttpMetrics(registry)
+    app.middleware("http")(http_metrics.middleware)
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
+    app.include_router(v1)
+    app.include_router(probes)
+    return app
+
+
+def run(settings: ServiceSettings, **uvicorn_options: Any) -> None:
+    """Serve ``settings`` with uvicorn until interrupted."""
+    import uvicorn
+
+    app = create_app(settings)
+    uvicorn.run(app, host=settings.host, port=settings.port, **uvicorn_options)

@@ -1,0 +1,125 @@
+"""``tupa serve``: the placement service over HTTP (uvicorn), commanding a vehicle over MAVLink."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+_DESCRIPTION = """\
+Serve the placement API and stream the chosen targets to the autopilot over MAVLink.
+
+Every option can also come from a TUPA_* environment variable (TUPA_MAVLINK, TUPA_POLICY,
+TUPA_API_TOKEN, TUPA_MAVLINK_SIGNING_KEY, TUPA_DECISION_MODE, ...); options win. Without an API
+token the service refuses to start unless --insecure is given. The vehicle is never armed unless
+--arm-and-takeoff is given.
+
+Examples:
+  TUPA_API_TOKEN=secret tupa serve --mavlink tcp:127.0.0.1:5760          # ArduPilot SITL
+  TUPA_API_TOKEN=secret tupa serve --mavlink udpin:0.0.0.0:14540          # PX4 SITL (offboard)
+"""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "serve",
+        help="run the placement service (HTTP API + MAVLink setpoint streaming)",
+        description=_DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--mavlink", metavar="CONN", help="pymavlink connection string")
+    parser.add_argument("--mavlink-backend", choices=("pymavlink", "mavsdk"))
+    parser.add_argument(
+        "--policy",
+        metavar="PATH|NAME",
+        help="checkpoint, or min-distance, load-weighted, oracle (default: the shipped DDQN)",
+    )
+    parser.add_argument(
+        "--arm-and-takeoff",
+        action="store_true",
+        default=None,
+        help="arm and take off to the minimum altitude before the first placement",
+    )
+    parser.add_argument("--host", help="address to listen on (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, help="port to listen on (default 8080; 0: any free)")
+    parser.add_argument(
+        "--api-token-file", type=Path, metavar="FILE", help="read the API token from FILE"
+    )
+    parser.add_argument(
+        "--insecure", action="store_true", default=None, help="allow serving without a token"
+    )
+    parser.add_argument("--decision-mode", choices=("paced", "on-report"))
+    parser.add_argument("--step-s", type=float, help="decision period in seconds (default 1)")
+    parser.add_argument("--report-max-age-s", type=float, help="older reports are stale")
+    parser.add_argument("--state-file", type=Path, help="persist the last target and policy here")
+    parser.add_argument(
+        "--log-level", default="info", choices=("debug", "info", "warning", "error")
+    )
+    parser.set_defaults(handler=_serve)
+
+
+_SETTING_ARGS = (
+    "mavlink",
+    "mavlink_backend",
+    "policy",
+    "arm_and_takeoff",
+    "host",
+    "port",
+    "insecure",
+    "decision_mode",
+    "step_s",
+    "report_max_age_s",
+    "state_file",
+)
+
+
+def settings_from_args(args: argparse.Namespace):  # -> ServiceSettings (lazy import)
+    """Options given on the command line over ``TUPA_*`` variables; ``InputError`` naming the
+    field for a bad value."""
+    from pydantic import ValidationError
+
+    from service.settings import ServiceSettings
+    from sim.errors import InputError
+
+    overrides = {name: getattr(args, name) for name in _SETTING_ARGS}
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    if args.api_token_file is not None:
+        try:
+            overrides["api_token"] = args.api_token_file.read_text().strip()
+        except OSError as exc:
+            raise InputError(f"api-token-file: {exc}") from None
+    try:
+        return ServiceSettings(**overrides)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        field = ".".join(str(p) for p in first["loc"]) or "settings"
+        raise InputError(f"{field}: {first['msg']}") from None
+
+
+def _serve(args: argparse.Namespace) -> int:
+    import logging
+
+    from api.app import create_app
+    from service.placement import PlacementService
+    from sim.errors import InputError
+
+    logging.basicConfig(
+        level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    settings = settings_from_args(args)
+    try:
+        settings.check_startable()
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    service = PlacementService.from_settings(settings)  # InputError for an unusable policy
+    app = create_app(settings, service_factory=lambda _settings: service)
+
+    import uvicorn
+
+    uvicorn.run(
+        app,
+        host=settings.host,
+        port=settings.port,
+        log_level=args.log_level,
+        access_log=args.log_level == "debug",
+    )
+    return 0

@@ -1,0 +1,113 @@
+"""``GET /metrics``: Prometheus text for the HTTP side and the placement loop.
+
+HTTP request counts and latencies are recorded by a middleware; the placement loop's and the
+link's counters are read when Prometheus scrapes (a custom collector), so the service itself
+knows nothing of Prometheus.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Awaitable, Callable, Iterator
+from typing import Any
+
+from prometheus_client import CollectorRegistry, Counter, Histogram
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+from prometheus_client.registry import Collector
+from starlette.requests import Request
+from starlette.responses import Response
+
+LINK_STATES = ("connecting", "up", "link_lost")
+
+
+class ServiceCollector(Collector):
+    """Reads the placement service's counters and the link's state at scrape time."""
+
+    def __init__(self, get_service: Callable[[], Any]) -> None:
+        self._get_service = get_service
+
+    def collect(self) -> Iterator[Any]:
+        service = self._get_service()
+        if service is None:
+            return
+        counters = service.snapshot_counters()
+        decisions = CounterMetricFamily(
+            "tupa_decisions", "Placement decisions, by outcome", labels=["outcome"]
+        )
+        decisions.add_metric(["decided"], counters.get("decisions", 0))
+        for outcome in ("held_stale", "waiting_link", "held_en_route", "rejected"):
+            decisions.add_metric([outcome], counters.get(f"decisions_{outcome}", 0))
+        decisions.add_metric(["error"], counters.get("decision_errors", 0))
+        yield decisions
+        reports = CounterMetricFamily("tupa_reports", "User reports, by result", labels=["result"])
+        reports.add_metric(["accepted"], counters.get("reports_accepted", 0))
+        reports.add_metric(["out_of_order"], counters.get("reports_out_of_order", 0))
+        yield reports
+        yield CounterMetricFamily(
+            "tupa_policy_swaps", "Policies swapped in", value=counters.get("policy_swaps", 0)
+        )
+        state = service.vehicle()
+        link_counters = state.counters
+        yield CounterMetricFamily(
+            "tupa_setpoints_sent",
+            "MAVLink position setpoints sent",
+            value=link_counters.get("setpoints_sent", 0),
+        )
+        yield CounterMetricFamily(
+            "tupa_geofence_clamps",
+            "Targets clamped to the geofence",
+            value=link_counters.get("geofence_clamps", 0),
+        )
+        yield CounterMetricFamily(
+            "tupa_link_reconnects",
+            "MAVLink reconnections",
+            value=link_counters.get("reconnects", 0),
+        )
+        link = GaugeMetricFamily(
+            "tupa_link_state", "MAVLink link state (1 = current)", labels=["state"]
+        )
+        for name in LINK_STATES:
+            link.add_metric([name], 1.0 if state.link == name else 0.0)
+        yield link
+        yield GaugeMetricFamily(
+            "tupa_vehicle_armed", "Vehicle armed (1) or not (0)", value=float(state.armed)
+        )
+        yield GaugeMetricFamily(
+            "tupa_streaming",
+            "Setpoints being streamed (1) or not (0)",
+            value=float(state.streaming),
+        )
+
+
+class HttpMetrics:
+    """Request counter and latency histogram, labelled by route template (bounded cardinality)."""
+
+    def __init__(self, registry: CollectorRegistry) -> None:
+        self.requests = Counter(
+            "tupa_http_requests",
+            "HTTP requests, by route, method and status",
+            ["route", "method", "status"],
+            registry=registry,
+        )
+        self.latency = Histogram(
+            "tupa_http_request_duration_seconds",
+            "HTTP request latency, by route",
+            ["route", "method"],
+            buckets=(0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5),
+            registry=registry,
+        )
+
+    async def middleware(
+        self, request: Request, call_next: Callable[[Request], Awaitable[Response]]
+    ) -> Response:
+        started = time.perf_counter()
+        status = 500
+        try:
+            response = await call_next(request)
+            status = response.status_code
+            return response
+        finally:
+            route = request.scope.get("route")
+            template = getattr(route, "path", "unmatched")
+            self.requests.labels(template, request.method, str(status)).inc()
+            self.latency.labels(template, request.method).observe(time.perf_counter() - started)

@@ -1,0 +1,182 @@
+"""The routes: ``/v1`` (authenticated) for reports, setpoint, vehicle and policy; probes; metrics.
+
+Handlers are plain ``def``: FastAPI runs them in its thread pool, so a policy's forward pass or a
+checkpoint load never stalls the event loop.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from fastapi import APIRouter, Depends, HTTPException, Request, Response, status
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+
+from api.auth import require_token
+from api.schemas import (
+    DecisionOut,
+    Health,
+    PolicyIn,
+    PolicyOut,
+    Readiness,
+    ReportIn,
+    Target,
+    VehicleOut,
+)
+from service.placement import Decision, OutOfOrderReportError, PlacementService, Report
+from sim.errors import InputError
+from sim.observation import UserReports
+
+_AUTH_RESPONSES: dict[int | str, dict[str, Any]] = {
+    401: {"description": "Missing or wrong bearer token"},
+}
+
+v1 = APIRouter(prefix="/v1", dependencies=[Depends(require_token)], responses=_AUTH_RESPONSES)
+probes = APIRouter()
+
+
+def _service(request: Request) -> PlacementService:
+    return request.app.state.service
+
+
+def _unprocessable(loc: list[str | int], msg: str) -> HTTPException:
+    """A 422 shaped like FastAPI's own validation errors, naming the field."""
+    return HTTPException(
+        status.HTTP_422_UNPROCESSABLE_CONTENT,
+        detail=[{"loc": ["body", *loc], "msg": msg, "type": "value_error"}],
+    )
+
+
+def _decision_out(decision: Decision | None) -> DecisionOut:
+    if decision is None:
+        return DecisionOut(target=None, source="none", policy=None, decided_at=None)
+    x, y, z = decision.target_m
+    return DecisionOut(
+        target=Target(x_m=x, y_m=y, z_m=z),
+        source=decision.source,  # type: ignore[arg-type]
+        policy=decision.policy,
+        decided_at=decision.decided_at,
+    )
+
+
+def to_report(body: ReportIn, service: PlacementService) -> Report:
+    """Check what the schema cannot (area, unique ids, user count) and build the service's
+    :class:`~service.placement.Report`; 422 naming the first bad field."""
+    area = service.area
+    max_users = service.settings.max_users
+    if len(body.users) > max_users:
+        raise _unprocessable(["users"], f"at most {max_users} users per report")
+    seen: set[str] = set()
+    for i, user in enumerate(body.users):
+        if user.id in seen:
+            raise _unprocessable(["users", i, "id"], f"duplicate user id {user.id!r}")
+        seen.add(user.id)
+        if not 0.0 <= user.x_m <= area.size_x_m:
+            raise _unprocessable(["users", i, "x_m"], f"outside the area [0, {area.size_x_m}] m")
+        if not 0.0 <= user.y_m <= area.size_y_m:
+            raise _unprocessable(["users", i, "y_m"], f"outside the area [0, {area.size_y_m}] m")
+    columns = {
+        name: np.array([getattr(u, name) for u in body.users], dtype=float)
+        for name in ("x_m", "y_m", "offered_bps", "throughput_bps", "delay_s", "plr")
+    }
+    return Report(body.timestamp, tuple(u.id for u in body.users), UserReports(**columns))
+
+
+@v1.post(
+    "/reports",
+    response_model=DecisionOut,
+    summary="Submit one report of all users",
+    responses={
+        409: {"description": "Older than the last accepted report: ignored"},
+        413: {"description": "Body over the size limit"},
+        422: {"description": "A field is invalid (named in the error)"},
+    },
+)
+def post_report(body: ReportIn, request: Request) -> DecisionOut:
+    """Accept the users' latest metrics. Answers with the decision the report triggered
+    (``decision_mode=on-report``) or the current target (``paced``); ``target`` is null until
+    the first decision (for instance while the MAVLink link is down: the report is kept)."""
+    service = _service(request)
+    report = to_report(body, service)
+    try:
+        decision = service.submit_report(report)
+    except OutOfOrderReportError as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, detail=str(exc)) from None
+    return _decision_out(decision)
+
+
+@v1.get("/setpoint", response_model=DecisionOut, summary="The current target")
+def get_setpoint(request: Request) -> DecisionOut:
+    """The target being streamed to the vehicle and when it was decided."""
+    return _decision_out(_service(request).current_decision())
+
+
+@v1.get("/vehicle", response_model=VehicleOut, summary="The vehicle's state")
+def get_vehicle(request: Request) -> VehicleOut:
+    """Position in the area frame (x east, y north, z up, metres), mode, armed, link health."""
+    state = _service(request).vehicle()
+    position = None
+    if state.position_m is not None:
+        x, y, z = state.position_m
+        position = Target(x_m=x, y_m=y, z_m=z)
+    return VehicleOut(
+        position=position,
+        mode=state.mode,
+        armed=state.armed,
+        link=state.link,
+        flavour=state.flavour,
+        heartbeat_age_s=state.heartbeat_age_s,
+        streaming=state.streaming,
+    )
+
+
+@v1.get("/policy", response_model=PolicyOut, summary="The serving policy")
+def get_policy(request: Request) -> PolicyOut:
+    return PolicyOut(**_service(request).policy.describe())
+
+
+@v1.put(
+    "/policy",
+    response_model=PolicyOut,
+    summary="Switch to another checkpoint or baseline",
+    responses={422: {"description": "Unusable policy: the serving one stays"}},
+)
+def put_policy(body: PolicyIn, request: Request) -> PolicyOut:
+    """Load and check the new policy fully, then swap it in atomically. A missing, corrupt or
+    mismatched checkpoint is refused with 422 and the serving policy stays in place."""
+    try:
+        policy = _service(request).swap_policy(body.policy)
+    except InputError as exc:
+        raise _unprocessable(["policy"], str(exc)) from None
+    return PolicyOut(**policy.describe())
+
+
+@probes.get("/healthz", response_model=Health, summary="Liveness")
+def healthz() -> Health:
+    return Health(status="ok")
+
+
+@probes.get(
+    "/readyz",
+    response_model=Readiness,
+    summary="Readiness: a policy is loaded and the MAVLink link is up",
+    responses={503: {"model": Readiness, "description": "Not ready; reasons listed"}},
+)
+def readyz(request: Request, response: Response) -> Readiness:
+    service = _service(request)
+    ready, reasons = service.readiness()
+    if not ready:
+        response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE
+    return Readiness(
+        ready=ready, reasons=reasons, policy=service.policy.name, link=service.vehicle().link
+    )
+
+
+@probes.get(
+    "/metrics",
+    summary="Prometheus metrics",
+    response_class=Response,
+    responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}},
+)
+def metrics(request: Request) -> Response:
+    return Response(generate_latest(request.app.state.registry), media_type=CONTENT_TYPE_LATEST)

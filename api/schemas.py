@@ -1,0 +1,168 @@
+"""Pydantic models at the HTTP boundary (and only here): what goes in and out of the API.
+
+Numbers must be finite (``NaN`` and infinities are refused with 422), counts and rates
+non-negative, loss ratios in [0, 1]. Checks that depend on the service's settings (users inside
+the area, unique ids, how many users) are made by the route, with the same 422 error shape.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(allow_inf_nan=False, extra="forbid")
+
+
+class UserReportIn(_Strict):
+    """What the network controller measured for one user over the last period."""
+
+    id: str = Field(min_length=1, max_length=64, description="The user's id, unique per report")
+    x_m: float = Field(description="East position in the area frame, metres")
+    y_m: float = Field(description="North position in the area frame, metres")
+    offered_bps: float = Field(ge=0, description="Offered (uplink) load, bit/s")
+    throughput_bps: float = Field(ge=0, description="Received throughput, bit/s")
+    delay_s: float = Field(ge=0, description="Mean packet delay, seconds")
+    plr: float = Field(ge=0, le=1, description="Packet loss ratio in [0, 1]")
+
+
+class ReportIn(_Strict):
+    """One report of all users the access point serves."""
+
+    model_config = ConfigDict(
+        allow_inf_nan=False,
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {
+                    "timestamp": 1_764_000_000.0,
+                    "users": [
+                        {
+                            "id": "ue-1",
+                            "x_m": 120.0,
+                            "y_m": 80.0,
+                            "offered_bps": 30e6,
+                            "throughput_bps": 21.5e6,
+                            "delay_s": 0.42,
+                            "plr": 0.18,
+                        },
+                        {
+                            "id": "ue-2",
+                            "x_m": 400.0,
+                            "y_m": 410.0,
+                            "offered_bps": 5e6,
+                            "throughput_bps": 5e6,
+                            "delay_s": 0.004,
+                            "plr": 0.0,
+                        },
+                    ],
+                }
+            ]
+        },
+    )
+
+    timestamp: float = Field(ge=0, description="When it was measured, Unix time in seconds")
+    users: list[UserReportIn] = Field(min_length=1, description="Every user, at least one")
+
+
+class Target(_Strict):
+    x_m: float
+    y_m: float
+    z_m: float
+
+
+class DecisionOut(BaseModel):
+    """The UAV's target and where it came from."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "target": {"x_m": 187.5, "y_m": 162.5, "z_m": 25.0},
+                    "source": "policy",
+                    "policy": "ddqn-gen10k",
+                    "decided_at": 1_764_000_001.2,
+                }
+            ]
+        }
+    )
+
+    target: Target | None = Field(description="None until the first decision")
+    source: Literal["policy", "restored", "none"]
+    policy: str | None
+    decided_at: float | None = Field(description="Unix time of the decision, seconds")
+
+
+class VehicleOut(BaseModel):
+    """The vehicle as the service sees it over MAVLink (area frame)."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "position": {"x_m": 180.2, "y_m": 160.9, "z_m": 25.1},
+                    "mode": "OFFBOARD",
+                    "armed": True,
+                    "link": "up",
+                    "flavour": "px4",
+                    "heartbeat_age_s": 0.31,
+                    "streaming": True,
+                }
+            ]
+        }
+    )
+
+    position: Target | None
+    mode: str | None
+    armed: bool
+    link: Literal["connecting", "up", "link_lost"]
+    flavour: str | None
+    heartbeat_age_s: float | None
+    streaming: bool
+
+
+class PolicyOut(BaseModel):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "name": "ddqn-gen10k",
+                    "kind": "moves",
+                    "spec": "policies/checkpoints/ddqn-gen10k.zip",
+                    "metadata": {"algorithm": "ddqn", "strategy": "gen10k", "episodes": 2000},
+                }
+            ]
+        }
+    )
+
+    name: str
+    kind: Literal["moves", "coordinates", "placement"]
+    spec: str
+    metadata: dict[str, object] | None
+
+
+class PolicyIn(_Strict):
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={"examples": [{"policy": "load-weighted"}]},
+    )
+
+    policy: str = Field(
+        min_length=1,
+        max_length=4096,
+        description="A checkpoint path on the service's machine, or min-distance, "
+        "load-weighted, oracle",
+    )
+
+
+class Health(BaseModel):
+    status: Literal["ok"]
+
+
+class Readiness(BaseModel):
+    ready: bool
+    reasons: list[str]
+    policy: str
+    link: str

@@ -1,0 +1,196 @@
+"""A network controller played by the embedded simulator, for the demo and end-to-end tests.
+
+Every step it reads the vehicle's *true* position from the autopilot over MAVLink (a second
+client beside the service: the autopilot, not the service, says where the vehicle is), computes
+every user's throughput, delay and loss there with :class:`sim.network.NetworkModel` (queues
+carry over from step to step, as in the environments), and POSTs them to the service as one
+report. ``tupa controller-sim`` runs it on its own (docker-compose's ``controller-sim``).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import httpx
+import numpy as np
+
+from service.frames import FrameConfig, ned_to_area
+from sim.config import AreaConfig, NetworkConfig, UtilityConfig
+from sim.network import NetworkModel, QueueState
+from sim.scenarios import Scenario
+from sim.utility import network_utility
+
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink import mavutil
+
+
+class TruePosition:
+    """The vehicle's position as the autopilot reports it (LOCAL_POSITION_NED), area frame.
+
+    Asks for LOCAL_POSITION_NED at ``rate_hz`` (ArduPilot sends nothing until asked) and keeps
+    the latest one; :meth:`wait` blocks until a position is known or the time is up.
+    """
+
+    def __init__(self, url: str, frames: FrameConfig | None = None, rate_hz: float = 10.0) -> None:
+        self.url = url
+        self.frames = frames or FrameConfig()
+        self.rate_hz = rate_hz
+        self._conn: Any = None
+        self._position: tuple[float, float, float] | None = None
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="true-position", daemon=True)
+
+    def start(self) -> TruePosition:
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5.0)
+        if self._conn is not None:
+            self._conn.close()
+
+    def latest(self) -> tuple[float, float, float] | None:
+        with self._cond:
+            return self._position
+
+    def wait(self, timeout_s: float) -> tuple[float, float, float]:
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while self._position is None:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise TimeoutError(f"no position from the autopilot at {self.url}")
+                self._cond.wait(remaining)
+            return self._position
+
+    def _run(self) -> None:
+        self._conn = mavutil.mavlink_connection(
+            self.url, source_system=254, source_component=190, autoreconnect=True
+        )
+        interval_us = int(1e6 / self.rate_hz)
+        asked_at = -1e9
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if (now - asked_at > 2.0 and self._position is None) or now - asked_at > 10.0:
+                self._conn.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, 8, 0, 0, 0)
+                self._conn.mav.command_long_send(
+                    1,
+                    1,
+                    mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                    0,
+                    mavutil.mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
+                    interval_us,
+                    0,
+                    0,
+                    0,
+                    0,
+                    0,
+                )
+                asked_at = now
+            message = self._conn.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=0.2)
+            if message is not None:
+                position = ned_to_area(message.x, message.y, message.z, self.frames)
+                with self._cond:
+                    self._position = position
+                    self._cond.notify_all()
+
+
+@dataclass
+class SimulatedNetwork:
+    """One scenario's users, measured wherever the vehicle is (queues carry over)."""
+
+    scenario: Scenario
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+    area: AreaConfig = field(default_factory=AreaConfig)
+    utility: UtilityConfig = field(default_factory=UtilityConfig)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        self.model = NetworkModel(self.network, self.area)
+        self.rng = np.random.default_rng(self.seed)
+        self._queues: QueueState | None = None
+
+    def measure(self, uav_xyz_m: np.ndarray, step_s: float = 1.0) -> dict[str, Any]:
+        """Simulate ``step_s`` with the UAV at ``uav_xyz_m``: per-user metrics and the utility."""
+        result = self.model.step(
+            np.asarray(uav_xyz_m, dtype=float)[None, :],
+            self.scenario.users_xy_m,
+            self.scenario.load_bps,
+            self._queues,
+            self.rng,
+            step_s,
+        )
+        self._queues = result.state
+        throughput, delay, plr = result.throughput_bps[0], result.delay_s[0], result.plr[0]
+        utility = float(
+            network_utility(throughput, delay, plr, self.scenario.load_bps, self.utility)
+        )
+        return {"throughput_bps": throughput, "delay_s": delay, "plr": plr, "utility": utility}
+
+    def report(self, metrics: dict[str, Any], timestamp_s: float) -> dict[str, Any]:
+        """The ``POST /v1/reports`` body for ``metrics``."""
+        users = []
+        for i, (xy, load) in enumerate(
+            zip(self.scenario.users_xy_m, self.scenario.load_bps, strict=True)
+        ):
+            users.append(
+                {
+                    "id": f"ue-{i + 1}",
+                    "x_m": float(xy[0]),
+                    "y_m": float(xy[1]),
+                    "offered_bps": float(load),
+                    "throughput_bps": float(metrics["throughput_bps"][i]),
+                    "delay_s": float(metrics["delay_s"][i]),
+                    "plr": float(metrics["plr"][i]),
+                }
+            )
+        return {"timestamp": timestamp_s, "users": users}
+
+
+@dataclass
+class StepRecord:
+    step: int
+    position_m: tuple[float, float, float]
+    target_m: tuple[float, float, float] | None
+    utility: float
+
+
+def run_scenario(
+    network: SimulatedNetwork,
+    vehicle: TruePosition,
+    client: httpx.Client,
+    steps: int,
+    step_s: float = 1.0,
+    on_step: Any = None,
+) -> list[StepRecord]:
+    """Play ``steps`` steps in real time: measure at the true position, POST, wait for the tick.
+
+    ``client`` carries the service's base URL and token. Raises ``httpx.HTTPStatusError`` when
+    the service refuses a report.
+    """
+    records: list[StepRecord] = []
+    next_at = time.monotonic()
+    for step in range(steps):
+        position = vehicle.wait(timeout_s=30.0)
+        metrics = network.measure(np.asarray(position), step_s)
+        response = client.post("/v1/reports", json=network.report(metrics, time.time()))
+        response.raise_for_status()
+        target = response.json()["target"]
+        target_m = (target["x_m"], target["y_m"], target["z_m"]) if target else None
+        record = StepRecord(step, position, target_m, metrics["utility"])
+        records.append(record)
+        if on_step is not None:
+            on_step(record)
+        next_at += step_s
+        delay = next_at - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)  # the controller's reporting period (real time), not a wait-and-hope
+        else:
+            next_at = time.monotonic()
+    return records

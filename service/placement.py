@@ -1,0 +1,307 @@
+"""The placement loop: user reports + vehicle telemetry -> policy -> geofenced setpoint.
+
+:class:`PlacementService` is what ``tupa serve`` runs behind its HTTP side::
+
+    service = PlacementService.from_settings(settings)   # opens the MAVLink link
+    service.start()
+    service.submit_report(report)      # from POST /v1/reports
+    service.current_decision()         # GET /v1/setpoint
+    service.stop()
+
+Decisions: with ``decision_mode="paced"`` a background thread decides once every ``step_s`` (the
+paper's time step) from the latest report; with ``"on-report"`` each accepted report triggers a
+decision at once. A decision needs a fresh report (received at most ``report_max_age_s`` ago;
+otherwise the target is held) and the vehicle's position (link up; a report that arrives while the
+link is down is kept, and the decision waits for the link). Discrete-move policies take their next
+move once the vehicle has reached its current target (moves take flight time; the paper's agent
+acts from where it arrived). Targets go through the link, which clamps them to the geofence.
+
+Reports are snapshots of all users; each replaces the previous one (users come and go). A report
+whose ``timestamp`` is older than the last accepted one is ignored and counted.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import threading
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from service.frames import FrameConfig
+from service.mavlink_link import LinkConfig, LinkState
+from service.policy_runtime import ServingPolicy, load_policy
+from service.settings import ServiceSettings
+from sim.config import AreaConfig, NetworkConfig, UtilityConfig
+from sim.files import atomic_write_json
+from sim.observation import UserReports
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Report:
+    """One report of all users, as the network controller sends it (already validated)."""
+
+    timestamp_s: float
+    user_ids: tuple[str, ...]
+    users: UserReports
+
+
+@dataclass(frozen=True)
+class Decision:
+    """A target and where it came from."""
+
+    target_m: tuple[float, float, float]
+    source: str
+    """``policy`` (decided from a report), ``restored`` (from the state file)."""
+    policy: str
+    decided_at: float
+    """Unix time, seconds."""
+
+
+class OutOfOrderReportError(ValueError):
+    """A report older than the last accepted one."""
+
+
+class PlacementService:
+    """Owns the link, the serving policy, the latest report and the current decision."""
+
+    def __init__(
+        self,
+        settings: ServiceSettings,
+        link: Any,
+        policy: ServingPolicy,
+        area: AreaConfig = AreaConfig(),
+        network: NetworkConfig = NetworkConfig(),
+        utility: UtilityConfig = UtilityConfig(),
+    ) -> None:
+        self.settings = settings
+        self.link = link
+        self.area = area
+        self.network = network
+        self.utility = utility
+        self._policy = policy
+        self._lock = threading.Lock()
+        self._wake = threading.Condition(self._lock)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._report: Report | None = None
+        self._report_received: float | None = None  # monotonic
+        self._last_timestamp_s = -math.inf
+        self._decision: Decision | None = None
+        self._waiting_since: float | None = None
+        self.counters: Counter[str] = Counter()
+        self.started_at = time.time()
+
+    # ------------------------------------------------------------------ construction
+
+    @classmethod
+    def from_settings(cls, settings: ServiceSettings) -> PlacementService:
+        """Load the policy (``InputError`` if unusable) and open the link (retries on its own)."""
+        from service.links import open_link
+
+        area = AreaConfig()
+        network = NetworkConfig().with_queueing(settings.queueing)
+        utility = UtilityConfig()
+        policy = load_policy(settings.policy, area, network, utility)
+        link_config = LinkConfig(
+            url=settings.mavlink,
+            area=area,
+            frames=FrameConfig(
+                settings.area_origin_north_m,
+                settings.area_origin_east_m,
+                settings.area_origin_down_m,
+            ),
+            setpoint_rate_hz=settings.setpoint_rate_hz,
+            signing_key=settings.signing_key_bytes(),
+        )
+        link = open_link(settings.mavlink_backend, link_config)
+        return cls(settings, link, policy, area, network, utility)
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def start(self) -> PlacementService:
+        self.link.start()
+        self._restore()
+        if self.settings.arm_and_takeoff:
+            self.link.arm_and_takeoff()
+        if self.settings.decision_mode == "paced":
+            self._thread = threading.Thread(target=self._run, name="placement", daemon=True)
+            self._thread.start()
+        return self
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        self._stop.set()
+        with self._wake:
+            self._wake.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+            self._thread = None
+        self.link.close()
+
+    # ------------------------------------------------------------------ inputs
+
+    def submit_report(self, report: Report) -> Decision | None:
+        """Accept a report; decide at once in ``on-report`` mode. Returns the current decision.
+
+        Raises :class:`OutOfOrderReportError` (and counts it) for a report older than the last one.
+        """
+        with self._lock:
+            if report.timestamp_s < self._last_timestamp_s:
+                self.counters["reports_out_of_order"] += 1
+                raise OutOfOrderReportError(
+                    f"timestamp: {report.timestamp_s} is older than the last accepted report "
+                    f"({self._last_timestamp_s}); ignored"
+                )
+            self._last_timestamp_s = report.timestamp_s
+            self._report = report
+            self._report_received = time.monotonic()
+            self.counters["reports_accepted"] += 1
+        if self.settings.decision_mode == "on-report":
+            self.decide_once()
+        return self.current_decision()
+
+    def swap_policy(self, spec: str) -> ServingPolicy:
+        """Load and check ``spec`` fully, then swap it in atomically (``InputError`` otherwise:
+        the serving policy stays)."""
+        policy = load_policy(spec, self.area, self.network, self.utility)
+        with self._lock:
+            self._policy = policy
+            self.counters["policy_swaps"] += 1
+        self._persist()
+        log.info("policy switched to %s", policy.name)
+        return policy
+
+    # ------------------------------------------------------------------ outputs
+
+    @property
+    def policy(self) -> ServingPolicy:
+        with self._lock:
+            return self._policy
+
+    def current_decision(self) -> Decision | None:
+        with self._lock:
+            return self._decision
+
+    def vehicle(self) -> LinkState:
+        return self.link.state()
+
+    def readiness(self) -> tuple[bool, list[str]]:
+        """(ready, reasons it is not): a policy is loaded and the MAVLink link is up."""
+        reasons = []
+        state = self.link.state()
+        if state.link != "up":
+            reasons.append(f"mavlink link is {state.link}")
+        signing_failures = state.counters.get("signing_failures", 0)
+        if signing_failures and state.link != "up":
+            reasons.append(f"mavlink signing failed {signing_failures} times (check the key)")
+        return not reasons, reasons
+
+    def snapshot_counters(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self.counters)
+
+    # ------------------------------------------------------------------ deciding
+
+    def decide_once(self) -> Decision | None:
+        """One decision from the latest report (None when held: stale, no link, en route)."""
+        with self._lock:
+            report, received, policy = self._report, self._report_received, self._policy
+            previous = self._decision
+        if report is None or received is None:
+            return None
+        if time.monotonic() - received > self.settings.report_max_age_s:
+            self.counters["decisions_held_stale"] += 1
+            return None
+        state = self.link.state()
+        if state.link != "up" or state.position_m is None:
+            self.counters["decisions_waiting_link"] += 1
+            return None
+        vehicle = np.asarray(state.position_m, dtype=float)
+        current = np.asarray(previous.target_m, dtype=float) if previous else vehicle
+        if (
+            policy.kind == "moves"
+            and previous is not None
+            and previous.source == "policy"
+            and float(np.linalg.norm(vehicle - current)) > self.settings.arrival_tolerance_m
+        ):
+            self.counters["decisions_held_en_route"] += 1
+            return None
+        started = time.perf_counter()
+        try:
+            target = policy.decide(report.users, vehicle, current)
+            clamped = self.link.set_target(tuple(float(v) for v in target))
+        except ValueError as exc:  # a non-finite target: refused by the geofence, target held
+            self.counters["decisions_rejected"] += 1
+            log.warning("decision rejected: %s", exc)
+            return None
+        decision = Decision(clamped, "policy", policy.name, time.time())
+        with self._lock:
+            self._decision = decision
+            self.counters["decisions"] += 1
+            self.counters["decision_time_us_total"] += int((time.perf_counter() - started) * 1e6)
+        self._persist()
+        return decision
+
+    def _run(self) -> None:
+        step_s = self.settings.step_s
+        next_at = time.monotonic()
+        while not self._stop.is_set():
+            try:
+                self.decide_once()
+            except Exception:  # a policy bug must not kill the loop: count, log, hold
+                self.counters["decision_errors"] += 1
+                log.exception("decision failed; holding the current target")
+            next_at += step_s
+            delay = next_at - time.monotonic()
+            if delay < 0:  # fell behind (slow policy): skip the missed steps
+                next_at = time.monotonic()
+                delay = 0.0
+            self._stop.wait(delay)
+
+    # ------------------------------------------------------------------ persistence
+
+    def _persist(self) -> None:
+        path = self.settings.state_file
+        if path is None:
+            return
+        with self._lock:
+            decision, policy = self._decision, self._policy
+        state = {
+            "format": "tupa-service-state/1",
+            "policy": policy.spec,
+            "decision": asdict(decision) if decision else None,
+        }
+        try:
+            atomic_write_json(Path(path), state)
+        except OSError as exc:
+            self.counters["state_write_errors"] += 1
+            log.warning("cannot persist the service state to %s: %s", path, exc)
+
+    def _restore(self) -> None:
+        """Resume the persisted target (streamed only if the vehicle is already flying it)."""
+        path = self.settings.state_file
+        if path is None or not Path(path).is_file():
+            return
+        try:
+            state = json.loads(Path(path).read_text())
+            saved = state["decision"]
+            if saved is None:
+                return
+            target = tuple(float(v) for v in saved["target_m"])
+            if len(target) != 3 or not all(math.isfinite(v) for v in target):
+                raise ValueError(f"target_m: not three finite numbers: {target}")
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            log.warning("ignoring the state file %s: %s", path, exc)
+            self.counters["state_restore_errors"] += 1
+            return
+        with self._lock:
+            self._decision = Decision(target, "restored", str(saved.get("policy", "")), time.time())
+        log.info("restored the last target %s from %s", target, path)

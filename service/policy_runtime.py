@@ -1,0 +1,185 @@
+"""Policies as the service runs them: latest user reports + vehicle position -> absolute target.
+
+Every kind of policy answers the same question through :class:`ServingPolicy`:
+
+* a **DDQN** checkpoint (13 discrete moves): the observation is built by the same
+  :func:`sim.observation.build_observation` the environments use, at the vehicle's telemetry
+  position; the move is chosen among the valid ones (:func:`sim.zones.move_mask`) and applied to
+  the *current target's* zone, exactly as the discrete environment applies it;
+* a **DDPG** checkpoint (absolute coordinates): the same observation; the action in [0, 1]³ maps
+  onto the volume with :func:`sim.envs.action_to_position`;
+* a **baseline** (``min-distance``, ``load-weighted``, ``oracle``): placed from the reported user
+  positions and offered loads.
+
+:func:`load_policy` loads and checks a policy fully (a dry decision on a synthetic report) before
+anyone may swap it in, so a bad file never replaces a working policy.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Protocol
+
+import numpy as np
+
+from sim.config import AreaConfig, NetworkConfig, UtilityConfig
+from sim.envs import action_to_position
+from sim.errors import InputError
+from sim.observation import UserReports, build_observation
+from sim.zones import MOVES, move_mask, zone_index, zone_position
+
+PolicyKind = Literal["moves", "coordinates", "placement"]
+SHIPPED_CHECKPOINTS = Path(__file__).resolve().parent.parent / "policies" / "checkpoints"
+DEFAULT_CHECKPOINT = SHIPPED_CHECKPOINTS / "ddqn-gen10k.zip"
+FALLBACK_POLICY = "load-weighted"
+
+
+def default_policy_spec() -> str:
+    """The shipped DDQN checkpoint when it is there, else the ``load-weighted`` baseline."""
+    return str(DEFAULT_CHECKPOINT) if DEFAULT_CHECKPOINT.is_file() else FALLBACK_POLICY
+
+
+class ServingPolicy(Protocol):
+    """What the placement loop asks of a policy."""
+
+    name: str
+    kind: PolicyKind
+    spec: str
+
+    def decide(
+        self, reports: UserReports, vehicle_xyz_m: np.ndarray, current_target_m: np.ndarray
+    ) -> np.ndarray:
+        """The next target (3,), area frame, metres (geofenced later by the link)."""
+        ...
+
+    def describe(self) -> dict[str, Any]: ...
+
+
+@dataclass
+class _ReportedUsers:
+    """User reports seen as a scenario (``UsersLike``) for the placement baselines."""
+
+    users_xy_m: np.ndarray
+    load_bps: np.ndarray
+
+
+@dataclass
+class BaselinePolicy:
+    """A static placement policy from :mod:`policies.baselines`, re-placed on every decision."""
+
+    name: str
+    placement: Any
+    spec: str
+    kind: PolicyKind = "placement"
+
+    def decide(
+        self, reports: UserReports, vehicle_xyz_m: np.ndarray, current_target_m: np.ndarray
+    ) -> np.ndarray:
+        users = _ReportedUsers(
+            np.column_stack([reports.x_m, reports.y_m]).astype(float),
+            np.asarray(reports.offered_bps, dtype=float),
+        )
+        return np.asarray(self.placement.place(users), dtype=float)
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "kind": self.kind, "spec": self.spec, "metadata": None}
+
+
+@dataclass
+class CheckpointPolicy:
+    """A trained DDQN (moves) or DDPG (coordinates) checkpoint."""
+
+    name: str
+    model: Any
+    metadata: dict[str, Any]
+    spec: str
+    area: AreaConfig
+    utility: UtilityConfig
+    kind: PolicyKind = "moves"
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def observe(self, reports: UserReports, vehicle_xyz_m: np.ndarray) -> np.ndarray:
+        return build_observation(vehicle_xyz_m, reports, self.area, self.utility.delay_ref_s)
+
+    def decide(
+        self, reports: UserReports, vehicle_xyz_m: np.ndarray, current_target_m: np.ndarray
+    ) -> np.ndarray:
+        observation = self.observe(reports, vehicle_xyz_m)
+        with self._lock:  # torch modules are not meant for concurrent forward passes
+            if self.kind == "moves":
+                index = zone_index(current_target_m, self.area)
+                mask = move_mask(index, self.area)
+                move = int(self.model.masked_predict(observation[None], mask[None])[0])
+                return zone_position(index + MOVES[move], self.area)
+            action, _ = self.model.predict(observation, deterministic=True)
+        action = np.clip(np.asarray(action, dtype=float).reshape(3), 0.0, 1.0)
+        return action_to_position(action, self.area)
+
+    def describe(self) -> dict[str, Any]:
+        keep = ("algorithm", "strategy", "episodes", "seed", "git_commit", "wall_time_s")
+        return {
+            "name": self.name,
+            "kind": self.kind,
+            "spec": self.spec,
+            "metadata": {k: self.metadata.get(k) for k in keep},
+        }
+
+
+def load_policy(
+    spec: str,
+    area: AreaConfig = AreaConfig(),
+    network: NetworkConfig = NetworkConfig(),
+    utility: UtilityConfig = UtilityConfig(),
+) -> ServingPolicy:
+    """Load ``spec`` (a baseline name or a checkpoint path) and check it can decide.
+
+    Raises :class:`InputError` naming the policy and the problem; nothing is swapped in by this
+    function, so a failure leaves the serving policy untouched.
+    """
+    from policies.baselines import BASELINES, make_policy
+
+    spec = str(spec).strip()
+    if not spec:
+        raise InputError("policy: must be a checkpoint path or one of " + ", ".join(BASELINES))
+    policy: ServingPolicy
+    if spec in BASELINES:
+        policy = BaselinePolicy(spec, make_policy(spec, area, network, utility), spec)
+    else:
+        from policies.agents import TrainedAgent
+
+        if not Path(spec).exists():
+            raise InputError(
+                f"policy: {spec}: no such checkpoint (or a baseline: {', '.join(BASELINES)})"
+            )
+        agent = TrainedAgent.load(Path(spec), area, device="cpu")
+        kind: PolicyKind = "moves" if agent.algorithm == "ddqn" else "coordinates"
+        policy = CheckpointPolicy(
+            agent.name, agent.model, agent.metadata, spec, area, utility, kind
+        )
+    _dry_run(policy, area)
+    return policy
+
+
+def _dry_run(policy: ServingPolicy, area: AreaConfig) -> None:
+    """One decision on a synthetic report: a policy that cannot decide is not served."""
+    reports = UserReports(
+        x_m=np.array([0.25, 0.75]) * area.size_x_m,
+        y_m=np.array([0.5, 0.5]) * area.size_y_m,
+        offered_bps=np.array([30e6, 10e6]),
+        throughput_bps=np.array([20e6, 10e6]),
+        delay_s=np.array([0.2, 0.01]),
+        plr=np.array([0.1, 0.0]),
+    )
+    centre = np.array([area.size_x_m / 2, area.size_y_m / 2, area.z_min_m])
+    try:
+        target = np.asarray(policy.decide(reports, centre, centre), dtype=float)
+    except InputError:
+        raise
+    except Exception as exc:
+        raise InputError(
+            f"policy: {policy.spec}: fails on a test decision ({type(exc).__name__}: {exc})"
+        ) from None
+    if target.shape != (3,) or not np.all(np.isfinite(target)):
+        raise InputError(f"policy: {policy.spec}: gave a non-finite target {target.tolist()}")

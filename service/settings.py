@@ -1,0 +1,95 @@
+"""The placement service's settings: command-line options, else ``TUPA_*`` environment variables.
+
+Every field can be set as an environment variable with the ``TUPA_`` prefix (``TUPA_MAVLINK``,
+``TUPA_API_TOKEN``, ``TUPA_POLICY``, ...); ``tupa serve`` options override them. Secrets
+(``api_token``, ``mavlink_signing_key``) are :class:`pydantic.SecretStr`, so they never show in
+a ``repr`` or a log line.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from service.policy_runtime import default_policy_spec
+
+DecisionMode = Literal["paced", "on-report"]
+MavlinkBackend = Literal["pymavlink", "mavsdk"]
+
+
+class ServiceSettings(BaseSettings):
+    """Everything ``tupa serve`` needs; the defaults suit a local PX4 or ArduPilot SITL."""
+
+    model_config = SettingsConfigDict(env_prefix="TUPA_", extra="ignore", frozen=True)
+
+    mavlink: str = "tcp:127.0.0.1:5760"
+    """pymavlink connection string of the autopilot (``tcp:``, ``udpin:``, ``udpout:``, serial)."""
+    mavlink_backend: MavlinkBackend = "pymavlink"
+    mavlink_signing_key: SecretStr | None = None
+    """MAVLink 2 signing key, 64 hex characters (32 bytes), the same as the vehicle's."""
+    policy: str = Field(default_factory=default_policy_spec)
+    """A checkpoint path, or ``min-distance``, ``load-weighted``, ``oracle``."""
+    arm_and_takeoff: bool = False
+    """Arm and take off to the minimum altitude before the first placement (never by default)."""
+    host: str = "127.0.0.1"
+    port: int = Field(default=8080, ge=0, le=65535)
+    api_token: SecretStr | None = None
+    """Bearer token every ``/v1`` route requires."""
+    insecure: bool = False
+    """Allow serving without ``api_token`` (local experiments only)."""
+    decision_mode: DecisionMode = "paced"
+    """``paced``: one decision every ``step_s`` from the latest report; ``on-report``: at once."""
+    step_s: float = Field(default=1.0, gt=0, le=3600)
+    """The decision period (the paper's time step S)."""
+    report_max_age_s: float = Field(default=5.0, gt=0)
+    """A report older than this (since it arrived) is stale: the target is held."""
+    arrival_tolerance_m: float = Field(default=3.0, gt=0)
+    """Discrete policies take their next move once the vehicle is this close to its target."""
+    setpoint_rate_hz: float = Field(default=10.0, gt=2.0, le=100.0)
+    area_origin_north_m: float = 0.0
+    area_origin_east_m: float = 0.0
+    area_origin_down_m: float = 0.0
+    """Where the area's south-west corner at z = 0 lies from the vehicle's home (local NED)."""
+    max_users: int = Field(default=1000, ge=1)
+    max_body_bytes: int = Field(default=1_000_000, ge=1024)
+    queueing: Literal["fq-codel", "mac-only"] = "fq-codel"
+    """The network model variant the ``oracle`` baseline optimises for."""
+    state_file: Path | None = None
+    """Where the last target and policy are persisted (none: not persisted)."""
+
+    @field_validator("area_origin_north_m", "area_origin_east_m", "area_origin_down_m")
+    @classmethod
+    def _finite(cls, value: float) -> float:
+        if not math.isfinite(value):
+            raise ValueError("must be a finite number")
+        return value
+
+    @field_validator("mavlink_signing_key")
+    @classmethod
+    def _hex_key(cls, value: SecretStr | None) -> SecretStr | None:
+        if value is None or not value.get_secret_value():
+            return None
+        try:
+            key = bytes.fromhex(value.get_secret_value())
+        except ValueError:
+            raise ValueError("must be 64 hexadecimal characters") from None
+        if len(key) != 32:
+            raise ValueError(f"must be 32 bytes (64 hex characters), got {len(key)} bytes")
+        return value
+
+    def signing_key_bytes(self) -> bytes | None:
+        key = self.mavlink_signing_key
+        return bytes.fromhex(key.get_secret_value()) if key is not None else None
+
+    def check_startable(self) -> None:
+        """Refuse to serve without a token unless ``insecure`` (ValueError naming the field)."""
+        token = self.api_token.get_secret_value() if self.api_token else ""
+        if not token and not self.insecure:
+            raise ValueError(
+                "api_token: no token configured; set TUPA_API_TOKEN (or --api-token), "
+                "or pass --insecure for a local experiment"
+            )
