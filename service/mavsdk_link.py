@@ -104,7 +104,9 @@ def route_mavsdk_logs_to_python() -> None:
     if getattr(mavsdk_logging, "_log_callback_ref", None) is not None:
         return
     logger = logging.getLogger("mavsdk")
-    levels = (logging.DEBUG, logging.INFO, logging.WARNING, logging.ERROR)
+    # One step down: MAVSDK reports every failed connection attempt as an error, and the link
+    # retries an unreachable vehicle for as long as it runs (its own state says so).
+    levels = (logging.DEBUG, logging.DEBUG, logging.INFO, logging.WARNING)
 
     def forward(level: int, message: str, file: str | None, line: int) -> bool:
         logger.log(levels[min(max(int(level), 0), 3)], "%s (%s:%d)", message, file, line)
@@ -459,6 +461,10 @@ class MavsdkLink:
                 with self._cond:
                     silent_since = max(session.opened_at, self._last_hb or 0.0)
                 if health != "up" and now - silent_since > config.heartbeat_timeout_s:
+                    if silent_since == session.opened_at:
+                        # MAVSDK accepts a connection it cannot make yet (it retries by
+                        # itself), so a session that never heard the vehicle is the failure.
+                        self.counters["connect_failures"] += 1
                     log.info("no vehicle on %s: making the MAVSDK connection anew", self.mavsdk_url)
                     self._close_session()
                     next_open = now + backoff_s
