@@ -311,9 +311,12 @@ def coordinate_search(
     return best, best_f, history
 
 
-def run_fit(path: Path = FITTED_PATH, rounds: int = 20, log=print) -> dict[str, Any]:
+def run_fit(
+    path: Path = FITTED_PATH, rounds: int = 20, log=print, calib: Calibration | None = None
+) -> dict[str, Any]:
+    """Fit on the fit cases, score both parts, write ``path``; returns the document."""
     started = time.perf_counter()
-    calib = load_calibration()
+    calib = calib or load_calibration()
     fit_ids = calib.ids("fit")
     values, value, history = coordinate_search(calib, DEFAULTS, fit_ids, rounds, log=log)
     config = make_config(values)
