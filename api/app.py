@@ -11,7 +11,9 @@ from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from typing import Any
 
-from fastapi import FastAPI
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
 from prometheus_client import CollectorRegistry
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -83,6 +85,16 @@ class _BodyTooLargeError(Exception):
     pass
 
 
+async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+    """422 naming each bad field: ``loc``, ``msg`` and ``type`` only (the offending input is
+    not echoed: it may be a NaN that JSON cannot carry, or something large)."""
+    errors = [
+        {"loc": list(err.get("loc", ())), "msg": str(err.get("msg", "")), "type": err.get("type")}
+        for err in exc.errors()
+    ]
+    return JSONResponse({"detail": errors}, status_code=422)
+
+
 def create_app(
     settings: ServiceSettings,
     service_factory: Callable[[ServiceSettings], PlacementService] | None = None,
@@ -109,6 +121,7 @@ def create_app(
     )
     token = settings.api_token.get_secret_value() if settings.api_token else ""
     app.state.api_token = token or None
+    app.add_exception_handler(RequestValidationError, validation_error)  # type: ignore[arg-type]
     app.state.service = None
     registry = CollectorRegistry()
     registry.register(ServiceCollector(lambda: app.state.service))

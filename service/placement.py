@@ -199,6 +199,8 @@ class PlacementService:
         state = self.link.state()
         if state.link != "up":
             reasons.append(f"mavlink link is {state.link}")
+        elif state.position_m is None:
+            reasons.append("no vehicle position yet (telemetry not received)")
         signing_failures = state.counters.get("signing_failures", 0)
         if signing_failures and state.link != "up":
             reasons.append(f"mavlink signing failed {signing_failures} times (check the key)")
