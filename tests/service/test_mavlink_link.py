@@ -204,3 +204,40 @@ def test_signing_with_the_right_key_works_and_a_wrong_key_moves_nothing(start_mo
     assert not state.armed and state.landed
     assert bad.stats["setpoints_received"] == 0
     assert bad.stats["commands"] == 0
+
+
+@pytest.mark.parametrize("refuses_intervals", [False, True])
+def test_ardupilot_without_set_message_interval_gets_request_data_stream(
+    start_mock, open_link, monkeypatch, refuses_intervals
+):
+    """An ArduPilot that answers SET_MESSAGE_INTERVAL with UNSUPPORTED (older firmware, or a
+    router that filters it) still streams positions after the link's REQUEST_DATA_STREAM
+    fallback; one that honours it never gets the fallback.
+
+    sitl_mock has no option for such a vehicle, so the test refuses the command on this mock
+    instance only (its protocol's handler for SET_MESSAGE_INTERVAL).
+    """
+    from sitl_mock.flavours import MavResult
+
+    mock = start_mock("ardupilot")
+    if refuses_intervals:
+        monkeypatch.setattr(
+            mock.protocol,
+            "_set_message_interval",
+            lambda _link, _message_id, _interval_us: (MavResult.UNSUPPORTED, "old firmware"),
+        )
+    link = open_link(tcp_url(mock))
+    wait_for(lambda: link.state().link == "up", 5.0, message="link up")
+    up = time.monotonic()
+    state = wait_for(
+        lambda: (s := link.state()).position_m is not None and s, 8.0, message="positions"
+    )
+    assert math.dist(state.position_m, HOME_AREA_M) < 0.1
+    assert state.relative_alt_m == pytest.approx(0.0, abs=0.01)
+    assert link._fallback_streams_sent is refuses_intervals
+    if refuses_intervals:
+        assert mock.stats["commands_unsupported"] >= 3
+        # The fallback goes out once SET_MESSAGE_INTERVAL has had 1.5 s to work.
+        assert time.monotonic() - up >= 1.4
+    else:
+        assert mock.stats["commands_unsupported"] == 0
