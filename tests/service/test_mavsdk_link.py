@@ -138,14 +138,16 @@ def test_link_comes_up_over_udp_as_with_px4_sitl(start_mock, open_mavsdk_link):
 
 
 @pytest.mark.slow
-def test_mavsdk_link_arms_takes_off_and_flies_px4_to_a_point(start_mock, open_mavsdk_link):
-    mock = start_mock("px4", **FAST_VEHICLE)
+@pytest.mark.parametrize("flavour", ["px4", "ardupilot"])
+def test_mavsdk_link_arms_takes_off_and_flies_to_a_point(start_mock, open_mavsdk_link, flavour):
+    mock = start_mock(flavour, **FAST_VEHICLE)
     link = open_mavsdk_link(f"tcp:127.0.0.1:{mock.port}")
     started = time.monotonic()
     link.arm_and_takeoff().result(timeout=30.0)
     takeoff_s = time.monotonic() - started
     assert mock.state().alt_m >= 0.9 * AREA.z_min_m - 0.5
     assert mock.state().armed
+    assert mock.stats.get("takeoffs_cancelled", 0) == 0
 
     target = (25.0, 35.0, 8.0)  # 18.9 m from home, 3 m up from the takeoff altitude
     assert link.set_target(target) == target
@@ -162,8 +164,8 @@ def test_mavsdk_link_arms_takes_off_and_flies_px4_to_a_point(start_mock, open_ma
         3.0,
         message="the link's telemetry at target",
     )
-    assert state.mode == "OFFBOARD"
-    assert state.armed and state.streaming and state.flavour == "px4"
+    assert state.mode == {"px4": "OFFBOARD", "ardupilot": "GUIDED"}[flavour]
+    assert state.armed and state.streaming and state.flavour == flavour
     assert mock.state().target_ned_m == pytest.approx(area_to_ned(*target, FRAMES), abs=1e-4)
 
     # The rate the mock measures: MAVSDK re-sends at 20 Hz between the link's own 10 Hz calls.
@@ -176,7 +178,7 @@ def test_mavsdk_link_arms_takes_off_and_flies_px4_to_a_point(start_mock, open_ma
     mock_rate_hz = (mock.stats["setpoints_received"] - before) / elapsed_s
     link_rate_hz = (link.counters["setpoints_sent"] - sent_before) / elapsed_s
     print(
-        f"\nmavsdk: takeoff {takeoff_s:.1f} s, reach {reach_s:.1f} s, "
+        f"\nmavsdk {flavour}: takeoff {takeoff_s:.1f} s, reach {reach_s:.1f} s, "
         f"setpoints at the mock {mock_rate_hz:.1f}/s, link calls {link_rate_hz:.1f}/s"
     )
     assert mock_rate_hz >= 15.0
@@ -185,3 +187,33 @@ def test_mavsdk_link_arms_takes_off_and_flies_px4_to_a_point(start_mock, open_ma
     assert stats["setpoints_rejected_invalid"] == 0
     assert stats["failsafe_offboard"] == 0
     assert stats["handler_errors"] == 0
+
+
+@pytest.mark.slow
+def test_link_loss_stops_streaming_and_a_restarted_vehicle_gets_it_again(
+    start_mock, open_mavsdk_link
+):
+    mock = start_mock("px4")
+    port = mock.port
+    link = open_mavsdk_link(f"tcp:127.0.0.1:{port}", reconnect_min_s=0.1, reconnect_max_s=0.5)
+    wait_for(lambda: link.state().link == "up", 10.0, message="link up")
+    link.set_target((20.0, 20.0, 10.0))
+    wait_for(lambda: mock.stats["setpoints_received"] >= 5, 3.0, message="setpoints at the mock")
+
+    mock.stop()
+    stopped = time.monotonic()
+    wait_for(lambda: link.state().link == "link_lost", 5.0, message="link_lost")
+    assert time.monotonic() - stopped <= 3.6
+    assert not link.state().streaming
+    sent = link.counters["setpoints_sent"]
+    failures = link.counters["connect_failures"]
+    wait_for(lambda: link.counters["connect_failures"] >= failures + 1, 8.0, message="retries")
+    assert link.counters["setpoints_sent"] == sent  # nothing streams into the void
+
+    again = start_mock("px4", listen=f"tcp:127.0.0.1:{port}")
+    wait_for(lambda: link.state().link == "up", 10.0, message="link up again")
+    wait_for(lambda: again.stats["setpoints_received"] >= 5, 3.0, message="streaming resumed")
+    assert link.counters["reconnects"] >= 1
+    assert link.counters["setpoints_sent"] > sent
+    state = wait_for(lambda: (s := link.state()).position_m is not None and s, 3.0)
+    assert state.flavour == "px4"
