@@ -3,7 +3,11 @@
 Reads the committed ns-3 results (``sim/calibration/ns3_<queueing>.json``, built by
 ``python -m sim.calibration.build run``), evaluates the same cases with the fast model in
 expected mode under the same protocol (0.5 s warm-up from empty queues, 2 s measured) and
-writes ``benchmarks/results/fidelity_ns3.json`` and ``fidelity_ns3.png``:
+writes ``benchmarks/results/fidelity_ns3.json`` and ``fidelity_ns3.png``. Every figure is
+computed twice: with the model's default constants (``variants``) and with the constants
+fitted to the fit part of the set (``fitted``: ``sim/calibration/fitted.json``, made by
+``python -m sim.calibration.fit``); ``held_out_default_vs_fitted`` puts the held-out target
+figures side by side with ns-3's own seed-to-seed error (the noise floor). The figures:
 
 * per-user throughput relative error ``|fast − ns3| / ns3`` (ns-3 throughput floored at
   10 kbit/s), median and p90, for all users and for the congested ones (ns-3 loss > 1 %),
@@ -36,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from sim.calibration.fit import load_fitted, make_config
 from sim.config import NetworkConfig
 from sim.evaluate import CaseMetrics, evaluate_case
 from sim.files import load_cases
@@ -319,10 +324,10 @@ def drop_causes(rows: list[dict[str, Any]], variant: str) -> dict[str, Any]:
     return out
 
 
-def long_runs(cases: dict[str, Case], queueing: str) -> dict[str, Any]:
+def long_runs(cases: dict[str, Case], queueing: str, config: NetworkConfig) -> dict[str, Any]:
     """Mean user delay per 1 s interval over 10 s: ns-3 vs the fast model stepping 1 s."""
     doc = load_ns3(queueing, long=True)
-    model = NetworkModel(NetworkConfig().with_queueing(queueing))
+    model = NetworkModel(config.with_queueing(queueing))
     out = {}
     for entry in doc.get("cases", []):
         case = cases[entry["id"]]
@@ -343,6 +348,127 @@ def long_runs(cases: dict[str, Case], queueing: str) -> dict[str, Any]:
             "ns3_mean_plr": [round(x, 4) for x in ns3_plr],
             "fast_mean_plr": [round(x, 4) for x in fast_plr],
         }
+    return out
+
+
+def variant_block(
+    config: NetworkConfig,
+    variant: str,
+    cases: dict[str, Case],
+    ns3: dict[str, Any],
+    meta: dict[str, Any],
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """All error figures of one queueing variant with one set of constants, and its rows."""
+    held = set(meta["held_out"])
+    model = NetworkModel(config.with_queueing(variant))
+    fast = {c["id"]: evaluate_case(model, cases[c["id"]], None) for c in ns3["cases"]}
+    rows = user_rows(cases, ns3, fast, meta)
+    ids_all = {c["id"] for c in ns3["cases"]}
+    ids_held = ids_all & held
+    by_id = {c["id"]: c for c in ns3["cases"]}
+    held_rows = [r for r in rows if r["held_out"]]
+    by_family = {}
+    for fam in sorted({r["family"] for r in rows}):
+        fam_rows = [r for r in rows if r["family"] == fam]
+        fam_ids = {r["id"] for r in fam_rows}
+        e = errors(fam_rows, ns3["cases"], fast, fam_ids)
+        by_family[fam] = {
+            "n_cases": e["n_cases"],
+            "throughput_rel_error_median": e["throughput_rel_error"]["all_users"]["median"],
+            "congested_throughput_rel_error_median": e["throughput_rel_error"][
+                "congested_users"
+            ].get("median"),
+            "loss_abs_error_median": e["loss_abs_error"]["all_users"]["median"],
+            "utility_abs_error_median": e["utility_abs_error"]["median"],
+            "utility_bias_fast_minus_ns3_mean": e["utility_bias_fast_minus_ns3_mean"],
+        }
+    spread = np.array([r["seed_spread"] for r in rows if np.isfinite(r["seed_spread"])])
+    held_errors = errors(held_rows, ns3["cases"], fast, ids_held)
+    place = placement(meta, by_id, fast)
+    t = held_errors["throughput_rel_error"]
+    met = {
+        "throughput_rel_error_median": t["all_users"]["median"]
+        <= TARGETS["throughput_rel_error_median"],
+        "throughput_rel_error_p90": t["all_users"]["p90"] <= TARGETS["throughput_rel_error_p90"],
+        "congested_throughput_rel_error_median": t["congested_users"].get("median", 0)
+        <= TARGETS["congested_throughput_rel_error_median"],
+        "utility_abs_error_median": held_errors["utility_abs_error"]["median"]
+        <= TARGETS["utility_abs_error_median"],
+        "placement_agreement_mean": (place["mean_ratio"] or 0)
+        >= TARGETS["placement_agreement_mean"],
+    }
+    block = {
+        "n_cases_simulated": len(ids_all),
+        "held_out": held_errors,
+        "all": errors(rows, ns3["cases"], fast, ids_all),
+        "by_family": by_family,
+        "ns3_seed_spread_of_user_throughput": summary(spread),
+        "placement": place,
+        "targets_met_on_held_out": met,
+        "long_runs_10s": long_runs(cases, variant, config),
+    }
+    return block, rows
+
+
+def seed_vs_seed(ns3: dict[str, Any], held: set[str]) -> dict[str, Any]:
+    """The noise floor: ns-3 seed 0 scored against seed 1 with the held-out figures' definitions
+    (a perfect deterministic model scored against one seed would do about this well)."""
+    rel, congested, util = [], [], []
+    for entry in ns3.get("cases", []):
+        if entry["id"] not in held or len(entry["per_seed"]) < 2:
+            continue
+        a, b = entry["per_seed"][0], entry["per_seed"][1]
+        util.append(abs(a["utility"] - b["utility"]))
+        for ua, ub in zip(a["users"], b["users"], strict=True):
+            rel.append(
+                abs(ua["throughput_bps"] - ub["throughput_bps"])
+                / max(ub["throughput_bps"], THROUGHPUT_FLOOR_BPS)
+            )
+            congested.append(ub["plr"] > CONGESTED_PLR)
+    r, c = np.array(rel), np.array(congested, dtype=bool)
+    return {
+        "definition": "|seed 0 - seed 1| / max(seed 1, 10 kbit/s) per user; congested: seed 1 "
+        "loss > 1 %; utility: |seed 0 - seed 1| per case",
+        "throughput_rel_error": {"all_users": summary(r), "congested_users": summary(r[c])},
+        "utility_abs_error": summary(np.array(util)),
+    }
+
+
+def comparison(result: dict[str, Any]) -> dict[str, Any]:
+    """Held-out target figures side by side: default constants, fitted constants, target
+    (placement agreement also over all six groups: the fit never used the groups' ranking)."""
+    out = {}
+    for variant, block in result["variants"].items():
+        fitted = result["fitted"]["variants"][variant]
+
+        def figures(b: dict[str, Any]) -> dict[str, Any]:
+            t = b["held_out"]["throughput_rel_error"]
+            return {
+                "throughput_rel_error_median": t["all_users"]["median"],
+                "throughput_rel_error_p90": t["all_users"]["p90"],
+                "congested_throughput_rel_error_median": t["congested_users"].get("median"),
+                "utility_abs_error_median": b["held_out"]["utility_abs_error"]["median"],
+                "placement_agreement_mean_all_groups": b["placement"]["mean_ratio"],
+                "placement_agreement_mean_held_out_groups": b["placement"]["mean_ratio_held_out"],
+            }
+
+        d, f = figures(block), figures(fitted)
+        noise = block["ns3_seed_vs_seed_held_out"]["throughput_rel_error"]
+        out[variant] = {
+            k: {
+                "default": d[k],
+                "fitted": f[k],
+                "target": TARGETS.get(k, TARGETS["placement_agreement_mean"]),
+            }
+            for k in d
+        }
+        out[variant]["throughput_rel_error_median"]["ns3_seed_vs_seed"] = noise["all_users"].get(
+            "median"
+        )
+        out[variant]["throughput_rel_error_p90"]["ns3_seed_vs_seed"] = noise["all_users"].get("p90")
+        out[variant]["congested_throughput_rel_error_median"]["ns3_seed_vs_seed"] = noise[
+            "congested_users"
+        ].get("median")
     return out
 
 
@@ -404,17 +530,19 @@ def speed(cases: dict[str, Case], live: bool, ns3_docs: dict[str, Any]) -> dict[
     return out
 
 
-def scatter(rows_by_variant: dict[str, list[dict[str, Any]]], path: Path) -> None:
+def scatter(rows_by_config: dict[str, dict[str, list[dict[str, Any]]]], path: Path) -> None:
     """Fast vs ns-3 per user: throughput (top) and delay (bottom), log axes, one column per
-    queueing variant; held-out users filled, congested users (ns-3 loss > 1 %) in red."""
+    queueing variant and set of constants (default, fitted); held-out users filled, congested
+    users (ns-3 loss > 1 %) in red."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(11, 10), dpi=110)
+    fig = Figure(figsize=(20, 10), dpi=90)
     FigureCanvasAgg(fig)
-    axes = fig.subplots(2, 2)
-    for col, variant in enumerate(VARIANTS):
-        rows = rows_by_variant.get(variant, [])
+    axes = fig.subplots(2, 4)
+    columns = [(v, name) for v in VARIANTS for name in rows_by_config]
+    for col, (variant, name) in enumerate(columns):
+        rows = rows_by_config[name].get(variant, [])
         for row_i, (key, label, floor) in enumerate(
             (("tput", "throughput (Mbit/s)", 1e-2), ("delay", "mean delay (s)", 1e-4))
         ):
@@ -453,7 +581,7 @@ def scatter(rows_by_variant: dict[str, list[dict[str, Any]]], path: Path) -> Non
             ax.set_ylim(lo, hi)
             ax.set_xlabel(f"ns-3 {label}")
             ax.set_ylabel(f"fast model {label}")
-            ax.set_title(f"{variant}: per-user {label.split(' (')[0]}")
+            ax.set_title(f"{variant}, {name} constants: per-user {label.split(' (')[0]}")
             ax.grid(True, which="major", lw=0.3)
             if row_i == 0 and col == 0:
                 ax.legend(fontsize=8, loc="upper left")
@@ -487,7 +615,8 @@ def main(argv: list[str] | None = None) -> int:
             "n_held_out": len(held),
             "seeds": ns3_docs["fq-codel"].get("seeds"),
         },
-        "fast_model": "expected mode (rng=None), current constants, same warm-up and window",
+        "fast_model": "expected mode (rng=None), same warm-up and window; 'variants': the "
+        "default constants (sim/config.py), 'fitted': the constants of sim/calibration/fitted.json",
         "definitions": {
             "throughput_rel_error": "|fast - ns3| / max(ns3, 10 kbit/s), per user",
             "congested_user": "ns-3 loss ratio > 1 % in the window",
@@ -499,69 +628,37 @@ def main(argv: list[str] | None = None) -> int:
         "targets": TARGETS,
         "variants": {},
     }
-    rows_by_variant = {}
-    for variant in VARIANTS:
-        ns3 = ns3_docs[variant]
-        if not ns3:
-            continue
-        model = NetworkModel(NetworkConfig().with_queueing(variant))
-        fast = {c["id"]: evaluate_case(model, cases[c["id"]], None) for c in ns3["cases"]}
-        rows = user_rows(cases, ns3, fast, meta)
-        rows_by_variant[variant] = rows
-        ids_all = {c["id"] for c in ns3["cases"]}
-        ids_held = ids_all & held
-        by_id = {c["id"]: c for c in ns3["cases"]}
-        held_rows = [r for r in rows if r["held_out"]]
-        families = sorted({r["family"] for r in rows})
-        by_family = {}
-        for fam in families:
-            fam_rows = [r for r in rows if r["family"] == fam]
-            fam_ids = {r["id"] for r in fam_rows}
-            e = errors(fam_rows, ns3["cases"], fast, fam_ids)
-            by_family[fam] = {
-                "n_cases": e["n_cases"],
-                "throughput_rel_error_median": e["throughput_rel_error"]["all_users"]["median"],
-                "congested_throughput_rel_error_median": e["throughput_rel_error"][
-                    "congested_users"
-                ].get("median"),
-                "loss_abs_error_median": e["loss_abs_error"]["all_users"]["median"],
-                "utility_abs_error_median": e["utility_abs_error"]["median"],
-                "utility_bias_fast_minus_ns3_mean": e["utility_bias_fast_minus_ns3_mean"],
-            }
-        spread = np.array([r["seed_spread"] for r in rows if np.isfinite(r["seed_spread"])])
-        held_errors = errors(held_rows, ns3["cases"], fast, ids_held)
-        place = placement(meta, by_id, fast)
-        t = held_errors["throughput_rel_error"]
-        met = {
-            "throughput_rel_error_median": t["all_users"]["median"]
-            <= TARGETS["throughput_rel_error_median"],
-            "throughput_rel_error_p90": t["all_users"]["p90"]
-            <= TARGETS["throughput_rel_error_p90"],
-            "congested_throughput_rel_error_median": t["congested_users"].get("median", 0)
-            <= TARGETS["congested_throughput_rel_error_median"],
-            "utility_abs_error_median": held_errors["utility_abs_error"]["median"]
-            <= TARGETS["utility_abs_error_median"],
-            "placement_agreement_mean": (place["mean_ratio"] or 0)
-            >= TARGETS["placement_agreement_mean"],
-        }
-        result["variants"][variant] = {
-            "n_cases_simulated": len(ids_all),
-            "held_out": held_errors,
-            "all": errors(rows, ns3["cases"], fast, ids_all),
-            "by_family": by_family,
-            "ns3_seed_spread_of_user_throughput": summary(spread),
-            "placement": place,
-            "targets_met_on_held_out": met,
-            "long_runs_10s": long_runs(cases, variant),
-            "ns3_drop_causes": drop_causes(rows, variant),
-        }
-        print(
-            f"{variant}: held-out throughput rel. error median {t['all_users']['median']:.3f} "
-            f"p90 {t['all_users']['p90']:.3f}, congested median "
-            f"{t['congested_users'].get('median', float('nan')):.3f}; utility abs. error median "
-            f"{held_errors['utility_abs_error']['median']:.3f}; placement agreement "
-            f"{place['mean_ratio']}"
-        )
+    fitted_doc = load_fitted()
+    configs = {"default": NetworkConfig(), "fitted": make_config(fitted_doc["fitted"])}
+    result["fitted"] = {
+        "source": "sim/calibration/fitted.json (python -m sim.calibration.fit)",
+        "fitted_on": f"the {fitted_doc['fit_cases']} fit cases only (never the held-out ones)",
+        "constants": fitted_doc["fitted"],
+        "defaults": {k: v["default"] for k, v in fitted_doc["free_constants"].items()},
+        "variants": {},
+    }
+    rows_by_config: dict[str, dict[str, list[dict[str, Any]]]] = {}
+    for name, config in configs.items():
+        rows_by_config[name] = {}
+        for variant in VARIANTS:
+            ns3 = ns3_docs[variant]
+            if not ns3:
+                continue
+            block, rows = variant_block(config, variant, cases, ns3, meta)
+            rows_by_config[name][variant] = rows
+            if name == "default":
+                block["ns3_seed_vs_seed_held_out"] = seed_vs_seed(ns3, held)
+                block["ns3_drop_causes"] = drop_causes(rows, variant)
+                result["variants"][variant] = block
+            else:
+                result["fitted"]["variants"][variant] = block
+    result["held_out_default_vs_fitted"] = comparison(result)
+    for variant, table in result["held_out_default_vs_fitted"].items():
+        for figure, entry in table.items():
+            print(
+                f"{variant} held-out {figure}: default {entry['default']}, "
+                f"fitted {entry['fitted']} (target {entry['target']})"
+            )
     result["speed"] = speed(cases, not args.no_live, ns3_docs)
     if "speedup_min" in result["speed"]:
         result["speed"]["target_met"] = (
@@ -570,7 +667,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"speed: fast model {result['speed']['speedup_min']}x+ faster per simulated second")
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
-    scatter(rows_by_variant, FIGURE)
+    scatter(rows_by_config, FIGURE)
     print(f"wrote {RESULTS} and {FIGURE}")
     return 0
 
