@@ -16,11 +16,9 @@ $(STAMP): $(BIN)/python pyproject.toml
 	$(BIN)/pip install -e '.[dev]'
 	touch $(STAMP)
 
-# Until the closed-loop demo exists: the three baselines on 100 generated scenarios.
+# The closed loop: sitl-mock + tupa serve (shipped DDQN) + the simulated network controller.
 run: $(STAMP)
-	$(BIN)/tupa scenarios generate --n 100 --users 3 --seed 1 --out runs/demo/scenarios.json
-	$(BIN)/tupa eval --policy min-distance --policy load-weighted --policy oracle \
-		--scenarios runs/demo/scenarios.json --json runs/demo/eval.json
+	$(BIN)/tupa demo --out runs/demo
 
 test: $(STAMP)
 	$(BIN)/ruff check .

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 _DESCRIPTION = """\
 Serve the placement API and stream the chosen targets to the autopilot over MAVLink.
@@ -113,13 +114,36 @@ def _serve(args: argparse.Namespace) -> int:
     service = PlacementService.from_settings(settings)  # InputError for an unusable policy
     app = create_app(settings, service_factory=lambda _settings: service)
 
+    import socket
+
     import uvicorn
 
-    uvicorn.run(
-        app,
-        host=settings.host,
-        port=settings.port,
-        log_level=args.log_level,
-        access_log=args.log_level == "debug",
+    # Bind first, so that --port 0 gets a free port we can announce; uvicorn serves the socket.
+    family = socket.AF_INET6 if ":" in settings.host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((settings.host, settings.port))
+    except OSError as exc:
+        service.link.close()
+        raise InputError(f"port: cannot listen on {settings.host}:{settings.port}: {exc}") from None
+    port = sock.getsockname()[1]
+    config = uvicorn.Config(
+        app, log_level=args.log_level, access_log=args.log_level == "debug", lifespan="on"
     )
+    _announcing_server(config, f"http://{settings.host}:{port}").run(sockets=[sock])
     return 0
+
+
+def _announcing_server(config: Any, url: str) -> Any:
+    """uvicorn's server, printing one line on stdout once it accepts requests (scripts and tests
+    read it to learn the port)."""
+    import uvicorn
+
+    class AnnouncingServer(uvicorn.Server):
+        async def startup(self, sockets: list[Any] | None = None) -> None:
+            await super().startup(sockets=sockets)
+            if not self.should_exit:
+                print(f"tupa serve listening on {url}", flush=True)
+
+    return AnnouncingServer(config)

@@ -29,6 +29,7 @@ import httpx
 import numpy as np
 
 from service.controller_sim import SimulatedNetwork, StepRecord, TruePosition, run_scenario
+from service.frames import FrameConfig
 from service.processes import start_service, start_sitl_mock
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
 from sim.scenarios import Scenario, generate_scenarios
@@ -39,7 +40,7 @@ from sim.utility import heterogeneity_index
 class DemoConfig:
     policy: str | None = None  # None: the service's default (shipped DDQN checkpoint)
     scenarios: int = 3
-    steps: int = 20
+    steps: int = 25
     step_s: float = 1.0
     speed_mps: float = 10.0
     seed: int = 7
@@ -88,8 +89,8 @@ def compare(
     network: NetworkConfig,
     seed: int,
 ) -> dict[str, float]:
-    """min-distance and the oracle from the same start at the same speed; the policy's own final
-    position held from the first step (no flight)."""
+    """min-distance and the oracle from the same start at the same speed; the policy's last
+    target held from the first step (no flight)."""
     from policies.baselines import make_policy
 
     area = AreaConfig()
@@ -103,7 +104,7 @@ def compare(
         out[f"{name}_no_flight"] = static_episode(
             target, scenario, target, cfg.steps, None, network, seed
         )
-    out["policy_final_no_flight"] = static_episode(
+    out["policy_target_no_flight"] = static_episode(
         final_m, scenario, final_m, cfg.steps, None, network, seed
     )
     return out
@@ -142,10 +143,17 @@ def run_demo(cfg: DemoConfig) -> dict[str, Any]:
         if cfg.policy:
             serve_args += ["--policy", cfg.policy]
         _say(f"autopilot (sitl-mock, {cfg.flavour}) on tcp:127.0.0.1:{mock_port}")
-        service, api_port = start_service(serve_args, env={"TUPA_API_TOKEN": token})
+        # Home (where the vehicle boots and takes off) at the area's centre, as the paper's
+        # episodes start there: the area's south-west corner lies 250 m south and west of it.
+        origin = {
+            "TUPA_AREA_ORIGIN_NORTH_M": str(-area.size_y_m / 2),
+            "TUPA_AREA_ORIGIN_EAST_M": str(-area.size_x_m / 2),
+        }
+        service, api_port = start_service(serve_args, env={"TUPA_API_TOKEN": token, **origin})
         base = f"http://127.0.0.1:{api_port}"
         _say(f"placement service on {base}")
-        vehicle = TruePosition(f"tcp:127.0.0.1:{mock_port}").start()
+        frames = FrameConfig(-area.size_y_m / 2, -area.size_x_m / 2)
+        vehicle = TruePosition(f"tcp:127.0.0.1:{mock_port}", frames).start()
         with httpx.Client(
             base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=10.0
         ) as client:
@@ -162,7 +170,8 @@ def run_demo(cfg: DemoConfig) -> dict[str, Any]:
                 records = run_scenario(
                     sim_net, vehicle, client, cfg.steps, cfg.step_s, on_step=_print_step
                 )
-                final = np.asarray(records[-1].position_m)
+                targets = [r.target_m for r in records if r.target_m is not None]
+                final = np.asarray(targets[-1] if targets else records[-1].position_m)
                 achieved = float(np.mean([r.utility for r in records]))
                 others = compare(scenario, start, final, cfg, network, cfg.seed + i)
                 results.append(
@@ -204,15 +213,15 @@ def format_table(results: Sequence[dict[str, Any]], policy_name: str) -> str:
         "-" * len(header),
     ]
     for i, r in enumerate(results):
-        cost = r["policy_final_no_flight"] - r["achieved"]
+        cost = r["policy_target_no_flight"] - r["achieved"]
         lines.append(
             f"{i + 1:>8} {r['heterogeneity']:>5.2f} | {r['achieved']:>20.3f} "
             f"{r['min-distance']:>12.3f} {r['oracle']:>7.3f} | {cost:>11.3f} "
             f"{r['oracle_no_flight']:>16.3f}"
         )
     lines.append(
-        "flight cost: the policy's final position held from the first step, minus what the loop "
-        "achieved while flying there"
+        "flight cost: the policy's last target held from the first step, minus what the loop "
+        "achieved while flying (and deciding) there"
     )
     return "\n".join(lines)
 

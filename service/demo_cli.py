@@ -18,7 +18,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     demo.add_argument("--policy", help="checkpoint or baseline (default: the shipped DDQN)")
     demo.add_argument("--scenarios", type=int, default=3, help="how many (default 3)")
-    demo.add_argument("--steps", type=int, default=20, help="1-s steps per scenario (default 20)")
+    demo.add_argument("--steps", type=int, default=25, help="1-s steps per scenario (default 25)")
     demo.add_argument("--seed", type=int, default=7)
     demo.add_argument("--flavour", choices=("px4", "ardupilot"), default="px4")
     demo.add_argument("--out", type=Path, default=Path("runs/demo"), metavar="DIR")
@@ -35,6 +35,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ctl.add_argument("--api", default="http://127.0.0.1:8080", help="the service's base URL")
     ctl.add_argument(
         "--mavlink", default="tcp:127.0.0.1:5760", help="the autopilot (true position)"
+    )
+    ctl.add_argument(
+        "--area-origin-north-m",
+        type=float,
+        default=float(os.environ.get("TUPA_AREA_ORIGIN_NORTH_M", 0.0)),
+        help="north offset of the area's south-west corner from home (as tupa serve's)",
+    )
+    ctl.add_argument(
+        "--area-origin-east-m",
+        type=float,
+        default=float(os.environ.get("TUPA_AREA_ORIGIN_EAST_M", 0.0)),
+        help="east offset of the area's south-west corner from home (as tupa serve's)",
     )
     ctl.add_argument("--scenarios", type=Path, metavar="FILE", help="tupa-scenarios/1 JSON")
     ctl.add_argument("--users", type=int, default=3, help="users per generated scenario")
@@ -74,6 +86,7 @@ def _controller_sim(args: argparse.Namespace) -> int:
     import httpx
 
     from service.controller_sim import SimulatedNetwork, TruePosition, run_scenario
+    from service.frames import FrameConfig
     from sim.scenarios import generate_scenarios
 
     _positive("steps", args.steps)
@@ -87,7 +100,8 @@ def _controller_sim(args: argparse.Namespace) -> int:
         scenarios = generate_scenarios(args.count, args.users, seed=args.seed)
     token = os.environ.get("TUPA_API_TOKEN", "")
     headers = {"Authorization": f"Bearer {token}"} if token else {}
-    vehicle = TruePosition(args.mavlink).start()
+    frames = FrameConfig(args.area_origin_north_m, args.area_origin_east_m)
+    vehicle = TruePosition(args.mavlink, frames).start()
     try:
         with httpx.Client(base_url=args.api, headers=headers, timeout=10.0) as client:
             for i, scenario in enumerate(scenarios):

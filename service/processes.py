@@ -117,7 +117,7 @@ def start_service(
     """``tupa serve ARGS`` (give ``--port 0``); returns it once uvicorn listens, and its port."""
     proc = TupaProcess(["serve", *args], "tupa-serve", env)
     try:
-        match = proc.wait_for_line(r"Uvicorn running on http://[^\s:]+:(\d+)", timeout_s)
+        match = proc.wait_for_line(r"tupa serve listening on http://\S+:(\d+)\s*$", timeout_s)
     except ProcessFailedError:
         proc.stop()
         raise

@@ -1,0 +1,90 @@
+"""docker-compose.yml: Docker cannot run here, so check what can be checked without it.
+
+Every service's command is a real ``tupa`` command (its ``--help`` works, and its arguments
+parse), and the services agree on ports, hosts, the token and the area frame.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlparse
+
+import pytest
+import yaml
+
+from service.cli import build_parser
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def compose() -> dict[str, Any]:
+    return yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+
+
+def _option(command: list[str], name: str) -> str:
+    return command[command.index(name) + 1]
+
+
+def test_the_expected_services_and_one_dockerfile(compose: dict[str, Any]) -> None:
+    services = compose["services"]
+    assert {"api", "sitl-mock", "controller-sim", "trainer"} <= set(services)
+    assert services["trainer"]["profiles"] == ["trainer"]
+    assert (ROOT / "Dockerfile").is_file()
+    dockerfile = (ROOT / "Dockerfile").read_text()
+    assert 'ENTRYPOINT ["tupa"]' in dockerfile
+    assert "torch==2.13.0" in dockerfile
+    builds = [name for name, svc in services.items() if "build" in svc]
+    assert builds == ["sitl-mock"]  # one build; the others reuse its image
+    assert {svc["image"] for svc in services.values()} == {"tupa"}
+
+
+def test_every_command_is_a_real_tupa_command(compose: dict[str, Any]) -> None:
+    parser = build_parser()
+    for name, service in compose["services"].items():
+        command = [str(part) for part in service["command"]]
+        args = parser.parse_args(command)  # SystemExit (a failure) on an unknown option
+        assert callable(args.handler), name
+        result = subprocess.run(
+            [sys.executable, "-m", "service.cli", command[0], "--help"],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            cwd=ROOT,
+        )
+        assert result.returncode == 0, (name, result.stderr)
+        assert "usage: tupa" in result.stdout
+
+
+def test_ports_hosts_and_environment_agree(compose: dict[str, Any]) -> None:
+    services = compose["services"]
+    mock_cmd = services["sitl-mock"]["command"]
+    mock_listen = _option(mock_cmd, "--listen")
+    kind, _, mock_port = mock_listen.split(":")
+    assert kind == "tcp"
+    api = services["api"]
+    api_env = api["environment"]
+    assert api_env["TUPA_MAVLINK"] == f"tcp:sitl-mock:{mock_port}"
+    api_port = _option(api["command"], "--port")
+    assert any(str(p).endswith(f":{api_port}") for p in api["ports"])
+    assert _option(api["command"], "--host") == "0.0.0.0"
+    ctl = services["controller-sim"]
+    api_url = urlparse(_option(ctl["command"], "--api"))
+    assert (api_url.hostname, str(api_url.port)) == ("api", api_port)
+    assert _option(ctl["command"], "--mavlink") == f"tcp:sitl-mock:{mock_port}"
+    assert ctl["environment"]["TUPA_API_TOKEN"] == api_env["TUPA_API_TOKEN"]
+    for key in ("TUPA_AREA_ORIGIN_NORTH_M", "TUPA_AREA_ORIGIN_EAST_M"):
+        assert ctl["environment"][key] == api_env[key]
+    assert "healthz" in " ".join(api["healthcheck"]["test"])
+    assert str(api_port) in " ".join(api["healthcheck"]["test"])
+
+
+def test_trainer_reads_the_scenarios_its_companion_writes(compose: dict[str, Any]) -> None:
+    services = compose["services"]
+    written = _option(services["test-scenarios"]["command"], "--out")
+    trainer = services["trainer"]
+    assert _option(trainer["command"], "--test-scenarios") == written
+    assert trainer["depends_on"]["test-scenarios"]["condition"] == "service_completed_successfully"
