@@ -88,16 +88,17 @@ def compare(
     cfg: DemoConfig,
     network: NetworkConfig,
     seed: int,
-) -> dict[str, float]:
+) -> dict[str, Any]:
     """min-distance and the oracle from the same start at the same speed; the policy's last
     target held from the first step (no flight)."""
     from policies.baselines import make_policy
 
     area = AreaConfig()
-    out = {}
+    out: dict[str, Any] = {}
     for name in ("min-distance", "oracle"):
         policy = make_policy(name, area, network, UtilityConfig(), episode_steps=cfg.steps)
         target = policy.place(scenario)
+        out[f"{name}_target_m"] = [float(v) for v in target]
         out[name] = static_episode(
             target, scenario, start_m, cfg.steps, cfg.speed_mps, network, seed
         )
@@ -247,6 +248,9 @@ def plot_tracks(
         ax.plot(track[:, 0], track[:, 1], "-o", ms=2.5, c="tab:blue", label=f"{policy_name} track")
         ax.plot(*track[0, :2], "s", c="tab:blue", ms=7, label="start")
         ax.plot(*track[-1, :2], "*", c="tab:blue", ms=12, label="end")
+        ax.plot(*r["min-distance_target_m"][:2], "x", c="k", ms=9, mew=2, label="min-distance")
+        ax.plot(*r["oracle_target_m"][:2], "D", c="tab:green", ms=7, mfc="none", mew=2,
+                label="oracle")  # fmt: skip
         ax.set_xlim(0, area.size_x_m)
         ax.set_ylim(0, area.size_y_m)
         ax.set_aspect("equal")
@@ -258,8 +262,9 @@ def plot_tracks(
         ax.set_xlabel("x (m, east)")
         ax.set_ylabel("y (m, north)")
         ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=7, loc="upper left")
-    fig.tight_layout()
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
     tmp = path.with_suffix(".tmp.png")
     fig.savefig(tmp, dpi=110)
     plt.close(fig)
