@@ -18,7 +18,7 @@ How it maps onto MAVSDK:
 * the connection string is a pymavlink one (``tcp:HOST:PORT``, ``udpin:HOST:PORT``,
   ``udpout:HOST:PORT``, ``/dev/ttyUSB0,57600``), translated by :func:`mavsdk_url`; MAVSDK URLs
   (``udpin://0.0.0.0:14540``) pass through. MAVSDK sends our HEARTBEAT (system and component
-  ids from the config).
+  ids from the config; type GCS or, for anything else, MAVSDK's companion computer).
 * the vehicle's HEARTBEATs come through the MavlinkDirect plugin and are decoded exactly as the
   pymavlink backend decodes them (flavour, mode names, armed, link health, heartbeat age);
   positions come from the Telemetry plugin (``position_velocity_ned``, ``position``), at
@@ -307,12 +307,17 @@ class MavsdkLink:
     # ------------------------------------------------------------------ the MAVSDK session
 
     def _open_session(self, now: float) -> bool:
-        from mavsdk import Configuration, Mavsdk
+        from mavsdk import ComponentType, Configuration, Mavsdk
 
         config = self.config
-        configuration = Configuration.create_manual(
-            config.source_system, config.source_component, True
+        component_type = (
+            ComponentType.GROUND_STATION
+            if config.heartbeat_type == mavlink.MAV_TYPE_GCS
+            else ComponentType.COMPANION_COMPUTER
         )
+        configuration = Configuration.create_with_component_type(component_type)
+        configuration.system_id = config.source_system
+        configuration.component_id = config.source_component
         sdk = Mavsdk(configuration)
         try:
             sdk.add_any_connection_with_handle(self.mavsdk_url)
@@ -479,8 +484,11 @@ class MavsdkLink:
                     if now >= next_mode_request:
                         next_mode_request = now + config.mode_retry_s
                         self._request_guided_mode(session, now)
-                wait_s = min(next_setpoint, next_mode_request) - time.monotonic()
-                self._stop.wait(min(max(wait_s, 0.001), 0.05))
+                if health == "up":
+                    wait_s = min(next_setpoint, next_mode_request) - time.monotonic()
+                    self._stop.wait(min(max(wait_s, 0.001), 0.05))
+                else:
+                    self._stop.wait(0.05)
         except Exception:
             log.exception("MAVSDK link thread failed")
             raise
