@@ -33,6 +33,13 @@ def test_make_config_moves_only_the_free_constants():
     assert replace(config, phy=base.phy, mac=base.mac) == base
 
 
+def test_constants_under_which_a_slower_mcs_carries_more_are_rejected():
+    assert fit.falls_monotonically(NetworkConfig())
+    # Switching MCS 1 dB early at a shallow waterfall: the faster MCS loses more than it gains.
+    bad = {"threshold_offset_db": -1.0, "per_offset_db": -0.5, "per_slope_per_db": 0.875}
+    assert not fit.falls_monotonically(fit.make_config(bad))
+
+
 def test_fit_and_held_out_parts_are_disjoint_and_cover_the_set(calib):
     fit_ids, held = set(calib.ids("fit")), set(calib.ids("held_out"))
     assert not fit_ids & held
@@ -46,6 +53,7 @@ def test_committed_fit_is_within_bounds_and_reproduces_its_figures(calib):
     for c in fit.FREE:
         assert c.lo <= doc["fitted"][c.name] <= c.hi
     config = fit.fitted_config()
+    assert fit.falls_monotonically(config)
     for part in ("fit", "held_out"):
         for name, cfg in (("fitted", config), ("default", NetworkConfig())):
             got = fit.figures(calib, cfg, part)
