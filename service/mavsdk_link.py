@@ -45,9 +45,10 @@ How it maps onto MAVSDK:
   the MAVSDK instance is dropped and made anew with backoff (``reconnect_min_s`` to
   ``reconnect_max_s``); the latest target streams again once the vehicle is back.
 
-Not supported: **MAVLink 2 signing**. The native binding has no signing API (MAVSDK's C++
-library has none in its public API either), so a ``signing_key`` in the config raises ValueError
-naming it: use the ``pymavlink`` backend for a signed link.
+Not supported: **MAVLink 2 signing**. The native binding (mavsdk 4.1) exposes no signing call
+(none in its Python API nor among libcmavsdk's exported functions; MAVSDK declined to plan it in
+mavlink/MAVSDK#1060), so a ``signing_key`` in the config raises ValueError naming it: use the
+``pymavlink`` backend for a signed link.
 
 All MAVSDK calls happen in this module's threads, never in the caller's; MAVSDK's callbacks only
 update the snapshot under a condition variable, and no MAVSDK call is made while holding it (a
