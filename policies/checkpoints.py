@@ -18,6 +18,7 @@ import os
 import subprocess
 import tempfile
 import zipfile
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -135,6 +136,56 @@ def load_checkpoint(
             f"{list(model.observation_space.shape)}, this area needs {expected_shape}"
         )
     return model, meta
+
+
+def export_checkpoint(
+    source: Path, dest: Path, area: AreaConfig = AreaConfig(), **extra_metadata: Any
+) -> dict[str, Any]:
+    """Write a serving copy of checkpoint ``source`` to ``dest`` (zip + metadata JSON).
+
+    Same network weights (online and target), so it acts exactly as ``source`` does; without
+    the optimizer's running statistics (RMSprop's squared-gradient averages: as large as the
+    network itself and only needed to continue training; a copy resumed anyway starts them
+    afresh) and without a replay buffer (never in the zip); members deflate-compressed. The
+    metadata is ``source``'s plus ``extra_metadata`` and an ``exported_from`` note.
+    """
+    model, meta = load_checkpoint(source, area, device="cpu")
+    for name in model._get_torch_save_params()[0]:
+        if name.endswith("optimizer"):
+            obj = model
+            for part in name.split("."):
+                obj = getattr(obj, part)
+            obj.state.clear()
+    dest = Path(dest)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{dest.stem}.", suffix=".zip", dir=dest.parent)
+    os.close(fd)
+    plain = Path(tmp_name).with_suffix(".plain.zip")
+    try:
+        model.save(plain)
+        with (
+            zipfile.ZipFile(plain) as src,
+            zipfile.ZipFile(tmp_name, "w", compression=zipfile.ZIP_DEFLATED) as out,
+        ):
+            for item in src.infolist():
+                out.writestr(item.filename, src.read(item.filename))
+        os.replace(tmp_name, dest)
+    except BaseException:
+        Path(tmp_name).unlink(missing_ok=True)
+        raise
+    finally:
+        plain.unlink(missing_ok=True)
+    metadata = {
+        **{k: v for k, v in meta.items() if k != "format"},
+        **extra_metadata,
+        "exported_from": {
+            "path": str(source),
+            "at": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+            "dropped": ["optimizer state"],
+        },
+    }
+    atomic_write_json(metadata_path(dest), {"format": CHECKPOINT_FORMAT, **metadata})
+    return metadata
 
 
 def algorithm_class(algorithm: str) -> type:
