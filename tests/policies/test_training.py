@@ -232,3 +232,28 @@ def test_train_cli_refuses_bad_arguments(tmp_path, test_file, capsys):
     assert "--episodes" in capsys.readouterr().err
     assert not (tmp_path / "x" / "model.zip").exists()
     assert main(["train", "--resume", str(tmp_path / "nothing")]) == 2
+
+
+def test_export_keeps_the_weights_and_drops_the_optimizer_state(tmp_path, random_ddqn):
+    from policies.checkpoints import export_checkpoint
+
+    source = tmp_path / "trained.zip"
+    meta = {"algorithm": "ddqn", "strategy": "spec", "observation_shape": [6, 20, 20]}
+    save_checkpoint(random_ddqn, source, meta)
+    model, _ = load_checkpoint(source, AREA)  # one optimizer step gives RMSprop a state
+    obs = th.rand(4, *model.observation_space.shape)
+    model.policy.q_net(obs).sum().backward()
+    model.policy.optimizer.step()
+    assert model.policy.optimizer.state_dict()["state"]
+    save_checkpoint(model, source, meta)
+    dest = tmp_path / "shipped" / "ddqn-x.zip"
+    exported = export_checkpoint(source, dest, training_command="tupa train ...")
+    assert exported["training_command"] == "tupa train ..."
+    assert json.loads(dest.with_suffix(".json").read_text())["exported_from"]["path"] == str(source)
+    original, _ = load_checkpoint(source, AREA)
+    copy, _ = load_checkpoint(dest, AREA)
+    assert not copy.policy.optimizer.state_dict()["state"]
+    for (k1, v1), (k2, v2) in zip(
+        original.policy.state_dict().items(), copy.policy.state_dict().items(), strict=True
+    ):
+        assert k1 == k2 and th.equal(v1, v2)
