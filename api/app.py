@@ -12,13 +12,18 @@ from contextlib import asynccontextmanager
 from typing import Any
 
 from fastapi import FastAPI, Request
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from prometheus_client import CollectorRegistry
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Route
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from api.auth import BearerGuard
 from api.metrics import HttpMetrics, ServiceCollector
-from api.routes import probes, v1
+from api.ratelimit import RateLimit
+from api.routes import RATE_LIMITED, probes, v1
 from service.placement import PlacementService
 from service.settings import ServiceSettings
 
@@ -95,6 +100,22 @@ async def validation_error(request: Request, exc: RequestValidationError) -> JSO
     return JSONResponse({"detail": errors}, status_code=422)
 
 
+async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
+    """Starlette's own answer, except that a 405's ``Allow`` lists every method the path has
+    (each method is its own route, and Starlette names only the first route's)."""
+    if exc.status_code != 405:
+        return await http_exception_handler(request, exc)
+    methods: set[str] = set()
+    for route in request.app.routes:
+        if isinstance(route, Route) and route.methods and route.path_regex.match(request.url.path):
+            methods |= route.methods
+    return JSONResponse(
+        {"detail": exc.detail},
+        status_code=405,
+        headers={**(exc.headers or {}), "Allow": ", ".join(sorted(methods))},
+    )
+
+
 def create_app(
     settings: ServiceSettings,
     service_factory: Callable[[ServiceSettings], PlacementService] | None = None,
@@ -122,14 +143,24 @@ def create_app(
     token = settings.api_token.get_secret_value() if settings.api_token else ""
     app.state.api_token = token or None
     app.add_exception_handler(RequestValidationError, validation_error)  # type: ignore[arg-type]
+    app.add_exception_handler(StarletteHTTPException, http_error)  # type: ignore[arg-type]
     app.state.service = None
     registry = CollectorRegistry()
     registry.register(ServiceCollector(lambda: app.state.service))
     app.state.registry = registry
     http_metrics = HttpMetrics(registry)
+    # Middlewares, outermost last: rate limit, body size, metrics, token, then the routes.
+    app.add_middleware(BearerGuard, token=app.state.api_token)
     app.middleware("http")(http_metrics.middleware)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
-    app.include_router(v1)
+    if settings.rate_limit_rps > 0:  # outermost: a flood is turned away before anything else
+        app.add_middleware(
+            RateLimit,
+            rate_per_s=settings.rate_limit_rps,
+            burst=settings.rate_limit_burst,
+            on_reject=http_metrics.rate_limited.inc,
+        )
+    app.include_router(v1, responses=RATE_LIMITED)
     app.include_router(probes)
     return app
 

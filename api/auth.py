@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import hmac
+import json
 
-from fastapi import HTTPException, Request, status
+from fastapi import HTTPException, Request, Security, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from starlette.types import ASGIApp, Receive, Scope, Send
 
 _bearer = HTTPBearer(auto_error=False, description="TUPA_API_TOKEN")
+UNAUTHORIZED = "authorization: a valid 'Bearer <token>' header is required"
 
 
 def token_matches(provided: str, expected: str) -> bool:
@@ -15,18 +18,65 @@ def token_matches(provided: str, expected: str) -> bool:
     return hmac.compare_digest(provided.encode(), expected.encode())
 
 
-async def require_token(request: Request) -> None:
+async def require_token(
+    request: Request,
+    credentials: HTTPAuthorizationCredentials | None = Security(_bearer),  # noqa: B008
+) -> None:
     """FastAPI dependency: 401 unless ``Authorization: Bearer <token>`` matches the service's.
 
-    A service started with ``--insecure`` and no token accepts every request.
+    A service started with ``--insecure`` and no token accepts every request. (``Security``
+    declares the bearer scheme in the OpenAPI document.)
     """
     expected: str | None = request.app.state.api_token
     if expected is None:
         return
-    credentials: HTTPAuthorizationCredentials | None = await _bearer(request)
     if credentials is None or not token_matches(credentials.credentials, expected):
         raise HTTPException(
             status.HTTP_401_UNAUTHORIZED,
-            detail="authorization: a valid 'Bearer <token>' header is required",
+            detail=UNAUTHORIZED,
             headers={"WWW-Authenticate": "Bearer"},
         )
+
+
+class BearerGuard:
+    """Pure ASGI middleware: the same check for every path under ``prefix``, before routing and
+    before the body is read, so that a request without the token learns nothing (not whether
+    its body parses, nor which routes exist) and costs nothing but this comparison. The route
+    dependency :func:`require_token` stays: it declares the scheme in the OpenAPI document."""
+
+    def __init__(self, app: ASGIApp, token: str | None, prefix: str = "/v1") -> None:
+        self.app = app
+        self.token = token
+        self.prefix = prefix
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        path = scope.get("path", "")
+        if (
+            scope["type"] != "http"
+            or self.token is None
+            or not (path == self.prefix or path.startswith(self.prefix + "/"))
+            or _header_token_matches(scope, self.token)
+        ):
+            await self.app(scope, receive, send)
+            return
+        body = json.dumps({"detail": UNAUTHORIZED}).encode()
+        await send(
+            {
+                "type": "http.response.start",
+                "status": 401,
+                "headers": [
+                    (b"content-type", b"application/json"),
+                    (b"content-length", str(len(body)).encode()),
+                    (b"www-authenticate", b"Bearer"),
+                ],
+            }
+        )
+        await send({"type": "http.response.body", "body": body})
+
+
+def _header_token_matches(scope: Scope, expected: str) -> bool:
+    for name, value in scope.get("headers", []):
+        if name == b"authorization":
+            scheme, _, credentials = value.decode("latin-1").partition(" ")
+            return scheme.lower() == "bearer" and token_matches(credentials.strip(), expected)
+    return False

@@ -96,6 +96,11 @@ class HttpMetrics:
             buckets=(0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5),
             registry=registry,
         )
+        self.rate_limited = Counter(
+            "tupa_http_rate_limited",
+            "HTTP requests turned away with 429 (over a client's rate)",
+            registry=registry,
+        )
 
     async def middleware(
         self, request: Request, call_next: Callable[[Request], Awaitable[Response]]

@@ -15,12 +15,14 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from api.auth import require_token
 from api.schemas import (
     DecisionOut,
+    ErrorOut,
     Health,
     PolicyIn,
     PolicyOut,
     Readiness,
     ReportIn,
     Target,
+    ValidationErrorOut,
     VehicleOut,
 )
 from service.placement import Decision, OutOfOrderReportError, PlacementService, Report
@@ -28,7 +30,21 @@ from sim.errors import InputError
 from sim.observation import UserReports
 
 _AUTH_RESPONSES: dict[int | str, dict[str, Any]] = {
-    401: {"description": "Missing or wrong bearer token"},
+    401: {"model": ErrorOut, "description": "Missing or wrong bearer token"},
+}
+# Answered by the middlewares before any route runs (api.app, api.ratelimit).
+RATE_LIMITED: dict[int | str, dict[str, Any]] = {
+    429: {
+        "model": ErrorOut,
+        "description": "Over this client's request rate; retry after `Retry-After` seconds",
+        "headers": {
+            "Retry-After": {"description": "Seconds to wait", "schema": {"type": "integer"}}
+        },
+    },
+}
+_BODY_RESPONSES: dict[int | str, dict[str, Any]] = {
+    400: {"model": ErrorOut, "description": "Body that cannot be parsed (e.g. not UTF-8)"},
+    413: {"model": ErrorOut, "description": "Body over the size limit"},
 }
 
 v1 = APIRouter(prefix="/v1", dependencies=[Depends(require_token)], responses=_AUTH_RESPONSES)
@@ -87,9 +103,9 @@ def to_report(body: ReportIn, service: PlacementService) -> Report:
     response_model=DecisionOut,
     summary="Submit one report of all users",
     responses={
-        409: {"description": "Older than the last accepted report: ignored"},
-        413: {"description": "Body over the size limit"},
-        422: {"description": "A field is invalid (named in the error)"},
+        409: {"model": ErrorOut, "description": "Older than the last accepted report: ignored"},
+        **_BODY_RESPONSES,
+        422: {"model": ValidationErrorOut, "description": "A field is invalid (named in it)"},
     },
 )
 def post_report(body: ReportIn, request: Request) -> DecisionOut:
@@ -139,7 +155,10 @@ def get_policy(request: Request) -> PolicyOut:
     "/policy",
     response_model=PolicyOut,
     summary="Switch to another checkpoint or baseline",
-    responses={422: {"description": "Unusable policy: the serving one stays"}},
+    responses={
+        **_BODY_RESPONSES,
+        422: {"model": ValidationErrorOut, "description": "Unusable policy: the serving one stays"},
+    },
 )
 def put_policy(body: PolicyIn, request: Request) -> PolicyOut:
     """Load and check the new policy fully, then swap it in atomically. A missing, corrupt or
@@ -148,6 +167,8 @@ def put_policy(body: PolicyIn, request: Request) -> PolicyOut:
         policy = _service(request).swap_policy(body.policy)
     except InputError as exc:
         raise _unprocessable(["policy"], str(exc)) from None
+    except (OSError, ValueError) as exc:  # a name the OS refuses (too long, NUL byte, ...)
+        raise _unprocessable(["policy"], f"policy: not a usable path ({exc})") from None
     return PolicyOut(**policy.describe())
 
 
@@ -176,7 +197,7 @@ def readyz(request: Request, response: Response) -> Readiness:
     "/metrics",
     summary="Prometheus metrics",
     response_class=Response,
-    responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}},
+    responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}, **RATE_LIMITED},
 )
 def metrics(request: Request) -> Response:
     return Response(generate_latest(request.app.state.registry), media_type=CONTENT_TYPE_LATEST)

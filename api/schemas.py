@@ -13,15 +13,20 @@ from pydantic import BaseModel, ConfigDict, Field
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(allow_inf_nan=False, extra="forbid")
+    # strict: a number must be a JSON number (not "1.5", not true), a string a JSON string.
+    model_config = ConfigDict(allow_inf_nan=False, extra="forbid", strict=True)
 
 
 class UserReportIn(_Strict):
     """What the network controller measured for one user over the last period."""
 
     id: str = Field(min_length=1, max_length=64, description="The user's id, unique per report")
-    x_m: float = Field(description="East position in the area frame, metres")
-    y_m: float = Field(description="North position in the area frame, metres")
+    x_m: float = Field(
+        ge=0, description="East position in the area frame, metres (at most the area's width)"
+    )
+    y_m: float = Field(
+        ge=0, description="North position in the area frame, metres (at most the area's depth)"
+    )
     offered_bps: float = Field(ge=0, description="Offered (uplink) load, bit/s")
     throughput_bps: float = Field(ge=0, description="Received throughput, bit/s")
     delay_s: float = Field(ge=0, description="Mean packet delay, seconds")
@@ -34,6 +39,7 @@ class ReportIn(_Strict):
     model_config = ConfigDict(
         allow_inf_nan=False,
         extra="forbid",
+        strict=True,
         json_schema_extra={
             "examples": [
                 {
@@ -146,6 +152,7 @@ class PolicyOut(BaseModel):
 class PolicyIn(_Strict):
     model_config = ConfigDict(
         extra="forbid",
+        strict=True,
         json_schema_extra={"examples": [{"policy": "load-weighted"}]},
     )
 
@@ -166,3 +173,43 @@ class Readiness(BaseModel):
     reasons: list[str]
     policy: str
     link: str
+
+
+class ErrorOut(BaseModel):
+    """An error in one line: 401, 409, 413, 429."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [{"detail": "authorization: a valid 'Bearer <token>' header is required"}]
+        }
+    )
+
+    detail: str
+
+
+class FieldError(BaseModel):
+    loc: list[str | int] = Field(description='Where: ["body", "users", 2, "plr"]')
+    msg: str
+    type: str | None
+
+
+class ValidationErrorOut(BaseModel):
+    """422: each bad field named (the offending value is not echoed)."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "detail": [
+                        {
+                            "loc": ["body", "users", 0, "plr"],
+                            "msg": "Input should be less than or equal to 1",
+                            "type": "less_than_equal",
+                        }
+                    ]
+                }
+            ]
+        }
+    )
+
+    detail: list[FieldError]

@@ -56,6 +56,11 @@ class ServiceSettings(BaseSettings):
     """Where the area's south-west corner at z = 0 lies from the vehicle's home (local NED)."""
     max_users: int = Field(default=1000, ge=1)
     max_body_bytes: int = Field(default=1_000_000, ge=1024)
+    rate_limit_rps: float = Field(default=2000.0, ge=0, allow_inf_nan=False)
+    """Requests per second each client (peer address) may make on average; 0: no limit. Over
+    it: 429 with ``Retry-After``. The probes (``/healthz``, ``/readyz``) are never limited."""
+    rate_limit_burst: int = Field(default=2000, ge=1)
+    """How many requests a client may make at once above its rate (the token bucket's size)."""
     queueing: Literal["fq-codel", "mac-only"] = "fq-codel"
     """The network model variant the ``oracle`` baseline optimises for."""
     state_file: Path | None = None

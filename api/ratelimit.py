@@ -1,0 +1,110 @@
+"""Per-client rate limit: a token bucket per client address, as a pure ASGI middleware.
+
+Each client (the peer address of the connection) has a bucket of ``burst`` tokens that refills
+at ``rate_per_s`` tokens per second; a request takes one token. A request that finds the bucket
+empty is answered ``429 Too Many Requests`` with ``Retry-After`` (whole seconds, at least 1)
+before any route runs. The probes ``/healthz`` and ``/readyz`` are never limited, so that a
+client flooding the service cannot make an orchestrator restart it.
+
+The middleware runs on the event loop (one thread), so the buckets need no lock. At most
+``max_clients`` buckets are kept (least recently seen dropped first): memory stays bounded
+whatever the number of addresses. Behind a reverse proxy every request has the proxy's address:
+limit there instead, or disable this one (``rate_limit_rps = 0``).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+UNLIMITED_PATHS = frozenset({"/healthz", "/readyz"})
+
+
+class TokenBuckets:
+    """Token buckets keyed by client; ``take(key)`` is 0.0 when allowed, else the seconds until
+    a token is available."""
+
+    def __init__(
+        self,
+        rate_per_s: float,
+        burst: int,
+        max_clients: int = 10_000,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if not rate_per_s > 0 or not math.isfinite(rate_per_s):
+            raise ValueError(f"rate_per_s: must be a finite number > 0, got {rate_per_s}")
+        if burst < 1:
+            raise ValueError(f"burst: must be at least 1, got {burst}")
+        self.rate_per_s = float(rate_per_s)
+        self.burst = float(burst)
+        self.max_clients = max_clients
+        self._clock = clock
+        self._buckets: OrderedDict[str, tuple[float, float]] = OrderedDict()  # tokens, at
+
+    def take(self, key: str) -> float:
+        now = self._clock()
+        tokens, at = self._buckets.pop(key, (self.burst, now))
+        tokens = min(self.burst, tokens + (now - at) * self.rate_per_s)
+        wait_s = 0.0
+        if tokens >= 1.0:
+            tokens -= 1.0
+        else:
+            wait_s = (1.0 - tokens) / self.rate_per_s
+        self._buckets[key] = (tokens, now)  # most recently seen last
+        while len(self._buckets) > self.max_clients:
+            self._buckets.popitem(last=False)
+        return wait_s
+
+    def __len__(self) -> int:
+        return len(self._buckets)
+
+
+class RateLimit:
+    """Pure ASGI middleware: 429 with ``Retry-After`` for a client over its rate."""
+
+    def __init__(
+        self,
+        app: ASGIApp,
+        rate_per_s: float,
+        burst: int,
+        on_reject: Callable[[], None] | None = None,
+        max_clients: int = 10_000,
+    ) -> None:
+        self.app = app
+        self.buckets = TokenBuckets(rate_per_s, burst, max_clients)
+        self.on_reject = on_reject
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope.get("path") in UNLIMITED_PATHS:
+            await self.app(scope, receive, send)
+            return
+        client = scope.get("client")
+        key = str(client[0]) if client else "unknown"
+        wait_s = self.buckets.take(key)
+        if wait_s <= 0.0:
+            await self.app(scope, receive, send)
+            return
+        if self.on_reject is not None:
+            self.on_reject()
+        retry_after = max(1, math.ceil(wait_s))
+        rate = self.buckets.rate_per_s
+        body = (
+            f'{{"detail":"rate limit: over {rate:g} requests/s from this client; '
+            f'retry after {retry_after} s"}}'
+        ).encode()
+        await send(
+            {
+                "type": "http.response.start",
+                "status": 429,
+                "headers": [
+                    (b"content-type", b"application/json"),
+                    (b"content-length", str(len(body)).encode()),
+                    (b"retry-after", str(retry_after).encode()),
+                ],
+            }
+        )
+        await send({"type": "http.response.body", "body": body})
