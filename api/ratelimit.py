@@ -50,8 +50,8 @@ class TokenBuckets:
         tokens, at = self._buckets.pop(key, (self.burst, now))
         tokens = min(self.burst, tokens + (now - at) * self.rate_per_s)
         wait_s = 0.0
-        if tokens >= 1.0:
-            tokens -= 1.0
+        if tokens >= 1.0 - 1e-9:  # a token earned exactly now counts, whatever the rounding
+            tokens = max(0.0, tokens - 1.0)
         else:
             wait_s = (1.0 - tokens) / self.rate_per_s
         self._buckets[key] = (tokens, now)  # most recently seen last

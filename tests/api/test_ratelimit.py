@@ -1,0 +1,135 @@
+"""The per-client rate limit: a token bucket per peer address, 429 with Retry-After."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from api.app import create_app
+from api.ratelimit import TokenBuckets
+from service.settings import ServiceSettings
+
+TOKEN = "rate-token-0123456789"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _offline_service(settings: ServiceSettings) -> Any:
+    """A placement service whose link points at a closed port: no autopilot needed here."""
+    from service.mavlink_link import LinkConfig, MavlinkLink
+    from service.placement import PlacementService
+    from service.policy_runtime import load_policy
+
+    link = MavlinkLink(LinkConfig("tcp:127.0.0.1:1", reconnect_max_s=0.5))
+    return PlacementService(settings, link, load_policy(settings.policy))
+
+
+def _app(**settings: Any) -> Any:
+    return create_app(
+        ServiceSettings(api_token=TOKEN, policy="min-distance", **settings),
+        service_factory=_offline_service,
+    )
+
+
+# --------------------------------------------------------------------------- the bucket
+
+
+def test_bucket_allows_the_burst_then_the_rate() -> None:
+    clock = FakeClock()
+    buckets = TokenBuckets(rate_per_s=10.0, burst=3, clock=clock)
+    assert [buckets.take("a") for _ in range(3)] == [0.0, 0.0, 0.0]
+    assert buckets.take("a") == pytest.approx(0.1)  # empty: one token in 1/10 s
+    clock.t += 0.1
+    assert buckets.take("a") == 0.0
+    assert buckets.take("a") > 0.0
+    clock.t += 10.0  # refills to the burst, not beyond
+    assert [buckets.take("a") for _ in range(4)][-1] > 0.0
+
+
+def test_clients_have_their_own_buckets_and_memory_stays_bounded() -> None:
+    clock = FakeClock()
+    buckets = TokenBuckets(rate_per_s=1.0, burst=1, max_clients=100, clock=clock)
+    assert buckets.take("a") == 0.0
+    assert buckets.take("a") > 0.0
+    assert buckets.take("b") == 0.0  # "a" being limited does not touch "b"
+    for i in range(1000):
+        buckets.take(f"10.0.{i // 256}.{i % 256}")
+    assert len(buckets) == 100
+
+
+@pytest.mark.parametrize("rate", [0.0, -1.0, float("nan"), float("inf")])
+def test_bucket_refuses_a_meaningless_rate(rate: float) -> None:
+    with pytest.raises(ValueError, match="rate_per_s"):
+        TokenBuckets(rate_per_s=rate, burst=1)
+
+
+def test_the_default_allows_1000_requests_per_second_from_one_client() -> None:
+    """The benchmarks send 1,000 requests/s from one client for 60 s: never limited."""
+    defaults = ServiceSettings(policy="min-distance")
+    assert defaults.rate_limit_rps >= 1000 and defaults.rate_limit_burst >= 1000
+    clock = FakeClock()
+    buckets = TokenBuckets(defaults.rate_limit_rps, defaults.rate_limit_burst, clock=clock)
+    refused = 0
+    for _ in range(60_000):
+        refused += buckets.take("127.0.0.1") > 0.0
+        clock.t += 0.001
+    assert refused == 0
+    # ... and an instantaneous burst of that size too
+    assert all(buckets.take("127.0.0.2") == 0.0 for _ in range(1000))
+
+
+# --------------------------------------------------------------------------- over HTTP
+
+
+def test_over_the_rate_gets_429_with_retry_after() -> None:
+    with TestClient(_app(rate_limit_rps=0.5, rate_limit_burst=3)) as client:
+        codes = [client.get("/v1/setpoint", headers=AUTH).status_code for _ in range(3)]
+        assert codes == [200, 200, 200]
+        limited = client.get("/v1/setpoint", headers=AUTH)
+        assert limited.status_code == 429
+        assert int(limited.headers["retry-after"]) == 2  # one token at 0.5/s
+        assert "rate limit" in limited.json()["detail"]
+        # Unauthenticated requests count too (a flood of wrong tokens is limited as well).
+        assert client.get("/v1/setpoint").status_code == 429
+        assert client.get("/metrics").status_code == 429
+
+
+def test_probes_are_never_limited_and_rejections_are_counted() -> None:
+    with TestClient(_app(rate_limit_rps=0.5, rate_limit_burst=2)) as client:
+        for _ in range(5):
+            client.get("/v1/policy", headers=AUTH)
+        for _ in range(20):
+            assert client.get("/healthz").status_code == 200
+            assert client.get("/readyz").status_code in (200, 503)
+        other = TestClient(client.app, client=("192.0.2.7", 40000))
+        metrics = other.get("/metrics")  # another client: its own bucket
+        assert metrics.status_code == 200
+        line = next(
+            x for x in metrics.text.splitlines() if x.startswith("tupa_http_rate_limited_total")
+        )
+        assert float(line.split()[-1]) == 3.0
+
+
+def test_zero_disables_the_limit() -> None:
+    with TestClient(_app(rate_limit_rps=0, rate_limit_burst=1)) as client:
+        assert all(client.get("/v1/setpoint", headers=AUTH).status_code == 200 for _ in range(50))
+
+
+def test_429_is_documented_on_every_limited_route() -> None:
+    schema = _app().openapi()
+    for path, operations in schema["paths"].items():
+        for method, operation in operations.items():
+            if path in ("/healthz", "/readyz"):
+                assert "429" not in operation["responses"], (method, path)
+            else:
+                assert "429" in operation["responses"], (method, path)
+                assert "Retry-After" in operation["responses"]["429"]["headers"]
