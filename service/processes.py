@@ -19,6 +19,18 @@ from collections import deque
 from collections.abc import Sequence
 
 
+def _detach_and_die_with_parent() -> None:
+    """In the child before exec: its own session (Ctrl-C in the parent's terminal does not hit
+    it twice), and SIGTERM when the parent dies, however it dies (Linux ``PR_SET_PDEATHSIG``),
+    so that no child outlives a killed demo or test run."""
+    os.setsid()
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG = 1
+
+
 class ProcessFailedError(RuntimeError):
     """The child exited, or did not say what was awaited in time; carries its last output."""
 
@@ -37,7 +49,7 @@ class TupaProcess:
             stdin=subprocess.DEVNULL,
             text=True,
             env=child_env,
-            start_new_session=True,  # Ctrl-C in the parent's terminal does not hit it twice
+            preexec_fn=_detach_and_die_with_parent,
         )
         self._reader = threading.Thread(target=self._read, name=f"{name}-output", daemon=True)
         self._reader.start()
