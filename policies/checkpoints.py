@@ -37,10 +37,13 @@ def metadata_path(checkpoint: Path) -> Path:
 def resolve_checkpoint(path: Path) -> Path:
     """``path`` itself if it is a zip, ``path/model.zip`` if it is a training output directory."""
     path = Path(path)
-    if path.is_dir():
-        path = path / "model.zip"
-    if not path.is_file():
-        raise InputError(f"{path}: no such checkpoint")
+    try:
+        if path.is_dir():
+            path = path / "model.zip"
+        if not path.is_file():
+            raise InputError(f"{path}: no such checkpoint")
+    except OSError as exc:  # e.g. a name too long for the file system
+        raise InputError(f"{path}: cannot open ({exc.strerror or exc})") from None
     return path
 
 
@@ -87,8 +90,9 @@ def read_metadata(path: Path) -> dict[str, Any]:
         meta = json.loads(meta_path.read_text())
     except FileNotFoundError:
         raise InputError(f"{zip_path}: metadata file {meta_path.name} is missing") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(f"{meta_path}: not a readable JSON file ({exc})") from None
+    except (OSError, ValueError, RecursionError) as exc:  # ValueError: bad JSON, UTF-8, digits
+        message = "nested too deeply" if isinstance(exc, RecursionError) else str(exc)
+        raise InputError(f"{meta_path}: not a readable JSON file ({message})") from None
     if not isinstance(meta, dict) or meta.get("format") != CHECKPOINT_FORMAT:
         raise InputError(f"{meta_path}: format: expected {CHECKPOINT_FORMAT!r}")
     if meta.get("algorithm") not in ("ddqn", "ddpg"):
@@ -116,9 +120,9 @@ def load_checkpoint(
             f"{zip_path}: algorithm: expected {algorithm}, the file holds {meta['algorithm']}"
         )
     expected_shape = list(observation_shape(area))
-    if list(meta.get("observation_shape", [])) != expected_shape:
+    if meta.get("observation_shape") != expected_shape:
         raise InputError(
-            f"{zip_path}: observation_shape: built for {meta.get('observation_shape')}, "
+            f"{zip_path}: observation_shape: built for {meta.get('observation_shape')!r}, "
             f"this area needs {expected_shape}"
         )
     if not zipfile.is_zipfile(zip_path):

@@ -229,6 +229,7 @@ def _check_keys(
     obj: dict[str, Any], allowed: Sequence[str], where: _Where, prefix: str | None
 ) -> None:
     def name(key: str) -> str:
+        key = key if key.isprintable() else json.dumps(key)  # a key with a newline: one line
         return f"{prefix}.{key}" if prefix else key
 
     for key in allowed:
@@ -270,6 +271,8 @@ def _read_document(path: Path, expected_format: str) -> tuple[dict[str, Any], _W
         ) from None
     except RecursionError:
         raise where.error(None, "not valid JSON: nested too deeply") from None
+    except ValueError as exc:  # e.g. an integer over Python's digit limit (not a JSONDecodeError)
+        raise where.error(None, f"not valid JSON: {exc}") from None
     doc = _expect_object(doc, where, "top level")
     if "format" not in doc:
         raise where.error("format", f"missing (expected {json.dumps(expected_format)})")
