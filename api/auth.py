@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import hmac
 import json
+import logging
 
 from fastapi import HTTPException, Request, Security, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+log = logging.getLogger(__name__)
 _bearer = HTTPBearer(auto_error=False, description="TUPA_API_TOKEN")
 UNAUTHORIZED = "authorization: a valid 'Bearer <token>' header is required"
 
@@ -59,6 +61,10 @@ class BearerGuard:
         ):
             await self.app(scope, receive, send)
             return
+        client = scope.get("client")
+        log.debug(  # what was sent is never logged: it may be the token with a typo
+            "401 for %s %s from %s", scope.get("method"), path, client[0] if client else "?"
+        )
         body = json.dumps({"detail": UNAUTHORIZED}).encode()
         await send(
             {

@@ -14,6 +14,7 @@ limit there instead, or disable this one (``rate_limit_rps = 0``).
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections import OrderedDict
@@ -21,6 +22,7 @@ from collections.abc import Callable
 
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+log = logging.getLogger(__name__)
 UNLIMITED_PATHS = frozenset({"/healthz", "/readyz"})
 
 
@@ -90,6 +92,7 @@ class RateLimit:
             return
         if self.on_reject is not None:
             self.on_reject()
+        log.debug("429 for %s %s from %s", scope.get("method"), scope.get("path"), key)
         retry_after = max(1, math.ceil(wait_s))
         rate = self.buckets.rate_per_s
         body = (
