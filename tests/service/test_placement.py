@@ -1,0 +1,159 @@
+"""The placement loop's rules, against a real in-process sitl_mock (PX4 flavour, airborne):
+fresh vs stale reports, out-of-order reports, discrete moves taken on arrival, the geofence,
+and the policy runtime (same observation as the environment, valid masked moves)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from service.mavlink_link import LinkConfig, MavlinkLink
+from service.placement import OutOfOrderReportError, PlacementService, Report
+from service.policy_runtime import DEFAULT_CHECKPOINT, load_policy
+from service.settings import ServiceSettings
+from sim.config import AreaConfig
+from sim.envs import FapDiscreteEnv
+from sim.errors import InputError
+from sim.observation import UserReports
+from sim.zones import MOVES, move_mask, zone_index, zone_position
+from sitl_mock.server import MockAutopilot
+from tests.sitl_mock.helpers import wait_for
+
+AREA = AreaConfig()
+
+
+def reports(heavy_xy: tuple[float, float] = (100.0, 120.0)) -> UserReports:
+    return UserReports(
+        x_m=np.array([heavy_xy[0], 400.0, 420.0]),
+        y_m=np.array([heavy_xy[1], 380.0, 90.0]),
+        offered_bps=np.array([36e6, 2e6, 2e6]),
+        throughput_bps=np.array([20e6, 2e6, 2e6]),
+        delay_s=np.array([0.6, 0.01, 0.02]),
+        plr=np.array([0.3, 0.0, 0.0]),
+    )
+
+
+@pytest.fixture
+def make_service(
+    start_mock: Callable[..., MockAutopilot],
+) -> Iterator[Callable[..., PlacementService]]:
+    services: list[PlacementService] = []
+
+    def _make(policy: str = "load-weighted", **settings: Any) -> PlacementService:
+        mock = start_mock("px4")
+        config = ServiceSettings(
+            mavlink=f"tcp:127.0.0.1:{mock.port}",
+            api_token="t",
+            policy=policy,
+            decision_mode="on-report",
+            **settings,
+        )
+        link = MavlinkLink(LinkConfig(config.mavlink))
+        service = PlacementService(config, link, load_policy(policy)).start()
+        services.append(service)
+        wait_for(lambda: service.readiness()[0], 15.0, message="link up with a position")
+        return service
+
+    yield _make
+    for service in services:
+        service.stop()
+
+
+def test_fresh_report_decides_and_a_stale_one_holds(
+    make_service: Callable[..., PlacementService],
+) -> None:
+    service = make_service(report_max_age_s=0.3)
+    decision = service.submit_report(Report(1.0, ("a", "b", "c"), reports()))
+    assert decision is not None and decision.source == "policy"
+    # Nothing new arrives: once the report is older than report_max_age_s, the target is held.
+    wait_for(
+        lambda: (
+            service.decide_once() is None
+            and service.snapshot_counters().get("decisions_held_stale", 0) >= 1
+        ),
+        timeout_s=5.0,
+        message="stale report held",
+    )
+    held = service.current_decision()
+    assert held is not None and held.target_m == decision.target_m
+    assert service.decide_once() is None
+    assert service.current_decision() == held
+
+
+def test_out_of_order_report_changes_nothing(
+    make_service: Callable[..., PlacementService],
+) -> None:
+    service = make_service()
+    first = service.submit_report(Report(10.0, ("a", "b", "c"), reports()))
+    with pytest.raises(OutOfOrderReportError, match="older"):
+        service.submit_report(Report(9.0, ("a", "b", "c"), reports((450.0, 450.0))))
+    assert service.current_decision() == first
+    assert service.snapshot_counters()["reports_out_of_order"] == 1
+
+
+def test_users_come_and_go_each_report_replaces_the_last(
+    make_service: Callable[..., PlacementService],
+) -> None:
+    service = make_service()
+    west = service.submit_report(Report(1.0, ("a", "b", "c"), reports((60.0, 250.0))))
+    east = service.submit_report(Report(2.0, ("a", "b", "c"), reports((450.0, 250.0))))
+    assert west is not None and east is not None
+    assert east.target_m[0] > west.target_m[0] + 100
+
+
+@pytest.mark.skipif(not DEFAULT_CHECKPOINT.is_file(), reason="no shipped DDQN checkpoint")
+def test_ddqn_moves_one_step_and_waits_for_arrival(
+    make_service: Callable[..., PlacementService],
+) -> None:
+    service = make_service(policy=str(DEFAULT_CHECKPOINT), arrival_tolerance_m=1.0)
+    first = service.submit_report(Report(1.0, ("a", "b", "c"), reports()))
+    assert first is not None
+    # The move is one of the 13 applied to the zone of the vehicle's position.
+    start = zone_index(np.asarray(service.vehicle().position_m), AREA)
+    landing = zone_index(np.asarray(first.target_m), AREA)
+    assert any(np.array_equal(start + move, landing) for move in MOVES)
+    if np.array_equal(start, landing):
+        return  # "stay" is a valid first decision: nothing is en route
+    # The vehicle has not arrived yet: the next decision waits.
+    assert service.submit_report(Report(2.0, ("a", "b", "c"), reports())) == first
+    assert service.snapshot_counters()["decisions_held_en_route"] >= 1
+
+
+@pytest.mark.skipif(not DEFAULT_CHECKPOINT.is_file(), reason="no shipped DDQN checkpoint")
+def test_serving_sees_the_environments_observation_and_only_valid_moves() -> None:
+    """One code path: the observation the service builds equals the environment's, and the
+    chosen move is valid under the environment's own mask."""
+    policy = load_policy(str(DEFAULT_CHECKPOINT))
+    env = FapDiscreteEnv()
+    rng = np.random.default_rng(0)
+    for seed in range(5):
+        obs, info = env.reset(
+            seed=seed, options={"uav_xyz_m": rng.uniform([0, 0, 25], [500, 500, 100])}
+        )
+        scenario = env.unwrapped.scenario if hasattr(env, "unwrapped") else env.scenario
+        served = UserReports.from_metrics(
+            scenario.users_xy_m,
+            scenario.load_bps,
+            info["throughput_bps"],
+            info["delay_s"],
+            info["plr"],
+        )
+        uav = info["uav_xyz_m"]
+        np.testing.assert_array_equal(policy.observe(served, uav), obs)  # type: ignore[attr-defined]
+        target = policy.decide(served, uav, info["target_xyz_m"])
+        index = zone_index(info["target_xyz_m"], AREA)
+        moves = [
+            i for i, m in enumerate(MOVES) if np.allclose(zone_position(index + m, AREA), target)
+        ]
+        assert moves and info["action_mask"][moves[0]]
+        assert np.array_equal(move_mask(index, AREA), info["action_mask"])
+
+
+def test_unusable_policies_are_refused_with_the_reason(tmp_path: Any) -> None:
+    with pytest.raises(InputError, match="no such checkpoint"):
+        load_policy(str(tmp_path / "nope.zip"))
+    with pytest.raises(InputError, match="policy"):
+        load_policy("  ")
