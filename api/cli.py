@@ -53,6 +53,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--report-max-age-s", type=float, help="older reports are stale")
     parser.add_argument("--state-file", type=Path, help="persist the last target and policy here")
     parser.add_argument(
+        "--rate-limit-rps",
+        type=float,
+        metavar="N",
+        help="requests/s each client may make on average, then 429 (default 2000; 0: no limit)",
+    )
+    parser.add_argument(
+        "--rate-limit-burst",
+        type=int,
+        metavar="N",
+        help="requests a client may make at once above its rate (default 2000)",
+    )
+    parser.add_argument(
         "--log-level", default="info", choices=("debug", "info", "warning", "error")
     )
     parser.set_defaults(handler=_serve)
@@ -70,6 +82,8 @@ _SETTING_ARGS = (
     "step_s",
     "report_max_age_s",
     "state_file",
+    "rate_limit_rps",
+    "rate_limit_burst",
 )
 
 

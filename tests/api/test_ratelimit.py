@@ -133,3 +133,21 @@ def test_429_is_documented_on_every_limited_route() -> None:
             else:
                 assert "429" in operation["responses"], (method, path)
                 assert "Retry-After" in operation["responses"]["429"]["headers"]
+
+
+def test_cli_options_and_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    import argparse
+
+    from api.cli import register, settings_from_args
+    from sim.errors import InputError
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    base = ["serve", "--policy", "min-distance"]
+    args = parser.parse_args([*base, "--rate-limit-rps", "5", "--rate-limit-burst", "3"])
+    settings = settings_from_args(args)
+    assert (settings.rate_limit_rps, settings.rate_limit_burst) == (5.0, 3)
+    monkeypatch.setenv("TUPA_RATE_LIMIT_RPS", "0")
+    assert settings_from_args(parser.parse_args(base)).rate_limit_rps == 0.0
+    with pytest.raises(InputError, match="rate_limit_rps"):
+        settings_from_args(parser.parse_args([*base, "--rate-limit-rps", "-1"]))
