@@ -19,9 +19,16 @@ What the I/O thread does, in a loop:
 * asks for the telemetry it needs with SET_MESSAGE_INTERVAL (and, on ArduPilot, the older
   REQUEST_DATA_STREAM if positions do not come);
 * streams the current target as SET_POSITION_TARGET_LOCAL_NED (position only, type_mask 3576,
-  MAV_FRAME_LOCAL_NED) at ``setpoint_rate_hz`` while the link is up;
+  MAV_FRAME_LOCAL_NED) at ``setpoint_rate_hz`` while the link is up; a *new* target goes out at
+  the loop's next iteration (a few ms: the loop waits at most 5 ms for input) rather than at the
+  next tick, and the steady schedule restarts from that send, so the rate never drops below
+  ``setpoint_rate_hz`` (immediate sends are at least ``setpoint_min_gap_s`` apart, so a burst of
+  decisions cannot flood the link);
 * asks for the flavour's guided mode while a target is set: GUIDED at once on ArduPilot; on PX4
   OFFBOARD only after the stream has run ``px4_stream_lead_s`` (PX4 refuses it before), retrying;
+* counts the vehicle's messages that fail the MAVLink 2 signature check (``signing_failures``:
+  a wrong key on one side, or an unsigned vehicle while we sign); such messages are dropped, so
+  a vehicle we cannot authenticate never comes ``up`` and is never commanded;
 * watches the link: no vehicle HEARTBEAT for ``heartbeat_timeout_s`` -> ``link_lost``, streaming
   stops, the connection is recreated with backoff; when the vehicle is back, telemetry is asked
   for again and the latest target streams again. The mode is not forced back after a loss: a pilot
@@ -145,6 +152,8 @@ class LinkConfig:
     """Where the area frame sits in the vehicle's local NED frame."""
     setpoint_rate_hz: float = 10.0
     """How often the current target is sent (PX4 needs more than 2 Hz)."""
+    setpoint_min_gap_s: float = 0.02
+    """A new target is sent at once, but never sooner than this after the previous setpoint."""
     telemetry_rate_hz: float = 10.0
     """Rate asked for GLOBAL_POSITION_INT and LOCAL_POSITION_NED."""
     heartbeat_timeout_s: float = 3.0
@@ -219,7 +228,14 @@ class MavlinkLink:
         self._t0 = time.monotonic()
         self.counters: Counter[str] = Counter(
             dict.fromkeys(
-                ("setpoints_sent", "geofence_clamps", "reconnects", "connect_failures"), 0
+                (
+                    "setpoints_sent",
+                    "geofence_clamps",
+                    "reconnects",
+                    "connect_failures",
+                    "signing_failures",
+                ),
+                0,
             )
         )
         # Vehicle state (under self._cond).
@@ -239,6 +255,7 @@ class MavlinkLink:
         self._ack_seq = 0
         # Streaming state.
         self._target_m: tuple[float, float, float] | None = None
+        self._target_dirty = False  # a new target not sent yet: send it at once
         self._hold_setpoints = False
         self._stream_since: float | None = None
         self._mode_wanted_until = 0.0
@@ -313,6 +330,8 @@ class MavlinkLink:
             if was_clamped:
                 self.counters["geofence_clamps"] += 1
                 log.warning("target %s outside the geofence: clamped to %s", target_m, clamped)
+            if clamped != self._target_m:
+                self._target_dirty = True
             self._target_m = clamped
             self._mode_wanted_until = time.monotonic() + self.config.mode_request_window_s
         return clamped
@@ -410,6 +429,7 @@ class MavlinkLink:
         next_mode_request = 0.0
         next_telemetry_request = 0.0
         setpoint_period_s = 1.0 / config.setpoint_rate_hz
+        last_setpoint = -math.inf
         while not self._stop.is_set():
             now = time.monotonic()
             self._check_heartbeat(now)
@@ -461,8 +481,16 @@ class MavlinkLink:
             if now >= next_telemetry_request:
                 next_telemetry_request = now + 2.0
                 self._request_telemetry(now)
-            if now >= next_setpoint:
+            with self._cond:
+                dirty = self._target_dirty
+            if dirty and now - last_setpoint >= config.setpoint_min_gap_s:
+                # A new target: on the wire now, and the steady schedule restarts from here.
+                next_setpoint = now + setpoint_period_s
+                last_setpoint = now
+                self._send_setpoint(now)
+            elif now >= next_setpoint:
                 next_setpoint = max(next_setpoint + setpoint_period_s, now - setpoint_period_s)
+                last_setpoint = now
                 self._send_setpoint(now)
             if now >= next_mode_request:
                 next_mode_request = now + config.mode_retry_s
@@ -499,6 +527,12 @@ class MavlinkLink:
                 ):
                     return  # another ground station or companion, not the vehicle
                 header = message.get_header()
+                if (
+                    self.config.signing_key is None
+                    and getattr(header, "incompat_flags", 0) & mavlink.MAVLINK_IFLAG_SIGNED
+                ):
+                    # It signs, we cannot: it will most likely ignore what we send.
+                    self.counters["signed_vehicle_without_key"] += 1
                 self._target_sys, self._target_comp = header.srcSystem, header.srcComponent
                 self._flavour = flavour_of(message.autopilot)
                 self._custom_mode = message.custom_mode
@@ -523,6 +557,8 @@ class MavlinkLink:
                 self._acks[message.command] = (self._ack_seq, message.result)
             elif kind == "BAD_DATA":
                 self.counters["bad_data"] += 1
+                if "signature" in str(getattr(message, "reason", "")).lower():
+                    self.counters["signing_failures"] += 1
                 return
             else:
                 return
@@ -564,6 +600,7 @@ class MavlinkLink:
 
     def _send_setpoint(self, now: float) -> None:
         with self._cond:
+            self._target_dirty = False
             if not self._streaming_now():
                 self._stream_since = None
                 return

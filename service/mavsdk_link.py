@@ -200,6 +200,7 @@ class MavsdkLink:
         self._heading_deg: float | None = None
         # Streaming state.
         self._target_m: tuple[float, float, float] | None = None
+        self._target_dirty = False  # a new target not sent yet: send it at once
         self._hold_setpoints = False
         self._stream_since: float | None = None
         self._stream_yaw_deg = 0.0
@@ -274,6 +275,9 @@ class MavsdkLink:
             if was_clamped:
                 self.counters["geofence_clamps"] += 1
                 log.warning("target %s outside the geofence: clamped to %s", target_m, clamped)
+            if clamped != self._target_m:
+                self._target_dirty = True
+                self._cond.notify_all()  # wakes the I/O loop: the new target goes out at once
             self._target_m = clamped
             self._mode_wanted_until = time.monotonic() + self.config.mode_request_window_s
         return clamped
@@ -442,6 +446,7 @@ class MavsdkLink:
         next_setpoint = 0.0
         next_mode_request = 0.0
         setpoint_period_s = 1.0 / config.setpoint_rate_hz
+        last_setpoint = -math.inf
         try:
             while not self._stop.is_set():
                 now = time.monotonic()
@@ -476,18 +481,32 @@ class MavsdkLink:
                     next_open = now + backoff_s
                     backoff_s = min(backoff_s * 2, config.reconnect_max_s)
                     continue
-                if health == "up" and session.system is not None:
-                    if now >= next_setpoint:
+                can_send = health == "up" and session.system is not None
+                if can_send:
+                    with self._cond:
+                        dirty = self._target_dirty
+                    if dirty and now - last_setpoint >= config.setpoint_min_gap_s:
+                        # A new target: out now, and the steady schedule restarts from here.
+                        next_setpoint = now + setpoint_period_s
+                        last_setpoint = now
+                        self._send_setpoint(session, now)
+                    elif now >= next_setpoint:
                         next_setpoint = max(
                             next_setpoint + setpoint_period_s, now - setpoint_period_s
                         )
+                        last_setpoint = now
                         self._send_setpoint(session, now)
                     if now >= next_mode_request:
                         next_mode_request = now + config.mode_retry_s
                         self._request_guided_mode(session, now)
                 if health == "up":
-                    wait_s = min(next_setpoint, next_mode_request) - time.monotonic()
-                    self._stop.wait(min(max(wait_s, 0.001), 0.05))
+                    wake_at = min(next_setpoint, next_mode_request)
+                    with self._cond:
+                        if can_send and self._target_dirty:
+                            wake_at = min(wake_at, last_setpoint + config.setpoint_min_gap_s)
+                        wait_s = wake_at - time.monotonic()
+                        if not self._stop.is_set():  # set_target notifies: a new target wakes us
+                            self._cond.wait(min(max(wait_s, 0.001), 0.05))
                 else:
                     self._stop.wait(0.05)
         except Exception:
@@ -514,6 +533,7 @@ class MavsdkLink:
         from mavsdk.plugins.offboard import PositionNedYaw
 
         with self._cond:
+            self._target_dirty = False
             streaming = self._streaming_now()
             if not streaming:
                 self._stream_since = None

@@ -18,6 +18,15 @@ acts from where it arrived). Targets go through the link, which clamps them to t
 
 Reports are snapshots of all users; each replaces the previous one (users come and go). A report
 whose ``timestamp`` is older than the last accepted one is ignored and counted.
+
+Restarts: with a ``state_file`` the serving policy and the last decision are persisted after each
+decision and swap. On start the persisted policy is loaded again (when it differs from the
+configured one; if it cannot be loaded, the configured one serves and the reason is logged and
+counted), and the last target is shown as the current decision with source ``restored`` but is
+*not* streamed: after a restart nothing is sent to the vehicle until a fresh report leads to a
+decision, and ``arm_and_takeoff`` (when set) is deferred to that decision too, so a restart never
+arms or moves the vehicle by surprise. Meanwhile the vehicle does what its own failsafe for a
+lost setpoint stream does (PX4: hold; ArduPilot GUIDED: hold the last target).
 """
 
 from __future__ import annotations
@@ -99,6 +108,7 @@ class PlacementService:
         self._waiting_since: float | None = None
         self.counters: Counter[str] = Counter()
         self.started_at = time.time()
+        self._takeoff_deferred = False
 
     # ------------------------------------------------------------------ construction
 
@@ -129,9 +139,14 @@ class PlacementService:
 
     def start(self) -> PlacementService:
         self.link.start()
-        self._restore()
+        restored = self._restore()
         if self.settings.arm_and_takeoff:
-            self.link.arm_and_takeoff()
+            if restored:
+                # A restart: arm and take off only once a fresh report leads to a decision.
+                self._takeoff_deferred = True
+                log.info("restarted with a persisted target: arm-and-takeoff waits for a decision")
+            else:
+                self.link.arm_and_takeoff()
         if self.settings.decision_mode == "paced":
             self._thread = threading.Thread(target=self._run, name="placement", daemon=True)
             self._thread.start()
@@ -203,7 +218,16 @@ class PlacementService:
             reasons.append("no vehicle position yet (telemetry not received)")
         signing_failures = state.counters.get("signing_failures", 0)
         if signing_failures and state.link != "up":
-            reasons.append(f"mavlink signing failed {signing_failures} times (check the key)")
+            reasons.append(
+                f"mavlink signing failed: {signing_failures} messages from the vehicle failed "
+                "the signature check (check TUPA_MAVLINK_SIGNING_KEY against the vehicle's key); "
+                "the vehicle is not commanded"
+            )
+        if state.counters.get("signed_vehicle_without_key", 0):
+            reasons.append(
+                "mavlink signing: the vehicle signs its messages but no signing key is "
+                "configured (TUPA_MAVLINK_SIGNING_KEY); it will ignore our setpoints"
+            )
         return not reasons, reasons
 
     def snapshot_counters(self) -> dict[str, int]:
@@ -237,6 +261,9 @@ class PlacementService:
             self.counters["decisions_held_en_route"] += 1
             return None
         started = time.perf_counter()
+        if self._takeoff_deferred:  # the first decision after a restart (see start())
+            self._takeoff_deferred = False
+            self.link.arm_and_takeoff()
         try:
             target = policy.decide(report.users, vehicle, current)
             clamped = self.link.set_target(tuple(float(v) for v in target))
@@ -287,23 +314,70 @@ class PlacementService:
             self.counters["state_write_errors"] += 1
             log.warning("cannot persist the service state to %s: %s", path, exc)
 
-    def _restore(self) -> None:
-        """Resume the persisted target (streamed only if the vehicle is already flying it)."""
+    def _restore(self) -> bool:
+        """Load the persisted policy and show the persisted target (never streamed: see the
+        module docstring). True when a previous target was restored (this start is a restart)."""
         path = self.settings.state_file
         if path is None or not Path(path).is_file():
-            return
+            return False
         try:
             state = json.loads(Path(path).read_text())
+            if not isinstance(state, dict):
+                raise ValueError("not a JSON object")
+        except (OSError, ValueError) as exc:
+            log.warning("ignoring the state file %s: %s", path, exc)
+            self.counters["state_restore_errors"] += 1
+            return False
+        self._restore_policy(state.get("policy"), path)
+        try:
             saved = state["decision"]
             if saved is None:
-                return
+                return False
             target = tuple(float(v) for v in saved["target_m"])
             if len(target) != 3 or not all(math.isfinite(v) for v in target):
                 raise ValueError(f"target_m: not three finite numbers: {target}")
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            log.warning("ignoring the state file %s: %s", path, exc)
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("ignoring the target in the state file %s: %s", path, exc)
             self.counters["state_restore_errors"] += 1
-            return
+            return False
         with self._lock:
             self._decision = Decision(target, "restored", str(saved.get("policy", "")), time.time())
-        log.info("restored the last target %s from %s", target, path)
+        log.info(
+            "restored the last target %s from %s (not streamed until a decision)", target, path
+        )
+        return True
+
+    def _restore_policy(self, spec: object, path: object) -> None:
+        """Serve the persisted policy ``spec`` when it differs from the configured one and loads;
+        otherwise keep the configured one (and log why)."""
+        if spec is None:
+            return
+        if not isinstance(spec, str) or not spec.strip():
+            log.warning(
+                "state file %s: policy %r is not a policy spec; keeping %s",
+                path,
+                spec,
+                self._policy.spec,
+            )
+            self.counters["policy_restore_errors"] += 1
+            return
+        if spec == self._policy.spec:
+            return
+        try:
+            policy = load_policy(spec, self.area, self.network, self.utility)
+        except Exception as exc:  # InputError, or anything a broken checkpoint raises
+            log.warning(
+                "state file %s: cannot restore the policy %s (%s); keeping the configured %s",
+                path,
+                spec,
+                exc,
+                self._policy.spec,
+            )
+            self.counters["policy_restore_errors"] += 1
+            return
+        with self._lock:
+            self._policy = policy
+            self.counters["policy_restored"] += 1
+        log.info(
+            "restored the persisted policy %s (configured: %s)", policy.name, self.settings.policy
+        )
