@@ -17,7 +17,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from prometheus_client import CollectorRegistry
 from starlette.exceptions import HTTPException as StarletteHTTPException
-from starlette.routing import Route
+from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from api.auth import BearerGuard
@@ -100,19 +100,26 @@ async def validation_error(request: Request, exc: RequestValidationError) -> JSO
     return JSONResponse({"detail": errors}, status_code=422)
 
 
+_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
+
+
 async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
     """Starlette's own answer, except that a 405's ``Allow`` lists every method the path has
     (each method is its own route, and Starlette names only the first route's)."""
     if exc.status_code != 405:
         return await http_exception_handler(request, exc)
-    methods: set[str] = set()
-    for route in request.app.routes:
-        if isinstance(route, Route) and route.methods and route.path_regex.match(request.url.path):
-            methods |= route.methods
+    methods = [
+        method
+        for method in _METHODS
+        if any(
+            route.matches({**request.scope, "method": method})[0] == Match.FULL
+            for route in request.app.routes
+        )
+    ]
     return JSONResponse(
         {"detail": exc.detail},
         status_code=405,
-        headers={**(exc.headers or {}), "Allow": ", ".join(sorted(methods))},
+        headers={**(exc.headers or {}), "Allow": ", ".join(methods)},
     )
 
 
