@@ -1,0 +1,74 @@
+"""A lossy, delaying MAVLink path: the vehicle still gets where the service sends it.
+
+``tupa serve --mavlink udpout:...`` talks to a PX4-flavoured mock (``--listen udp:...``) through
+:class:`~tests.faults.udp_proxy.UdpProxy`, which drops 10 % or 30 % of the datagrams in each
+direction and delays the rest by 0-30 ms (so some also arrive out of order). Arming, takeoff,
+OFFBOARD and two placements must still succeed (commands are retried until acknowledged), and
+the setpoint rate measured at the mock during the second flight must stay above PX4's 2 Hz
+offboard minimum at 10 % loss (about 9 Hz expected of the 10 Hz stream).
+"""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from tests.faults.harness import (
+    PX4_FAST,
+    USERS_EAST,
+    USERS_NORTH,
+    Harness,
+    report_recovery,
+    target_xyz,
+    wait_airborne,
+    wait_at,
+)
+from tests.sitl_mock.helpers import wait_for
+
+pytestmark = pytest.mark.slow
+
+JITTER_S = 0.03
+PX4_MIN_RATE_HZ = 2.0
+
+
+@pytest.mark.parametrize("loss", [0.1, 0.3])
+def test_vehicle_reaches_its_targets_through_a_lossy_jittery_link(
+    harness: Harness, loss: float
+) -> None:
+    mock = harness.mock(*PX4_FAST, "--listen", "udp:127.0.0.1:0")
+    proxy = harness.proxy(mock.port, loss, JITTER_S, seed=int(loss * 100))
+    api = harness.service(
+        "--mavlink",
+        f"udpout:127.0.0.1:{proxy.port}",
+        "--arm-and-takeoff",
+        "--policy",
+        "load-weighted",
+        "--decision-mode",
+        "on-report",
+    )
+    api.wait_ready(45.0)
+    wait_airborne(mock, timeout_s=60.0)
+
+    first = target_xyz(api.report(USERS_EAST).json())
+    wait_at(mock, first, timeout_s=40.0)
+    assert mock.state()["mode"] == "OFFBOARD"
+
+    second = target_xyz(api.report(USERS_NORTH).json())
+    assert second != first
+    before = mock.stats()["setpoints_received"]
+    started = time.monotonic()
+    wait_at(mock, second, timeout_s=40.0)
+    elapsed_s = time.monotonic() - started
+    rate_hz = (mock.stats()["setpoints_received"] - before) / elapsed_s
+    report_recovery(
+        f"lossy link {loss:.0%}: flight to the second target",
+        elapsed_s,
+        f"(setpoint rate at the mock {rate_hz:.1f} Hz; proxy {dict(proxy.counters)})",
+    )
+    assert proxy.counters["dropped_up"] > 0 and proxy.counters["dropped_down"] > 0
+    if loss <= 0.1:
+        assert rate_hz > PX4_MIN_RATE_HZ
+    state = wait_for(lambda: (s := mock.state())["mode"] == "OFFBOARD" and s, 5.0, 0.1, "OFFBOARD")
+    assert state["armed"]
+    assert mock.stats()["setpoints_rejected_invalid"] == 0
