@@ -4,7 +4,8 @@ setpoint outside the geofence (the area volume: x, y in [0, 500] m, z in [25, 10
 Three levels, all on real code (no fakes):
 
 * :func:`service.geofence.clamp_to_area` on any three floats;
-* every policy kind (the baselines, and the shipped DDQN checkpoint when it is there) deciding on
+* every policy kind (the baselines: ``placement``; the shipped DDQN checkpoint when it is there:
+  ``moves``; a real, untrained DDPG network: ``coordinates``) deciding on
   any report from any vehicle position and current target, its target handed to a real
   :class:`~service.mavlink_link.MavlinkLink` (to a closed port: it clamps without a vehicle),
   exactly as :meth:`PlacementService.decide_once` does: the target the link would stream is
@@ -139,6 +140,8 @@ def _policy_specs() -> list[Any]:
         pytest.param("load-weighted", id="load-weighted"),
         pytest.param("oracle", id="oracle"),
     ]
+    # The "coordinates" kind: a real SB3 DDPG network, untrained (arbitrary actions).
+    specs.append(pytest.param(DDPG_UNTRAINED, id="ddpg-untrained"))
     reason = f"the shipped DDQN checkpoint {DEFAULT_CHECKPOINT} is not in this checkout"
     specs.append(
         pytest.param(
@@ -151,11 +154,33 @@ def _policy_specs() -> list[Any]:
 
 
 _POLICIES: dict[str, ServingPolicy] = {}
+DDPG_UNTRAINED = "ddpg-untrained"
+
+
+def _untrained_ddpg() -> ServingPolicy:
+    """A DDPG policy (kind ``coordinates``) as the service serves one, with a freshly built
+    (untrained, small) network: no DDPG checkpoint is shipped."""
+    from dataclasses import replace
+
+    from policies.presets import NetworkPreset, get_preset
+    from policies.training import build_model, make_env
+    from service.policy_runtime import CheckpointPolicy
+    from sim.config import UtilityConfig
+    from sim.scenarios import generate_scenarios
+
+    tiny = NetworkPreset(channels=(8,), hidden=32, features_dim=32, dropout=0.0)
+    preset = replace(get_preset("fast", "ddpg"), network=tiny, buffer_size=1_000)
+    env = make_env("ddpg", generate_scenarios(2, 3, seed=7), preset, AREA, "fq-codel")
+    model = build_model("ddpg", env, preset, seed=0, tensorboard_log=None)
+    metadata = {"algorithm": "ddpg", "strategy": "untrained"}
+    return CheckpointPolicy(
+        DDPG_UNTRAINED, model, metadata, DDPG_UNTRAINED, AREA, UtilityConfig(), "coordinates"
+    )
 
 
 def _policy(spec: str) -> ServingPolicy:
-    if spec not in _POLICIES:  # loading the checkpoint takes seconds: once per session
-        _POLICIES[spec] = load_policy(spec, AREA)
+    if spec not in _POLICIES:  # loading a checkpoint takes seconds: once per session
+        _POLICIES[spec] = _untrained_ddpg() if spec == DDPG_UNTRAINED else load_policy(spec, AREA)
     return _POLICIES[spec]
 
 
