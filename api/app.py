@@ -21,7 +21,7 @@ from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from api.auth import BearerGuard
-from api.metrics import HttpMetrics, ServiceCollector
+from api.metrics import HttpMetrics, HttpMetricsMiddleware, ServiceCollector
 from api.ratelimit import RateLimit
 from api.routes import RATE_LIMITED, probes, v1
 from service.placement import PlacementService
@@ -158,7 +158,7 @@ def create_app(
     http_metrics = HttpMetrics(registry)
     # Middlewares, outermost last: rate limit, body size, metrics, token, then the routes.
     app.add_middleware(BearerGuard, token=app.state.api_token)
-    app.middleware("http")(http_metrics.middleware)
+    app.add_middleware(HttpMetricsMiddleware, metrics=http_metrics)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
     if settings.rate_limit_rps > 0:  # outermost: a flood is turned away before anything else
         app.add_middleware(

@@ -1,7 +1,8 @@
 """The routes: ``/v1`` (authenticated) for reports, setpoint, vehicle and policy; probes; metrics.
 
-Handlers are plain ``def``: FastAPI runs them in its thread pool, so a policy's forward pass or a
-checkpoint load never stalls the event loop.
+Handlers that only read the service's state (which it guards with short locks) are ``async``;
+those that may run a policy or load a checkpoint run in the thread pool, so that they never stall
+the event loop.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from typing import Any
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Request, Response, status
+from fastapi.concurrency import run_in_threadpool
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from api.auth import require_token
@@ -108,27 +110,30 @@ def to_report(body: ReportIn, service: PlacementService) -> Report:
         422: {"model": ValidationErrorOut, "description": "A field is invalid (named in it)"},
     },
 )
-def post_report(body: ReportIn, request: Request) -> DecisionOut:
+async def post_report(body: ReportIn, request: Request) -> DecisionOut:
     """Accept the users' latest metrics. Answers with the decision the report triggered
     (``decision_mode=on-report``) or the current target (``paced``); ``target`` is null until
     the first decision (for instance while the MAVLink link is down: the report is kept)."""
     service = _service(request)
     report = to_report(body, service)
     try:
-        decision = service.submit_report(report)
+        if service.settings.decision_mode == "on-report":  # runs the policy: off the event loop
+            decision = await run_in_threadpool(service.submit_report, report)
+        else:  # only stores the report (a lock held for microseconds)
+            decision = service.submit_report(report)
     except OutOfOrderReportError as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, detail=str(exc)) from None
     return _decision_out(decision)
 
 
 @v1.get("/setpoint", response_model=DecisionOut, summary="The current target")
-def get_setpoint(request: Request) -> DecisionOut:
+async def get_setpoint(request: Request) -> DecisionOut:
     """The target being streamed to the vehicle and when it was decided."""
     return _decision_out(_service(request).current_decision())
 
 
 @v1.get("/vehicle", response_model=VehicleOut, summary="The vehicle's state")
-def get_vehicle(request: Request) -> VehicleOut:
+async def get_vehicle(request: Request) -> VehicleOut:
     """Position in the area frame (x east, y north, z up, metres), mode, armed, link health."""
     state = _service(request).vehicle()
     position = None
