@@ -1,0 +1,389 @@
+"""Load and soak of the placement service (issue 7): bounded figures over minutes, not seconds.
+
+Starts, on loopback with free ports, a PX4-flavoured mock autopilot as its own process (the
+``tests.faults.mock_process`` wrapper of ``tupa sitl-mock``, which also serves its counters over
+HTTP) and ``tupa serve --arm-and-takeoff`` (default policy: the shipped DDQN), waits until the
+vehicle is airborne and a first decision streams, then runs two phases of POST /v1/reports from
+an open-loop asyncio generator (requests are due on a fixed schedule whatever the answers do, as
+in benchmarks/service_latency.py, and go out on 32 keep-alive connections through a minimal
+HTTP/1.1 client: httpx's connection pool costs more CPU than the service at 1,000 requests/s):
+
+1. 1,000 requests/s for 60 s;
+2. 200 requests/s for 10 minutes.
+
+Every ``--sample-s`` seconds (default 5) a sampler records the service's resident memory
+(``VmRSS`` in /proc/PID/status) and the mock's received-setpoint counter. Per phase: requests,
+errors (non-2xx or transport errors), achieved rate, latency p50/p99/max, how late the generator
+ran (its p99 lateness: when large, the client, not the service, was the limit), latency from
+the time each request was due (so queueing in the generator is not hidden), and per window
+p99 latency and setpoint rate at the vehicle (min/max). Overall: RSS at the start of the soak and
+at the end (flat: within 10 %), OFFBOARD failsafes at the vehicle (must be 0).
+
+Every report of a phase carries the same timestamp (concurrent requests never count as out of
+order); the service decides once a second (paced) from the latest one. The generator, the
+service and the mock share the machine: say what else ran on it when quoting the figures.
+
+    .venv/bin/python benchmarks/soak.py            # 60 s + 10 min -> benchmarks/results/soak.json
+    .venv/bin/python benchmarks/soak.py --quick    # 10 s + 20 s, to check the script
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import itertools
+import json
+import os
+import platform
+import secrets
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))  # tests.faults.mock_process is not an installed package
+
+from service.processes import start_service  # noqa: E402
+from tests.faults.mock_process import start_mock_process  # noqa: E402
+
+RESULTS = Path(__file__).parent / "results" / "soak.json"
+USERS = [
+    {"id": "ue-1", "x_m": 140.0, "y_m": 240.0, "offered_bps": 30e6, "throughput_bps": 21e6,
+     "delay_s": 0.4, "plr": 0.15},
+    {"id": "ue-2", "x_m": 360.0, "y_m": 260.0, "offered_bps": 5e6, "throughput_bps": 5e6,
+     "delay_s": 0.004, "plr": 0.0},
+    {"id": "ue-3", "x_m": 260.0, "y_m": 390.0, "offered_bps": 5e6, "throughput_bps": 5e6,
+     "delay_s": 0.004, "plr": 0.0},
+]  # fmt: skip
+
+
+def rss_kb(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    raise RuntimeError(f"no VmRSS for pid {pid}")
+
+
+class Sampler:
+    """Every ``period_s``: (monotonic time, service RSS kB, mock setpoints received)."""
+
+    def __init__(self, pid: int, mock: Any, period_s: float) -> None:
+        self.pid, self.mock, self.period_s = pid, mock, period_s
+        self.samples: list[tuple[float, int, int]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="sampler", daemon=True)
+
+    def sample(self) -> tuple[float, int, int]:
+        entry = (time.monotonic(), rss_kb(self.pid), self.mock.stats()["setpoints_received"])
+        self.samples.append(entry)
+        return entry
+
+    def _run(self) -> None:
+        next_at = time.monotonic()
+        while not self._stop.is_set():
+            try:
+                self.sample()
+            except Exception as exc:  # a failed sample is recorded, not fatal
+                print(f"sample failed: {exc}", flush=True)
+            next_at += self.period_s
+            self._stop.wait(max(0.0, next_at - time.monotonic()))
+
+    def start(self) -> Sampler:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(10.0)
+
+    def between(self, t0: float, t1: float) -> list[tuple[float, int, int]]:
+        return [s for s in self.samples if t0 <= s[0] <= t1]
+
+
+class Connection:
+    """One keep-alive HTTP/1.1 connection with a minimal client: write a prepared request, read
+    the status line, the headers and a Content-Length body. At 1,000 requests/s a general client
+    (httpx) spends more CPU than the service it measures on a small machine; this one does not."""
+
+    def __init__(self, host: str, port: int) -> None:
+        self.host, self.port = host, port
+        self.reader: asyncio.StreamReader | None = None
+        self.writer: asyncio.StreamWriter | None = None
+
+    async def request(self, raw: bytes, timeout_s: float) -> int:
+        if self.writer is None:
+            self.reader, self.writer = await asyncio.wait_for(
+                asyncio.open_connection(self.host, self.port), timeout_s
+            )
+        assert self.reader is not None
+        self.writer.write(raw)
+        return await asyncio.wait_for(self._response(self.reader), timeout_s)
+
+    async def _response(self, reader: asyncio.StreamReader) -> int:
+        parts = (await reader.readline()).split()
+        if len(parts) < 2 or not parts[1].isdigit():
+            raise ValueError(f"not an HTTP status line: {parts!r}")
+        status = int(parts[1])
+        length = 0
+        close = False
+        while (line := await reader.readline()) not in (b"\r\n", b""):
+            name, _, value = line.partition(b":")
+            if name.strip().lower() == b"content-length":
+                length = int(value)
+            elif name.strip().lower() == b"connection" and b"close" in value.lower():
+                close = True
+        await reader.readexactly(length)
+        if close:
+            self.close()
+        return status
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+        self.reader = self.writer = None
+
+
+async def load_phase(
+    host: str, port: int, token: str, rate: float, duration_s: float, body: bytes, conns: int = 32
+) -> dict[str, Any]:
+    """Open loop: request i is due at start + i / rate and goes out on the first free
+    connection (``conns`` keep-alive connections). Latency is measured from the send and, to
+    count any queueing in the generator too, from the time the request was due."""
+    n = int(rate * duration_s)
+    raw = (
+        f"POST /v1/reports HTTP/1.1\r\nHost: {host}:{port}\r\n"
+        f"Authorization: Bearer {token}\r\nContent-Type: application/json\r\n"
+        f"Content-Length: {len(body)}\r\n\r\n"
+    ).encode() + body
+    records: list[tuple[float, float | None, float]] = []  # (sent, latency or None, from due)
+    lateness: list[float] = []
+    errors: dict[str, int] = {}
+    queue: asyncio.Queue[float | None] = asyncio.Queue()
+
+    async def worker() -> None:
+        connection = Connection(host, port)
+        try:
+            while (due := await queue.get()) is not None:
+                sent = time.monotonic()
+                lateness.append(sent - due)
+                try:
+                    status = await connection.request(raw, 5.0)
+                except (TimeoutError, OSError, asyncio.IncompleteReadError, ValueError) as exc:
+                    connection.close()
+                    errors[type(exc).__name__] = errors.get(type(exc).__name__, 0) + 1
+                    records.append((sent, None, time.monotonic() - due))
+                    continue
+                done = time.monotonic()
+                if status != 200:
+                    errors[str(status)] = errors.get(str(status), 0) + 1
+                    records.append((sent, None, done - due))
+                else:
+                    records.append((sent, done - sent, done - due))
+        finally:
+            connection.close()
+
+    workers = [asyncio.create_task(worker()) for _ in range(conns)]
+    start = time.monotonic() + 0.05
+    for i in range(n):
+        due = start + i / rate
+        delay = due - time.monotonic()
+        if delay > 0:
+            await asyncio.sleep(delay)
+        queue.put_nowait(due)
+    for _ in workers:
+        queue.put_nowait(None)
+    await asyncio.wait_for(asyncio.gather(*workers), timeout=60)
+    end = time.monotonic()
+    ok = [r[1] for r in records if r[1] is not None]
+    lat = np.array(ok) * 1e3 if ok else np.array([np.nan])
+    from_due = np.array([r[2] for r in records]) * 1e3
+    late = np.array(lateness) * 1e3
+    return {
+        "rate_rps": rate,
+        "duration_s": duration_s,
+        "requests": n,
+        "ok": len(ok),
+        "errors": errors,
+        "error_count": sum(errors.values()),
+        "achieved_rps": round(len(ok) / (end - start), 1),
+        "latency_ms": {
+            "p50": round(float(np.percentile(lat, 50)), 2),
+            "p99": round(float(np.percentile(lat, 99)), 2),
+            "max": round(float(np.max(lat)), 2),
+        },
+        "latency_from_due_ms": {
+            "p50": round(float(np.percentile(from_due, 50)), 2),
+            "p99": round(float(np.percentile(from_due, 99)), 2),
+        },
+        "generator_lateness_p99_ms": round(float(np.percentile(late, 99)), 2),
+        "_records": [(r[0], r[1]) for r in records],
+        "_t0": start,
+        "_t1": end,
+    }
+
+
+def windows(
+    phase: dict[str, Any], samples: list[tuple[float, int, int]], min_window_s: float
+) -> tuple[list[dict[str, Any]], dict[str, float]]:
+    """Per sampling window: p99 latency of the requests sent in it, errors, setpoint rate."""
+    records = phase.pop("_records")
+    t0 = phase.pop("_t0")
+    out = []
+    for (ta, _rss_a, sp_a), (tb, rss_b, sp_b) in itertools.pairwise(samples):
+        if tb - ta < 0.5 * min_window_s:  # a late sample right before a prompt one
+            continue
+        in_window = [lat for t, lat in records if ta <= t < tb]
+        ok = [lat for lat in in_window if lat is not None]
+        out.append(
+            {
+                "t_s": round(tb - t0, 1),
+                "requests": len(in_window),
+                "errors": len(in_window) - len(ok),
+                "p99_ms": round(float(np.percentile(np.array(ok) * 1e3, 99)), 2) if ok else None,
+                "setpoint_rate_hz": round((sp_b - sp_a) / (tb - ta), 2),
+                "rss_kb": rss_b,
+            }
+        )
+    rates = [w["setpoint_rate_hz"] for w in out]
+    summary = {
+        "setpoint_rate_min_hz": min(rates) if rates else float("nan"),
+        "setpoint_rate_max_hz": max(rates) if rates else float("nan"),
+    }
+    return out, summary
+
+
+def wait_until(condition: Any, timeout_s: float, what: str, interval_s: float = 0.2) -> Any:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(interval_s)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="10 s + 20 s, to check the script")
+    parser.add_argument("--sample-s", type=float, default=5.0, help="sampling period (default 5)")
+    parser.add_argument("--policy", default=None, help="tupa serve --policy (default: shipped)")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args()
+    phases = [(1000.0, 10.0), (200.0, 20.0)] if args.quick else [(1000.0, 60.0), (200.0, 600.0)]
+    sample_s = min(args.sample_s, 2.0) if args.quick else args.sample_s
+    token = secrets.token_urlsafe(24)
+    out: dict[str, Any] = {
+        "machine": {
+            "cpus": os.cpu_count(),
+            "python": platform.python_version(),
+            "loadavg_at_start": list(os.getloadavg()),
+        },
+        "quick": args.quick,
+        "sample_s": sample_s,
+    }
+    mock = start_mock_process(
+        ["--listen", "tcp:127.0.0.1:0", "--flavour", "px4", "--ready-delay-s", "1",
+         "--climb-speed-mps", "8", "--battery-capacity-mah", "1000000"]
+    )  # fmt: skip
+    proc = None
+    try:
+        serve_args = [
+            "--mavlink",
+            f"tcp:127.0.0.1:{mock.port}",
+            "--port",
+            "0",
+            "--arm-and-takeoff",
+            "--log-level",
+            "warning",
+        ]
+        if args.policy:
+            serve_args += ["--policy", args.policy]
+        proc, port = start_service(
+            serve_args,
+            env={
+                "TUPA_API_TOKEN": token,
+                "TUPA_AREA_ORIGIN_NORTH_M": "-250",
+                "TUPA_AREA_ORIGIN_EAST_M": "-250",
+            },
+        )
+        base = f"http://127.0.0.1:{port}"
+        auth = {"Authorization": f"Bearer {token}"}
+        with httpx.Client(base_url=base, headers=auth, timeout=10.0) as client:
+            wait_until(lambda: client.get("/readyz").status_code == 200, 60, "ready")
+            wait_until(lambda: mock.state()["alt_m"] > 22.0, 60, "airborne")
+            client.post("/v1/reports", json={"timestamp": 1.0, "users": USERS}).raise_for_status()
+            wait_until(lambda: client.get("/v1/setpoint").json()["target"], 10, "a decision")
+            wait_until(lambda: mock.state()["mode"] == "OFFBOARD", 15, "OFFBOARD")
+            out["policy"] = client.get("/v1/policy").json()["name"]
+        pid = proc.proc.pid
+        sampler = Sampler(pid, mock, sample_s)
+        sampler.start()
+        first = wait_until(lambda: sampler.samples and sampler.samples[0], 10, "a first sample")
+        out["rss_kb_start"] = first[1]
+        results = []
+        for i, (rate, duration) in enumerate(phases):
+            body = json.dumps({"timestamp": 10.0 + i, "users": USERS}).encode()
+            print(f"phase {i + 1}: {rate:.0f} requests/s for {duration:.0f} s", flush=True)
+            phase = asyncio.run(load_phase("127.0.0.1", port, token, rate, duration, body))
+            t0, t1 = phase["_t0"], phase["_t1"]
+            phase["windows"], summary = windows(phase, sampler.between(t0 - sample_s, t1), sample_s)
+            phase.pop("_t1")
+            phase.update(summary)
+            phase["rss_kb_end"] = rss_kb(pid)
+            results.append(phase)
+            print(
+                f"  ok {phase['ok']}/{phase['requests']}, errors {phase['errors']}, "
+                f"p50 {phase['latency_ms']['p50']} p99 {phase['latency_ms']['p99']} ms, "
+                f"achieved {phase['achieved_rps']}/s, generator late p99 "
+                f"{phase['generator_lateness_p99_ms']} ms, setpoints "
+                f"{phase['setpoint_rate_min_hz']}-{phase['setpoint_rate_max_hz']} Hz, "
+                f"RSS {phase['rss_kb_end']} kB",
+                flush=True,
+            )
+        sampler.stop()
+        out["phases"] = results
+        soak = results[-1]
+        soak_start = soak["windows"][0]["rss_kb"] if soak["windows"] else first[1]
+        out["memory"] = {
+            "rss_kb_before_load": first[1],
+            "rss_kb_soak_start": soak_start,
+            "rss_kb_end": sampler.samples[-1][1],
+            "change_over_soak_pct": round(100 * (sampler.samples[-1][1] / soak_start - 1), 2),
+            "change_over_everything_pct": round(100 * (sampler.samples[-1][1] / first[1] - 1), 2),
+        }
+        stats = mock.stats()
+        out["vehicle"] = {
+            "failsafe_offboard": stats["failsafe_offboard"],
+            "failsafe_gcs": stats["failsafe_gcs"],
+            "setpoints_received": stats["setpoints_received"],
+            "mode_at_end": mock.state()["mode"],
+        }
+        out["checks"] = {
+            "errors": sum(p["error_count"] for p in results),
+            "p99_ms_max_over_phases": max(p["latency_ms"]["p99"] for p in results),
+            "memory_flat_within_10pct": abs(out["memory"]["change_over_soak_pct"]) <= 10.0,
+            "setpoint_rate_min_hz": min(p["setpoint_rate_min_hz"] for p in results),
+            "setpoint_rate_max_hz": max(p["setpoint_rate_max_hz"] for p in results),
+            "setpoints_above_px4_minimum_2hz": min(p["setpoint_rate_min_hz"] for p in results)
+            > 2.0,
+            "no_offboard_failsafe": stats["failsafe_offboard"] == 0,
+        }
+    finally:
+        if proc is not None:
+            proc.stop()
+        mock.stop()
+    out["machine"]["loadavg_at_end"] = list(os.getloadavg())
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(out, indent=2) + "\n")
+    print(json.dumps(out["checks"], indent=2))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
