@@ -2,8 +2,9 @@
 
 One ``tupa serve`` (``on-report``: every report runs the policy) next to a PX4-flavoured mock,
 both real processes. A client thread posts reports at about 50 per second while ``PUT
-/v1/policy`` is given a corrupt file, a real checkpoint whose metadata does not match the
-service's area (the shipped DDQN's zip with another observation shape), and a missing path:
+/v1/policy`` is given a corrupt file, a missing path, and three versions of the shipped DDQN
+checkpoint made unusable: metadata for another area (observation shape), DDQN weights labelled
+DDPG, and the weights cut in half (the last two are only found out while torch loads them):
 each is refused with 422, the serving policy keeps answering every report, and no report
 request fails. Then reports older than the last accepted one get 409, change nothing and are
 counted in ``/metrics``.
@@ -15,6 +16,7 @@ import json
 import shutil
 import threading
 import time
+import zipfile
 from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
@@ -58,11 +60,30 @@ def bad_checkpoints(directory: Path) -> dict[str, str]:
     if DEFAULT_CHECKPOINT.is_file():
         mismatched = directory / "mismatched.zip"
         shutil.copyfile(DEFAULT_CHECKPOINT, mismatched)
-        meta = json.loads(DEFAULT_CHECKPOINT.with_suffix(".json").read_text())
+        meta = meta_of_shipped()
         meta["observation_shape"] = [6, 10, 10]  # trained for another area grid
         mismatched.with_suffix(".json").write_text(json.dumps(meta))
         specs["mismatched"] = str(mismatched)
+        # These two get as far as torch: the load itself runs while the reports flow.
+        relabelled = directory / "relabelled.zip"
+        shutil.copyfile(DEFAULT_CHECKPOINT, relabelled)
+        relabelled_meta = {**meta_of_shipped(), "algorithm": "ddpg"}
+        relabelled.with_suffix(".json").write_text(json.dumps(relabelled_meta))
+        truncated = directory / "truncated.zip"
+        with zipfile.ZipFile(DEFAULT_CHECKPOINT) as src, zipfile.ZipFile(truncated, "w") as dst:
+            for info in src.infolist():
+                data = src.read(info.filename)
+                if info.filename == "policy.pth":
+                    data = data[: len(data) // 2]  # the weights cut in half
+                dst.writestr(info, data)
+        shutil.copyfile(DEFAULT_CHECKPOINT.with_suffix(".json"), truncated.with_suffix(".json"))
+        specs["ddqn-weights-labelled-ddpg"] = str(relabelled)
+        specs["truncated-weights"] = str(truncated)
     return specs
+
+
+def meta_of_shipped() -> dict:
+    return json.loads(DEFAULT_CHECKPOINT.with_suffix(".json").read_text())
 
 
 def test_unusable_checkpoints_are_refused_while_reports_keep_flowing(
