@@ -5,7 +5,8 @@ message of the vehicle fails the service's signature check, so the link never co
 ``/readyz`` answers 503 with a reason naming signing, and nothing reaches the vehicle as a
 command or a setpoint (the mock's own counters), even with reports coming in and
 ``--arm-and-takeoff`` given. With the same key
-on both sides (the control) the service is ready.
+on both sides (the control) the service is ready. A vehicle that signs while the service has no
+key is named too: its setpoints would be ignored.
 """
 
 from __future__ import annotations
@@ -64,3 +65,33 @@ def test_a_vehicle_that_fails_signing_is_named_in_readyz_and_never_commanded(
     state = mock.state()
     assert state["armed"] is False and state["landed"] is True
     assert api.readyz().status_code == 503
+
+
+def test_a_signing_vehicle_without_a_key_on_our_side_is_named_in_readyz(harness: Harness) -> None:
+    mock = harness.mock(
+        *PX4_FAST, "--signing-key", secrets.token_hex(32), "--listen", "tcp:127.0.0.1:0"
+    )
+    api = harness.service(
+        "--mavlink",
+        f"tcp:127.0.0.1:{mock.port}",
+        "--policy",
+        "load-weighted",
+        "--decision-mode",
+        "on-report",
+    )
+    readyz = wait_for(
+        lambda: (
+            (r := api.readyz()).status_code == 503
+            and any("no signing key" in reason for reason in r.json()["reasons"])
+            and r
+        ),
+        10.0,
+        0.1,
+        "/readyz naming the missing key",
+    )
+    print("readyz:", readyz.json())
+    assert api.report(USERS_EAST).status_code == 200
+    # What the service sends unsigned is refused by the vehicle, which stays where it is.
+    wait_for(lambda: mock.stats()["signing_rejected"] >= 3, 10.0, 0.1, "rejected at the mock")
+    state = mock.state()
+    assert state["armed"] is False and state["target_ned_m"] is None
