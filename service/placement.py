@@ -24,8 +24,9 @@ decision and swap. On start the persisted policy is loaded again (when it differ
 configured one; if it cannot be loaded, the configured one serves and the reason is logged and
 counted), and the last target is shown as the current decision with source ``restored`` but is
 *not* streamed: after a restart nothing is sent to the vehicle until a fresh report leads to a
-decision, and ``arm_and_takeoff`` (when set) is deferred to that decision too, so a restart never
-arms or moves the vehicle by surprise. Meanwhile the vehicle does what its own failsafe for a
+decision, and ``arm_and_takeoff`` (when set) is deferred to that decision too (whenever the state
+file exists: that is what makes a start a restart), so a restart never arms or moves the vehicle
+by surprise. Meanwhile the vehicle does what its own failsafe for a
 lost setpoint stream does (PX4: hold; ArduPilot GUIDED: hold the last target).
 """
 
@@ -139,12 +140,12 @@ class PlacementService:
 
     def start(self) -> PlacementService:
         self.link.start()
-        restored = self._restore()
+        restarted = self._restore()
         if self.settings.arm_and_takeoff:
-            if restored:
+            if restarted:
                 # A restart: arm and take off only once a fresh report leads to a decision.
                 self._takeoff_deferred = True
-                log.info("restarted with a persisted target: arm-and-takeoff waits for a decision")
+                log.info("restarted (state file found): arm-and-takeoff waits for a decision")
             else:
                 self.link.arm_and_takeoff()
         if self.settings.decision_mode == "paced":
@@ -316,7 +317,8 @@ class PlacementService:
 
     def _restore(self) -> bool:
         """Load the persisted policy and show the persisted target (never streamed: see the
-        module docstring). True when a previous target was restored (this start is a restart)."""
+        module docstring). True when the state file exists, readable or not: this start is a
+        restart, and a restart must not arm or move the vehicle by itself."""
         path = self.settings.state_file
         if path is None or not Path(path).is_file():
             return False
@@ -327,19 +329,19 @@ class PlacementService:
         except (OSError, ValueError) as exc:
             log.warning("ignoring the state file %s: %s", path, exc)
             self.counters["state_restore_errors"] += 1
-            return False
+            return True
         self._restore_policy(state.get("policy"), path)
         try:
             saved = state["decision"]
             if saved is None:
-                return False
+                return True
             target = tuple(float(v) for v in saved["target_m"])
             if len(target) != 3 or not all(math.isfinite(v) for v in target):
                 raise ValueError(f"target_m: not three finite numbers: {target}")
         except (ValueError, KeyError, TypeError) as exc:
             log.warning("ignoring the target in the state file %s: %s", path, exc)
             self.counters["state_restore_errors"] += 1
-            return False
+            return True
         with self._lock:
             self._decision = Decision(target, "restored", str(saved.get("policy", "")), time.time())
         log.info(
