@@ -12,6 +12,11 @@ For each checkpoint, on test scenarios drawn from a seed never used in training:
 - zero-shot on 5 and 10 users (trained with 3): ratio to the oracle (target >= 0.9);
 - the training wall time recorded in the checkpoint's metadata.
 
+Supplementary, because the capture ratio divides by the oracle's gain, which is ~0 where H is
+low (min-distance is already optimal there): the share of scenarios worse than min-distance by
+more than 0.01 utility, the lowest capture among bins of >= 10 scenarios where the oracle gains
+>= 0.01, and the gain in the highest bin holding >= 10 scenarios.
+
 Writes benchmarks/results/policy_quality.json. Run:
 ``.venv/bin/python benchmarks/policy_quality.py [--checkpoint DIR_OR_ZIP ...] [--n 500]``
 (default: the shipped checkpoints in policies/checkpoints/).
