@@ -50,7 +50,7 @@ from collections import Counter
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, Self
 
 from service.frames import FrameConfig, area_to_ned, ned_to_area
 from service.geofence import clamp_to_area
@@ -213,35 +213,31 @@ class LinkState:
     counters: dict[str, int] = field(default_factory=dict)
 
 
-class MavlinkLink:
-    """The MAVLink link and setpoint streamer. See the module docstring."""
+class VehicleLinkBase:
+    """What every vehicle link shares, whatever speaks MAVLink for it (pymavlink or MAVSDK): the
+    vehicle state it exposes (:meth:`state`), the geofenced target it streams (:meth:`set_target`,
+    :meth:`clear_target`), the arm-and-takeoff worker's bookkeeping, and the thread lifecycle.
+
+    A backend implements ``_run`` (the I/O thread), ``_takeoff_worker(z_m, timeout_s, future)``
+    and ``_release`` (drop the connection), and keeps the fields below up to date under
+    ``self._cond``.
+    """
+
+    _thread_name = "vehicle-link"
 
     def __init__(self, config: LinkConfig) -> None:
         self.config = config
         self._cond = threading.Condition()
-        self._send_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._workers: list[threading.Thread] = []
-        self._conn: Any = None
-        self._transport_dead = False
-        self._t0 = time.monotonic()
         self.counters: Counter[str] = Counter(
             dict.fromkeys(
-                (
-                    "setpoints_sent",
-                    "geofence_clamps",
-                    "reconnects",
-                    "connect_failures",
-                    "signing_failures",
-                ),
-                0,
+                ("setpoints_sent", "geofence_clamps", "reconnects", "connect_failures"), 0
             )
         )
         # Vehicle state (under self._cond).
         self._health: LinkHealth = "connecting"
-        self._target_sys = 1
-        self._target_comp = 1
         self._flavour: Flavour | None = None
         self._custom_mode: int | None = None
         self._armed = False
@@ -250,9 +246,6 @@ class MavlinkLink:
         self._position_at: float | None = None
         self._relative_alt_m: float | None = None
         self._home_amsl_m: float | None = None
-        self._landed_state: int | None = None
-        self._acks: dict[int, tuple[int, int]] = {}
-        self._ack_seq = 0
         # Streaming state.
         self._target_m: tuple[float, float, float] | None = None
         self._target_dirty = False  # a new target not sent yet: send it at once
@@ -260,21 +253,29 @@ class MavlinkLink:
         self._stream_since: float | None = None
         self._mode_wanted_until = 0.0
         self._takeoff = "idle"
-        self._up_since = 0.0
-        self._fallback_streams_sent = False
+
+    # Implemented by each backend.
+    def _run(self) -> None:
+        raise NotImplementedError
+
+    def _takeoff_worker(self, z_m: float, timeout_s: float, future: Future[None]) -> None:
+        raise NotImplementedError
+
+    def _release(self) -> None:
+        raise NotImplementedError
 
     # ------------------------------------------------------------------ public API
 
-    def start(self) -> MavlinkLink:
+    def start(self) -> Self:
         """Start the I/O thread (returns at once; the link comes up in the background)."""
         if self._thread is not None:
             raise RuntimeError("already started")
-        self._thread = threading.Thread(target=self._run, name="mavlink-link", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=self._thread_name, daemon=True)
         self._thread.start()
         return self
 
     def close(self, timeout_s: float = 5.0) -> None:
-        """Stop every thread and close the connection (safe to call twice)."""
+        """Stop every thread and drop the connection (safe to call twice)."""
         self._stop.set()
         with self._cond:
             self._cond.notify_all()
@@ -282,9 +283,9 @@ class MavlinkLink:
             if thread is not None:
                 thread.join(timeout_s)
         self._thread = None
-        self._close_conn()
+        self._release()
 
-    def __enter__(self) -> MavlinkLink:
+    def __enter__(self) -> Self:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:
@@ -332,6 +333,7 @@ class MavlinkLink:
                 log.warning("target %s outside the geofence: clamped to %s", target_m, clamped)
             if clamped != self._target_m:
                 self._target_dirty = True
+                self._cond.notify_all()  # wakes an I/O loop waiting on it: out at once
             self._target_m = clamped
             self._mode_wanted_until = time.monotonic() + self.config.mode_request_window_s
         return clamped
@@ -355,15 +357,44 @@ class MavlinkLink:
         z_m = area.z_min_m if z_m is None else min(max(float(z_m), area.z_min_m), area.z_max_m)
         future: Future[None] = Future()
         worker = threading.Thread(
-            target=self._takeoff_worker, args=(z_m, timeout_s, future), name="mavlink-takeoff"
+            target=self._takeoff_worker,
+            args=(z_m, timeout_s, future),
+            name=f"{self._thread_name}-takeoff",
+            daemon=True,
         )
-        worker.daemon = True
         with self._cond:
             self._takeoff = "running"
             self._hold_setpoints = True
         self._workers.append(worker)
         worker.start()
         return future
+
+    def _streaming_now(self) -> bool:
+        return self._health == "up" and self._target_m is not None and not self._hold_setpoints
+
+
+class MavlinkLink(VehicleLinkBase):
+    """The MAVLink link and setpoint streamer. See the module docstring."""
+
+    _thread_name = "mavlink-link"
+
+    def __init__(self, config: LinkConfig) -> None:
+        super().__init__(config)
+        self._send_lock = threading.Lock()
+        self._conn: Any = None
+        self._transport_dead = False
+        self._t0 = time.monotonic()
+        self.counters["signing_failures"] = 0
+        self._target_sys = 1
+        self._target_comp = 1
+        self._landed_state: int | None = None
+        self._acks: dict[int, tuple[int, int]] = {}
+        self._ack_seq = 0
+        self._up_since = 0.0
+        self._fallback_streams_sent = False
+
+    def _release(self) -> None:
+        self._close_conn()
 
     # ------------------------------------------------------------------ connection
 
@@ -594,9 +625,6 @@ class MavlinkLink:
                         sys_id, comp_id, s, int(rate_hz), 1
                     )
                 )
-
-    def _streaming_now(self) -> bool:
-        return self._health == "up" and self._target_m is not None and not self._hold_setpoints
 
     def _send_setpoint(self, now: float) -> None:
         with self._cond:

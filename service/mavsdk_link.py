@@ -63,21 +63,18 @@ import logging
 import math
 import threading
 import time
-from collections import Counter
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Self
 
-from service.frames import area_to_ned, ned_to_area
-from service.geofence import clamp_to_area
+from service.frames import area_to_ned
 from service.mavlink_link import (
     ARDUPILOT_GUIDED,
     GUIDED_MODE_NAME,
-    Flavour,
     LinkConfig,
     LinkHealth,
-    LinkState,
+    VehicleLinkBase,
     flavour_of,
     mavlink,
     mode_name,
@@ -168,146 +165,28 @@ class _Session:
     keep: list[Any] = field(default_factory=list)
 
 
-class MavsdkLink:
+class MavsdkLink(VehicleLinkBase):
     """The vehicle link and setpoint streamer on MAVSDK. See the module docstring."""
+
+    _thread_name = "mavsdk-link"
 
     def __init__(self, config: LinkConfig) -> None:
         if config.signing_key is not None:
             raise ValueError(SIGNING_UNSUPPORTED)
-        self.config = config
+        super().__init__(config)
         self.mavsdk_url = mavsdk_url(config.url)
-        self._cond = threading.Condition()
         self._sdk_lock = threading.RLock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._workers: list[threading.Thread] = []
         self._session: _Session | None = None
-        self.counters: Counter[str] = Counter(
-            dict.fromkeys(
-                ("setpoints_sent", "geofence_clamps", "reconnects", "connect_failures"), 0
-            )
-        )
-        # Vehicle state (under self._cond).
-        self._health: LinkHealth = "connecting"
-        self._flavour: Flavour | None = None
-        self._custom_mode: int | None = None
-        self._armed = False
-        self._last_hb: float | None = None
-        self._ned: tuple[float, float, float] | None = None
-        self._position_at: float | None = None
-        self._relative_alt_m: float | None = None
-        self._home_amsl_m: float | None = None
         self._heading_deg: float | None = None
-        # Streaming state.
-        self._target_m: tuple[float, float, float] | None = None
-        self._target_dirty = False  # a new target not sent yet: send it at once
-        self._hold_setpoints = False
-        self._stream_since: float | None = None
         self._stream_yaw_deg = 0.0
-        self._mode_wanted_until = 0.0
-        self._takeoff = "idle"
 
-    # ------------------------------------------------------------------ public API
-
-    def start(self) -> MavsdkLink:
+    def start(self) -> Self:
         """Start the I/O thread (returns at once; the link comes up in the background)."""
-        if self._thread is not None:
-            raise RuntimeError("already started")
         route_mavsdk_logs_to_python()
-        self._thread = threading.Thread(target=self._run, name="mavsdk-link", daemon=True)
-        self._thread.start()
-        return self
+        return super().start()
 
-    def close(self, timeout_s: float = 5.0) -> None:
-        """Stop every thread and drop the MAVSDK instance (safe to call twice)."""
-        self._stop.set()
-        with self._cond:
-            self._cond.notify_all()
-        for thread in [self._thread, *self._workers]:
-            if thread is not None:
-                thread.join(timeout_s)
-        self._thread = None
+    def _release(self) -> None:
         self._close_session()
-
-    def __enter__(self) -> MavsdkLink:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def state(self) -> LinkState:
-        """A consistent snapshot (never blocks on I/O)."""
-        now = time.monotonic()
-        with self._cond:
-            position = ned_to_area(*self._ned, self.config.frames) if self._ned else None
-            mode = (
-                mode_name(self._flavour, self._custom_mode)
-                if self._flavour is not None and self._custom_mode is not None
-                else None
-            )
-            return LinkState(
-                link=self._health,
-                flavour=self._flavour,
-                mode=mode,
-                armed=self._armed,
-                position_m=position,
-                relative_alt_m=self._relative_alt_m,
-                heartbeat_age_s=None if self._last_hb is None else now - self._last_hb,
-                target_m=self._target_m,
-                streaming=self._streaming_now(),
-                takeoff=self._takeoff,
-                counters=dict(self.counters),
-            )
-
-    def set_target(self, target_m: Sequence[float]) -> tuple[float, float, float]:
-        """Stream ``target_m`` (area frame, metres) from now on; returns the geofenced target.
-
-        A target outside the area volume is clamped to it (logged and counted); NaN or infinite
-        coordinates raise ValueError and change nothing.
-        """
-        try:
-            clamped, was_clamped = clamp_to_area(target_m, self.config.area)
-        except ValueError:
-            with self._cond:
-                self.counters["targets_rejected"] += 1
-            raise
-        with self._cond:
-            if was_clamped:
-                self.counters["geofence_clamps"] += 1
-                log.warning("target %s outside the geofence: clamped to %s", target_m, clamped)
-            if clamped != self._target_m:
-                self._target_dirty = True
-                self._cond.notify_all()  # wakes the I/O loop: the new target goes out at once
-            self._target_m = clamped
-            self._mode_wanted_until = time.monotonic() + self.config.mode_request_window_s
-        return clamped
-
-    def clear_target(self) -> None:
-        """Stop streaming setpoints (the vehicle keeps its own behaviour for a lost stream)."""
-        with self._cond:
-            self._target_m = None
-            self._stream_since = None
-
-    def arm_and_takeoff(self, z_m: float | None = None, timeout_s: float = 60.0) -> Future[None]:
-        """Arm and climb to ``z_m`` (area frame; default the area's ``z_min_m``), in a worker.
-
-        As :meth:`service.mavlink_link.MavlinkLink.arm_and_takeoff`: refusals are retried with
-        backoff until ``timeout_s``; setpoints are held back until the vehicle is airborne; the
-        Future completes when airborne, or with the reason it failed.
-        """
-        area = self.config.area
-        z_m = area.z_min_m if z_m is None else min(max(float(z_m), area.z_min_m), area.z_max_m)
-        future: Future[None] = Future()
-        worker = threading.Thread(
-            target=self._takeoff_worker, args=(z_m, timeout_s, future), name="mavsdk-takeoff"
-        )
-        worker.daemon = True
-        with self._cond:
-            self._takeoff = "running"
-            self._hold_setpoints = True
-        self._workers.append(worker)
-        worker.start()
-        return future
 
     # ------------------------------------------------------------------ the MAVSDK session
 
@@ -525,9 +404,6 @@ class MavsdkLink:
                 self._stream_since = None
                 log.warning("no HEARTBEAT for %.1f s: link lost", now - last_hb)
             return self._health
-
-    def _streaming_now(self) -> bool:
-        return self._health == "up" and self._target_m is not None and not self._hold_setpoints
 
     def _send_setpoint(self, session: _Session, now: float) -> None:
         from mavsdk.plugins.offboard import PositionNedYaw
