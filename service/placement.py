@@ -181,7 +181,7 @@ class PlacementService:
             self._report_received = time.monotonic()
             self.counters["reports_accepted"] += 1
         if self.settings.decision_mode == "on-report":
-            self.decide_once()
+            self._decide_guarded()
         return self.current_decision()
 
     def swap_policy(self, spec: str) -> ServingPolicy:
@@ -280,15 +280,21 @@ class PlacementService:
         self._persist()
         return decision
 
+    def _decide_guarded(self) -> None:
+        """:meth:`decide_once`, where a policy bug holds the target instead of failing the
+        caller (the paced loop, or the report's HTTP request): counted and logged."""
+        try:
+            self.decide_once()
+        except Exception:
+            with self._lock:
+                self.counters["decision_errors"] += 1
+            log.exception("decision failed; holding the current target")
+
     def _run(self) -> None:
         step_s = self.settings.step_s
         next_at = time.monotonic()
         while not self._stop.is_set():
-            try:
-                self.decide_once()
-            except Exception:  # a policy bug must not kill the loop: count, log, hold
-                self.counters["decision_errors"] += 1
-                log.exception("decision failed; holding the current target")
+            self._decide_guarded()
             next_at += step_s
             delay = next_at - time.monotonic()
             if delay < 0:  # fell behind (slow policy): skip the missed steps

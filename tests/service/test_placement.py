@@ -157,3 +157,18 @@ def test_unusable_policies_are_refused_with_the_reason(tmp_path: Any) -> None:
         load_policy(str(tmp_path / "nope.zip"))
     with pytest.raises(InputError, match="policy"):
         load_policy("  ")
+
+
+def test_a_failing_policy_holds_the_target_instead_of_failing_the_report(
+    make_service: Callable[..., PlacementService],
+) -> None:
+    service = make_service()
+    before = service.submit_report(Report(1.0, ("a", "b", "c"), reports()))
+
+    def broken(*args: Any) -> np.ndarray:
+        raise RuntimeError("a policy bug")
+
+    service.policy.decide = broken  # type: ignore[method-assign]
+    after = service.submit_report(Report(2.0, ("a", "b", "c"), reports((450.0, 450.0))))
+    assert after == before
+    assert service.snapshot_counters()["decision_errors"] == 1
