@@ -218,9 +218,9 @@ class VehicleLinkBase:
     vehicle state it exposes (:meth:`state`), the geofenced target it streams (:meth:`set_target`,
     :meth:`clear_target`), the arm-and-takeoff worker's bookkeeping, and the thread lifecycle.
 
-    A backend implements ``_run`` (the I/O thread), ``_takeoff_worker(z_m, timeout_s, future)``
-    and ``_release`` (drop the connection), and keeps the fields below up to date under
-    ``self._cond``.
+    A backend implements ``_run`` (the I/O thread), ``_command`` and ``_arm_until_accepted``
+    (used by the shared arm-and-takeoff worker) and ``_release`` (drop the connection), and keeps
+    the fields below up to date under ``self._cond``.
     """
 
     _thread_name = "vehicle-link"
@@ -258,7 +258,12 @@ class VehicleLinkBase:
     def _run(self) -> None:
         raise NotImplementedError
 
-    def _takeoff_worker(self, z_m: float, timeout_s: float, future: Future[None]) -> None:
+    def _command(self, command: int, params: Sequence[float], deadline: float) -> None:
+        """Send a COMMAND_LONG until accepted, retrying refusals with backoff, until ``deadline``
+        (TimeoutError naming the last result)."""
+        raise NotImplementedError
+
+    def _arm_until_accepted(self, deadline: float) -> None:
         raise NotImplementedError
 
     def _release(self) -> None:
@@ -372,6 +377,62 @@ class VehicleLinkBase:
     def _streaming_now(self) -> bool:
         return self._health == "up" and self._target_m is not None and not self._hold_setpoints
 
+    def _wait_for(self, condition: Callable[[], bool], deadline: float, what: str) -> None:
+        with self._cond:
+            while not condition():
+                remaining = deadline - time.monotonic()
+                if self._stop.is_set():
+                    raise RuntimeError("link closed")
+                if remaining <= 0:
+                    raise TimeoutError(f"timed out waiting for {what}")
+                self._cond.wait(min(remaining, 0.2))
+
+    def _takeoff_worker(self, z_m: float, timeout_s: float, future: Future[None]) -> None:
+        deadline = time.monotonic() + timeout_s
+        alt_rel_m = z_m - self.config.frames.area_origin_down_m
+        airborne_alt_m = max(alt_rel_m * 0.9, alt_rel_m - 1.0)
+        try:
+            self._wait_for(
+                lambda: self._health == "up" and self._home_amsl_m is not None,
+                deadline,
+                "the vehicle and its position",
+            )
+            with self._cond:
+                flavour = self._flavour
+                flying = (self._relative_alt_m or 0.0) >= airborne_alt_m and self._armed
+            if not flying:
+                if flavour == "ardupilot":
+                    self._command(
+                        mavlink.MAV_CMD_DO_SET_MODE,
+                        (mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, ARDUPILOT_GUIDED),
+                        deadline,
+                    )
+                if not self._armed:
+                    self._arm_until_accepted(deadline)
+                with self._cond:
+                    home_amsl_m = self._home_amsl_m or 0.0
+                alt_param = alt_rel_m + home_amsl_m if flavour == "px4" else alt_rel_m
+                self._command(
+                    mavlink.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, math.nan, 0, 0, alt_param), deadline
+                )
+                self._wait_for(
+                    lambda: (self._relative_alt_m or 0.0) >= airborne_alt_m,
+                    deadline,
+                    f"{airborne_alt_m:.1f} m above home",
+                )
+            with self._cond:
+                self._takeoff = "airborne"
+                self._hold_setpoints = False
+                self._mode_wanted_until = time.monotonic() + self.config.mode_request_window_s
+            log.info("airborne at %.1f m above home", alt_rel_m)
+            future.set_result(None)
+        except Exception as exc:
+            with self._cond:
+                self._takeoff = f"failed: {exc}"
+                self._hold_setpoints = False
+            log.warning("arm and takeoff failed: %s", exc)
+            future.set_exception(exc)
+
 
 class MavlinkLink(VehicleLinkBase):
     """The MAVLink link and setpoint streamer. See the module docstring."""
@@ -392,6 +453,9 @@ class MavlinkLink(VehicleLinkBase):
         self._ack_seq = 0
         self._up_since = 0.0
         self._fallback_streams_sent = False
+
+    def _arm_until_accepted(self, deadline: float) -> None:
+        self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, (1,), deadline)
 
     def _release(self) -> None:
         self._close_conn()
@@ -712,59 +776,3 @@ class MavlinkLink(VehicleLinkBase):
             self._stop.wait(min(backoff_s, max(0.0, deadline - time.monotonic())))
             backoff_s = min(backoff_s * 2, 2.0)
         raise RuntimeError("link closed")
-
-    def _wait_for(self, condition: Callable[[], bool], deadline: float, what: str) -> None:
-        with self._cond:
-            while not condition():
-                remaining = deadline - time.monotonic()
-                if self._stop.is_set():
-                    raise RuntimeError("link closed")
-                if remaining <= 0:
-                    raise TimeoutError(f"timed out waiting for {what}")
-                self._cond.wait(min(remaining, 0.2))
-
-    def _takeoff_worker(self, z_m: float, timeout_s: float, future: Future[None]) -> None:
-        deadline = time.monotonic() + timeout_s
-        alt_rel_m = z_m - self.config.frames.area_origin_down_m
-        airborne_alt_m = max(alt_rel_m * 0.9, alt_rel_m - 1.0)
-        try:
-            self._wait_for(
-                lambda: self._health == "up" and self._home_amsl_m is not None,
-                deadline,
-                "the vehicle and its position",
-            )
-            with self._cond:
-                flavour = self._flavour
-                flying = (self._relative_alt_m or 0.0) >= airborne_alt_m and self._armed
-            if not flying:
-                if flavour == "ardupilot":
-                    self._command(
-                        mavlink.MAV_CMD_DO_SET_MODE,
-                        (mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, ARDUPILOT_GUIDED),
-                        deadline,
-                    )
-                if not self._armed:
-                    self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, (1,), deadline)
-                with self._cond:
-                    home_amsl_m = self._home_amsl_m or 0.0
-                alt_param = alt_rel_m + home_amsl_m if flavour == "px4" else alt_rel_m
-                self._command(
-                    mavlink.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, math.nan, 0, 0, alt_param), deadline
-                )
-                self._wait_for(
-                    lambda: (self._relative_alt_m or 0.0) >= airborne_alt_m,
-                    deadline,
-                    f"{airborne_alt_m:.1f} m above home",
-                )
-            with self._cond:
-                self._takeoff = "airborne"
-                self._hold_setpoints = False
-                self._mode_wanted_until = time.monotonic() + self.config.mode_request_window_s
-            log.info("airborne at %.1f m above home", alt_rel_m)
-            future.set_result(None)
-        except Exception as exc:
-            with self._cond:
-                self._takeoff = f"failed: {exc}"
-                self._hold_setpoints = False
-            log.warning("arm and takeoff failed: %s", exc)
-            future.set_exception(exc)

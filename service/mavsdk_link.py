@@ -64,13 +64,11 @@ import math
 import threading
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any, Self
 
 from service.frames import area_to_ned
 from service.mavlink_link import (
-    ARDUPILOT_GUIDED,
     GUIDED_MODE_NAME,
     LinkConfig,
     LinkHealth,
@@ -184,6 +182,9 @@ class MavsdkLink(VehicleLinkBase):
         """Start the I/O thread (returns at once; the link comes up in the background)."""
         route_mavsdk_logs_to_python()
         return super().start()
+
+    def _arm_until_accepted(self, deadline: float) -> None:
+        self._retry("arming", self._arm, deadline)
 
     def _release(self) -> None:
         self._close_session()
@@ -577,59 +578,3 @@ class MavsdkLink(VehicleLinkBase):
             ),
             deadline,
         )
-
-    def _wait_for(self, condition: Callable[[], bool], deadline: float, what: str) -> None:
-        with self._cond:
-            while not condition():
-                remaining = deadline - time.monotonic()
-                if self._stop.is_set():
-                    raise RuntimeError("link closed")
-                if remaining <= 0:
-                    raise TimeoutError(f"timed out waiting for {what}")
-                self._cond.wait(min(remaining, 0.2))
-
-    def _takeoff_worker(self, z_m: float, timeout_s: float, future: Future[None]) -> None:
-        deadline = time.monotonic() + timeout_s
-        alt_rel_m = z_m - self.config.frames.area_origin_down_m
-        airborne_alt_m = max(alt_rel_m * 0.9, alt_rel_m - 1.0)
-        try:
-            self._wait_for(
-                lambda: self._health == "up" and self._home_amsl_m is not None,
-                deadline,
-                "the vehicle and its position",
-            )
-            with self._cond:
-                flavour = self._flavour
-                flying = (self._relative_alt_m or 0.0) >= airborne_alt_m and self._armed
-            if not flying:
-                if flavour == "ardupilot":
-                    self._command(
-                        mavlink.MAV_CMD_DO_SET_MODE,
-                        (mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, ARDUPILOT_GUIDED),
-                        deadline,
-                    )
-                if not self._armed:
-                    self._retry("arming", self._arm, deadline)
-                with self._cond:
-                    home_amsl_m = self._home_amsl_m or 0.0
-                alt_param = alt_rel_m + home_amsl_m if flavour == "px4" else alt_rel_m
-                self._command(
-                    mavlink.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, math.nan, 0, 0, alt_param), deadline
-                )
-                self._wait_for(
-                    lambda: (self._relative_alt_m or 0.0) >= airborne_alt_m,
-                    deadline,
-                    f"{airborne_alt_m:.1f} m above home",
-                )
-            with self._cond:
-                self._takeoff = "airborne"
-                self._hold_setpoints = False
-                self._mode_wanted_until = time.monotonic() + self.config.mode_request_window_s
-            log.info("airborne at %.1f m above home", alt_rel_m)
-            future.set_result(None)
-        except Exception as exc:
-            with self._cond:
-                self._takeoff = f"failed: {exc}"
-                self._hold_setpoints = False
-            log.warning("arm and takeoff failed: %s", exc)
-            future.set_exception(exc)

@@ -52,7 +52,7 @@ def test_vehicle_reaches_its_targets_through_a_lossy_jittery_link(
 
     first = target_xyz(api.report(USERS_EAST).json())
     wait_at(mock, first, timeout_s=40.0)
-    assert mock.state()["mode"] == "OFFBOARD"
+    wait_for(lambda: mock.state()["mode"] == "OFFBOARD", 5.0, 0.1, "OFFBOARD at the first target")
 
     second = target_xyz(api.report(USERS_NORTH).json())
     assert second != first
