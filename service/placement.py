@@ -46,7 +46,7 @@ import numpy as np
 
 from service.frames import FrameConfig
 from service.mavlink_link import LinkConfig, LinkState
-from service.policy_runtime import ServingPolicy, load_policy
+from service.policy_runtime import ServingPolicy, check_policy_location, load_policy
 from service.settings import ServiceSettings
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
 from sim.files import atomic_write_json
@@ -186,7 +186,8 @@ class PlacementService:
 
     def swap_policy(self, spec: str) -> ServingPolicy:
         """Load and check ``spec`` fully, then swap it in atomically (``InputError`` otherwise:
-        the serving policy stays)."""
+        the serving policy stays). Checkpoints load only from ``settings.policy_dirs``."""
+        check_policy_location(spec, self.settings.policy_dirs)
         policy = load_policy(spec, self.area, self.network, self.utility)
         with self._lock:
             self._policy = policy

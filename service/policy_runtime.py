@@ -162,6 +162,29 @@ def load_policy(
     return policy
 
 
+def check_policy_location(spec: str, allowed_dirs: tuple[Path, ...]) -> None:
+    """Refuse a checkpoint path outside ``allowed_dirs`` (baseline names always pass).
+
+    Paths are compared after resolving symbolic links and ``..``, so neither leads out.
+    """
+    from policies.baselines import BASELINES
+
+    spec = str(spec).strip()
+    if spec in BASELINES:
+        return
+    try:
+        resolved = Path(spec).resolve()
+        roots = [Path(d).resolve() for d in allowed_dirs]
+    except (OSError, RuntimeError, ValueError) as exc:
+        raise InputError(f"policy: cannot resolve the path ({exc})") from None
+    if not any(resolved.is_relative_to(root) for root in roots):
+        shown = ", ".join(str(r) for r in roots) or "none"
+        raise InputError(
+            f"policy: {spec} is outside the checkpoint directories this service loads from "
+            f"({shown}; set TUPA_POLICY_DIRS)"
+        )
+
+
 def _dry_run(policy: ServingPolicy, area: AreaConfig) -> None:
     """One decision on a synthetic report: a policy that cannot decide is not served."""
     reports = UserReports(

@@ -15,7 +15,7 @@ from typing import Literal
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from service.policy_runtime import default_policy_spec
+from service.policy_runtime import SHIPPED_CHECKPOINTS, default_policy_spec
 
 DecisionMode = Literal["paced", "on-report"]
 MavlinkBackend = Literal["pymavlink", "mavsdk"]
@@ -63,6 +63,9 @@ class ServiceSettings(BaseSettings):
     """How many requests a client may make at once above its rate (the token bucket's size)."""
     queueing: Literal["fq-codel", "mac-only"] = "fq-codel"
     """The network model variant the ``oracle`` baseline optimises for."""
+    policy_dirs: tuple[Path, ...] = (SHIPPED_CHECKPOINTS, Path("runs"))
+    """Where ``PUT /v1/policy`` may load checkpoints from (JSON list in ``TUPA_POLICY_DIRS``):
+    a checkpoint is a pickle, so a client must not make the service load an arbitrary file."""
     state_file: Path | None = None
     """Where the last target and policy are persisted (none: not persisted)."""
 

@@ -7,6 +7,7 @@ service is started by the app's lifespan and stopped at the end.
 from __future__ import annotations
 
 import math
+import shutil
 import threading
 import zipfile
 from collections.abc import Iterator
@@ -18,6 +19,7 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app
 from api.auth import token_matches
+from service.policy_runtime import DEFAULT_CHECKPOINT, SHIPPED_CHECKPOINTS
 from service.settings import ServiceSettings
 from sitl_mock.config import VehicleConfig
 from sitl_mock.server import MockAutopilot
@@ -62,8 +64,15 @@ def mock() -> Iterator[MockAutopilot]:
 
 
 @pytest.fixture(scope="module")
-def client(mock: MockAutopilot) -> Iterator[TestClient]:
+def checkpoint_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A directory the module's service may load checkpoints from (besides the shipped ones)."""
+    return tmp_path_factory.mktemp("checkpoints")
+
+
+@pytest.fixture(scope="module")
+def client(mock: MockAutopilot, checkpoint_dir: Path) -> Iterator[TestClient]:
     settings = ServiceSettings(
+        policy_dirs=(SHIPPED_CHECKPOINTS, checkpoint_dir),
         mavlink=f"tcp:127.0.0.1:{mock.port}",
         api_token=TOKEN,
         policy="load-weighted",
@@ -257,8 +266,9 @@ def test_policy_get_and_switch(client: TestClient) -> None:
 
 
 def test_bad_policies_are_refused_and_the_old_one_stays(
-    client: TestClient, clock: Clock, tmp_path: Path
+    client: TestClient, clock: Clock, checkpoint_dir: Path
 ) -> None:
+    tmp_path = checkpoint_dir
     corrupt = tmp_path / "corrupt.zip"
     corrupt.write_bytes(b"not a zip at all")
     corrupt.with_suffix(".json").write_text('{"format": "tupa-checkpoint/1"}')
@@ -274,6 +284,26 @@ def test_bad_policies_are_refused_and_the_old_one_stays(
         assert response.json()["detail"][0]["loc"] == ["body", "policy"]
         assert client.get("/v1/policy", headers=AUTH).json()["name"] == "load-weighted"
     assert post(client, clock, [user(1)], headers=AUTH).status_code == 200
+
+
+@pytest.mark.skipif(not DEFAULT_CHECKPOINT.is_file(), reason="no shipped DDQN checkpoint")
+def test_checkpoints_load_only_from_the_allowed_directories(
+    client: TestClient, tmp_path: Path, checkpoint_dir: Path
+) -> None:
+    outside = tmp_path / "ddqn.zip"  # a perfectly good checkpoint, in the wrong place
+    shutil.copyfile(DEFAULT_CHECKPOINT, outside)
+    shutil.copyfile(DEFAULT_CHECKPOINT.with_suffix(".json"), outside.with_suffix(".json"))
+    escape = str(checkpoint_dir / ".." / tmp_path.name / "ddqn.zip")
+    link = checkpoint_dir / "link.zip"
+    link.symlink_to(outside)
+    for spec in (str(outside), escape, str(link)):
+        response = client.put("/v1/policy", json={"policy": spec}, headers=AUTH)
+        assert response.status_code == 422, spec
+        assert "outside the checkpoint directories" in response.json()["detail"][0]["msg"]
+        assert client.get("/v1/policy", headers=AUTH).json()["name"] == "load-weighted"
+    shipped = client.put("/v1/policy", json={"policy": str(DEFAULT_CHECKPOINT)}, headers=AUTH)
+    assert shipped.status_code == 200 and shipped.json()["kind"] == "moves"
+    client.put("/v1/policy", json={"policy": "load-weighted"}, headers=AUTH)
 
 
 def test_hot_swap_under_concurrent_reports(client: TestClient, clock: Clock) -> None:

@@ -34,7 +34,14 @@ REPORTS_PER_S = 50.0
 
 
 @pytest.fixture(scope="module")
-def api() -> Iterator[Api]:
+def checkpoint_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Where the bad checkpoints are written; the service may load from it (TUPA_POLICY_DIRS),
+    so that each one is refused by loading it, not by where it lies."""
+    return tmp_path_factory.mktemp("checkpoints")
+
+
+@pytest.fixture(scope="module")
+def api(checkpoint_dir: Path) -> Iterator[Api]:
     harness = Harness()
     try:
         mock = harness.mock(*PX4_FAST, "--listen", "tcp:127.0.0.1:0")
@@ -45,6 +52,7 @@ def api() -> Iterator[Api]:
             "load-weighted",
             "--decision-mode",
             "on-report",
+            env={"TUPA_POLICY_DIRS": json.dumps([str(checkpoint_dir)])},
         )
         service.wait_ready()
         yield service
@@ -87,7 +95,7 @@ def meta_of_shipped() -> dict:
 
 
 def test_unusable_checkpoints_are_refused_while_reports_keep_flowing(
-    api: Api, tmp_path: Path
+    api: Api, checkpoint_dir: Path
 ) -> None:
     statuses: Counter[int | str] = Counter()
     policies: Counter[str] = Counter()
@@ -118,12 +126,13 @@ def test_unusable_checkpoints_are_refused_while_reports_keep_flowing(
     refused = {}
     try:
         wait_for(lambda: statuses[200] >= 25, 10.0, 0.05, "reports flowing")
-        for name, spec in bad_checkpoints(tmp_path).items():
+        for name, spec in bad_checkpoints(checkpoint_dir).items():
             during = statuses[200]
             response = api.client.put("/v1/policy", json={"policy": spec})
             refused[name] = response.status_code
             assert response.status_code == 422, (name, response.text)
             assert response.json()["detail"][0]["loc"] == ["body", "policy"]
+            assert "outside the checkpoint directories" not in response.text  # it was loaded
             assert api.policy()["name"] == "load-weighted"
             wait_for(lambda d=during: statuses[200] >= d + 10, 10.0, 0.05, "reports after it")
     finally:
