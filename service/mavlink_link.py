@@ -46,6 +46,7 @@ import math
 import os
 import threading
 import time
+from abc import ABC, abstractmethod
 from collections import Counter
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
@@ -213,7 +214,7 @@ class LinkState:
     counters: dict[str, int] = field(default_factory=dict)
 
 
-class VehicleLinkBase:
+class VehicleLinkBase(ABC):
     """What every vehicle link shares, whatever speaks MAVLink for it (pymavlink or MAVSDK): the
     vehicle state it exposes (:meth:`state`), the geofenced target it streams (:meth:`set_target`,
     :meth:`clear_target`), the arm-and-takeoff worker's bookkeeping, and the thread lifecycle.
@@ -255,19 +256,22 @@ class VehicleLinkBase:
         self._takeoff = "idle"
 
     # Implemented by each backend.
+    @abstractmethod
     def _run(self) -> None:
-        raise NotImplementedError
+        """The I/O thread: connect, read telemetry, stream setpoints, until ``_stop`` is set."""
 
+    @abstractmethod
     def _command(self, command: int, params: Sequence[float], deadline: float) -> None:
         """Send a COMMAND_LONG until accepted, retrying refusals with backoff, until ``deadline``
         (TimeoutError naming the last result)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def _arm_until_accepted(self, deadline: float) -> None:
-        raise NotImplementedError
+        """Arm the vehicle, retrying refusals until ``deadline``."""
 
+    @abstractmethod
     def _release(self) -> None:
-        raise NotImplementedError
+        """Drop the connection (called once the threads have stopped)."""
 
     # ------------------------------------------------------------------ public API
 
@@ -376,6 +380,28 @@ class VehicleLinkBase:
 
     def _streaming_now(self) -> bool:
         return self._health == "up" and self._target_m is not None and not self._hold_setpoints
+
+    def _guided_mode_due(self, now: float) -> Flavour | None:
+        """The flavour when the guided mode (GUIDED / OFFBOARD) should be asked for now, counted
+        as a mode request; None when not: no target streams, the request window is closed, the
+        vehicle is already in it, or (PX4) the stream has not run ``px4_stream_lead_s`` yet."""
+        with self._cond:
+            flavour = self._flavour
+            if (
+                flavour not in GUIDED_MODE_NAME
+                or not self._streaming_now()
+                or now > self._mode_wanted_until
+                or self._custom_mode is None
+                or mode_name(flavour, self._custom_mode) == GUIDED_MODE_NAME[flavour]
+            ):
+                return None
+            if flavour == "px4" and (
+                self._stream_since is None
+                or now - self._stream_since < self.config.px4_stream_lead_s
+            ):
+                return None
+            self.counters["mode_requests"] += 1
+            return flavour
 
     def _wait_for(self, condition: Callable[[], bool], deadline: float, what: str) -> None:
         with self._cond:
@@ -720,22 +746,9 @@ class MavlinkLink(VehicleLinkBase):
 
     def _request_guided_mode(self, now: float) -> None:
         """Ask for GUIDED / OFFBOARD while a target streams and the request window is open."""
-        with self._cond:
-            flavour = self._flavour
-            if (
-                flavour not in GUIDED_MODE_NAME
-                or not self._streaming_now()
-                or now > self._mode_wanted_until
-                or self._custom_mode is None
-                or mode_name(flavour, self._custom_mode) == GUIDED_MODE_NAME[flavour]
-            ):
-                return
-            if flavour == "px4" and (
-                self._stream_since is None
-                or now - self._stream_since < self.config.px4_stream_lead_s
-            ):
-                return
-            self.counters["mode_requests"] += 1
+        flavour = self._guided_mode_due(now)
+        if flavour is None:
+            return
         main = ARDUPILOT_GUIDED if flavour == "ardupilot" else PX4_MAIN_OFFBOARD
         custom = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
         self._send_command_long(mavlink.MAV_CMD_DO_SET_MODE, (custom, main))

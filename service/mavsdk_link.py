@@ -69,13 +69,11 @@ from typing import Any, Self
 
 from service.frames import area_to_ned
 from service.mavlink_link import (
-    GUIDED_MODE_NAME,
     LinkConfig,
     LinkHealth,
     VehicleLinkBase,
     flavour_of,
     mavlink,
-    mode_name,
 )
 
 log = logging.getLogger(__name__)
@@ -454,22 +452,8 @@ class MavsdkLink(VehicleLinkBase):
     def _request_guided_mode(self, session: _Session, now: float) -> None:
         """``Offboard.start`` while a target streams and the request window is open (PX4: only
         after the stream has run ``px4_stream_lead_s``)."""
-        with self._cond:
-            flavour = self._flavour
-            if (
-                flavour not in GUIDED_MODE_NAME
-                or not self._streaming_now()
-                or now > self._mode_wanted_until
-                or self._custom_mode is None
-                or mode_name(flavour, self._custom_mode) == GUIDED_MODE_NAME[flavour]
-            ):
-                return
-            if flavour == "px4" and (
-                self._stream_since is None
-                or now - self._stream_since < self.config.px4_stream_lead_s
-            ):
-                return
-            self.counters["mode_requests"] += 1
+        if self._guided_mode_due(now) is None:
+            return
         with self._sdk_lock:
             if self._session is not session or not session.offboard_fed:
                 return
