@@ -99,16 +99,13 @@ class PlacementService:
         self.utility = utility
         self._policy = policy
         self._lock = threading.Lock()
-        self._wake = threading.Condition(self._lock)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._report: Report | None = None
         self._report_received: float | None = None  # monotonic
         self._last_timestamp_s = -math.inf
         self._decision: Decision | None = None
-        self._waiting_since: float | None = None
         self.counters: Counter[str] = Counter()
-        self.started_at = time.time()
         self._takeoff_deferred = False
 
     # ------------------------------------------------------------------ construction
@@ -155,8 +152,6 @@ class PlacementService:
 
     def stop(self, timeout_s: float = 5.0) -> None:
         self._stop.set()
-        with self._wake:
-            self._wake.notify_all()
         if self._thread is not None:
             self._thread.join(timeout_s)
             self._thread = None
@@ -232,6 +227,11 @@ class PlacementService:
             )
         return not reasons, reasons
 
+    def _count(self, name: str) -> None:
+        """Count an event (counters are bumped from the decision thread and request threads)."""
+        with self._lock:
+            self.counters[name] += 1
+
     def snapshot_counters(self) -> dict[str, int]:
         with self._lock:
             return dict(self.counters)
@@ -246,11 +246,11 @@ class PlacementService:
         if report is None or received is None:
             return None
         if time.monotonic() - received > self.settings.report_max_age_s:
-            self.counters["decisions_held_stale"] += 1
+            self._count("decisions_held_stale")
             return None
         state = self.link.state()
         if state.link != "up" or state.position_m is None:
-            self.counters["decisions_waiting_link"] += 1
+            self._count("decisions_waiting_link")
             return None
         vehicle = np.asarray(state.position_m, dtype=float)
         current = np.asarray(previous.target_m, dtype=float) if previous else vehicle
@@ -260,7 +260,7 @@ class PlacementService:
             and previous.source == "policy"
             and float(np.linalg.norm(vehicle - current)) > self.settings.arrival_tolerance_m
         ):
-            self.counters["decisions_held_en_route"] += 1
+            self._count("decisions_held_en_route")
             return None
         started = time.perf_counter()
         if self._takeoff_deferred:  # the first decision after a restart (see start())
@@ -270,7 +270,7 @@ class PlacementService:
             target = policy.decide(report.users, vehicle, current)
             clamped = self.link.set_target(tuple(float(v) for v in target))
         except ValueError as exc:  # a non-finite target: refused by the geofence, target held
-            self.counters["decisions_rejected"] += 1
+            self._count("decisions_rejected")
             log.warning("decision rejected: %s", exc)
             return None
         decision = Decision(clamped, "policy", policy.name, time.time())
@@ -287,8 +287,7 @@ class PlacementService:
         try:
             self.decide_once()
         except Exception:
-            with self._lock:
-                self.counters["decision_errors"] += 1
+            self._count("decision_errors")
             log.exception("decision failed; holding the current target")
 
     def _run(self) -> None:
@@ -319,7 +318,7 @@ class PlacementService:
         try:
             atomic_write_json(Path(path), state)
         except OSError as exc:
-            self.counters["state_write_errors"] += 1
+            self._count("state_write_errors")
             log.warning("cannot persist the service state to %s: %s", path, exc)
 
     def _restore(self) -> bool:
@@ -335,7 +334,7 @@ class PlacementService:
                 raise ValueError("not a JSON object")
         except (OSError, ValueError) as exc:
             log.warning("ignoring the state file %s: %s", path, exc)
-            self.counters["state_restore_errors"] += 1
+            self._count("state_restore_errors")
             return True
         self._restore_policy(state.get("policy"), path)
         try:
@@ -347,7 +346,7 @@ class PlacementService:
                 raise ValueError(f"target_m: not three finite numbers: {target}")
         except (ValueError, KeyError, TypeError) as exc:
             log.warning("ignoring the target in the state file %s: %s", path, exc)
-            self.counters["state_restore_errors"] += 1
+            self._count("state_restore_errors")
             return True
         with self._lock:
             self._decision = Decision(target, "restored", str(saved.get("policy", "")), time.time())
@@ -368,7 +367,7 @@ class PlacementService:
                 spec,
                 self._policy.spec,
             )
-            self.counters["policy_restore_errors"] += 1
+            self._count("policy_restore_errors")
             return
         if spec == self._policy.spec:
             return
@@ -382,7 +381,7 @@ class PlacementService:
                 exc,
                 self._policy.spec,
             )
-            self.counters["policy_restore_errors"] += 1
+            self._count("policy_restore_errors")
             return
         with self._lock:
             self._policy = policy
