@@ -23,6 +23,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from api.auth import BearerGuard
 from api.metrics import HttpMetrics, HttpMetricsMiddleware, ServiceCollector
 from api.ratelimit import RateLimit
+from api.responses import send_error
 from api.routes import RATE_LIMITED, probes, v1
 from service.placement import PlacementService
 from service.settings import ServiceSettings
@@ -72,18 +73,7 @@ class BodySizeLimit:
             await self._reject(send)
 
     async def _reject(self, send: Send) -> None:
-        body = f'{{"detail":"body: over the {self.max_bytes}-byte limit"}}'.encode()
-        await send(
-            {
-                "type": "http.response.start",
-                "status": 413,
-                "headers": [
-                    (b"content-type", b"application/json"),
-                    (b"content-length", str(len(body)).encode()),
-                ],
-            }
-        )
-        await send({"type": "http.response.body", "body": body})
+        await send_error(send, 413, f"body: over the {self.max_bytes}-byte limit")
 
 
 class _BodyTooLargeError(Exception):

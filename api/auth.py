@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import hmac
-import json
 import logging
 
 from fastapi import HTTPException, Request, Security, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from starlette.types import ASGIApp, Receive, Scope, Send
+
+from api.responses import send_error
 
 log = logging.getLogger(__name__)
 _bearer = HTTPBearer(auto_error=False, description="TUPA_API_TOKEN")
@@ -65,19 +66,7 @@ class BearerGuard:
         log.debug(  # what was sent is never logged: it may be the token with a typo
             "401 for %s %s from %s", scope.get("method"), path, client[0] if client else "?"
         )
-        body = json.dumps({"detail": UNAUTHORIZED}).encode()
-        await send(
-            {
-                "type": "http.response.start",
-                "status": 401,
-                "headers": [
-                    (b"content-type", b"application/json"),
-                    (b"content-length", str(len(body)).encode()),
-                    (b"www-authenticate", b"Bearer"),
-                ],
-            }
-        )
-        await send({"type": "http.response.body", "body": body})
+        await send_error(send, 401, UNAUTHORIZED, [(b"www-authenticate", b"Bearer")])
 
 
 def _header_token_matches(scope: Scope, expected: str) -> bool:

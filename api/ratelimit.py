@@ -22,6 +22,8 @@ from collections.abc import Callable
 
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from api.responses import send_error
+
 log = logging.getLogger(__name__)
 UNLIMITED_PATHS = frozenset({"/healthz", "/readyz"})
 
@@ -95,19 +97,9 @@ class RateLimit:
         log.debug("429 for %s %s from %s", scope.get("method"), scope.get("path"), key)
         retry_after = max(1, math.ceil(wait_s))
         rate = self.buckets.rate_per_s
-        body = (
-            f'{{"detail":"rate limit: over {rate:g} requests/s from this client; '
-            f'retry after {retry_after} s"}}'
-        ).encode()
-        await send(
-            {
-                "type": "http.response.start",
-                "status": 429,
-                "headers": [
-                    (b"content-type", b"application/json"),
-                    (b"content-length", str(len(body)).encode()),
-                    (b"retry-after", str(retry_after).encode()),
-                ],
-            }
+        await send_error(
+            send,
+            429,
+            f"rate limit: over {rate:g} requests/s from this client; retry after {retry_after} s",
+            [(b"retry-after", str(retry_after).encode())],
         )
-        await send({"type": "http.response.body", "body": body})
