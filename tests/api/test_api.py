@@ -23,6 +23,7 @@ from service.policy_runtime import DEFAULT_CHECKPOINT, SHIPPED_CHECKPOINTS
 from service.settings import ServiceSettings
 from sitl_mock.config import VehicleConfig
 from sitl_mock.server import MockAutopilot
+from tests.offline import offline_service
 from tests.sitl_mock.helpers import wait_for
 
 TOKEN = "test-token-0123456789"
@@ -207,7 +208,7 @@ def test_duplicate_ids_no_users_and_too_many_users(client: TestClient, clock: Cl
 
 def test_user_count_limit() -> None:
     settings = ServiceSettings(api_token=TOKEN, policy="min-distance", max_users=1000)
-    app = create_app(settings, service_factory=_offline_service)
+    app = create_app(settings, service_factory=offline_service)
     with TestClient(app) as test_client:
         users = [user(0, id=f"u{i}", x_m=1.0, y_m=1.0) for i in range(1001)]
         response = test_client.post(
@@ -361,20 +362,9 @@ def test_openapi_documents_every_route_with_examples(client: TestClient) -> None
     assert "401" in paths["/v1/setpoint"]["get"]["responses"]
 
 
-def _offline_service(settings: ServiceSettings) -> Any:
-    """A placement service whose link points at a closed port (no autopilot): the HTTP side
-    must work all the same (reports are accepted, decisions wait for the link)."""
-    from service.mavlink_link import LinkConfig, MavlinkLink
-    from service.placement import PlacementService
-    from service.policy_runtime import load_policy
-
-    link = MavlinkLink(LinkConfig("tcp:127.0.0.1:1", reconnect_max_s=0.5))
-    return PlacementService(settings, link, load_policy(settings.policy))
-
-
 def test_report_while_the_link_is_down_is_accepted_and_waits() -> None:
     settings = ServiceSettings(api_token=TOKEN, policy="min-distance", decision_mode="on-report")
-    with TestClient(create_app(settings, service_factory=_offline_service)) as test_client:
+    with TestClient(create_app(settings, service_factory=offline_service)) as test_client:
         response = test_client.post(
             "/v1/reports", json={"timestamp": 1.0, "users": [user(1)]}, headers=AUTH
         )

@@ -10,6 +10,7 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app
 from service.settings import ServiceSettings
+from tests.offline import offline_service
 
 TOKEN = "hardening-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -24,19 +25,10 @@ USER = {
 }
 
 
-def _offline_service(settings: ServiceSettings) -> Any:
-    from service.mavlink_link import LinkConfig, MavlinkLink
-    from service.placement import PlacementService
-    from service.policy_runtime import load_policy
-
-    link = MavlinkLink(LinkConfig("tcp:127.0.0.1:1", reconnect_max_s=0.5))
-    return PlacementService(settings, link, load_policy(settings.policy))
-
-
 @pytest.fixture(scope="module")
 def client() -> Iterator[TestClient]:
     settings = ServiceSettings(api_token=TOKEN, policy="min-distance")
-    with TestClient(create_app(settings, service_factory=_offline_service)) as test_client:
+    with TestClient(create_app(settings, service_factory=offline_service)) as test_client:
         yield test_client
 
 

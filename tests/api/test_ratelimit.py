@@ -10,6 +10,7 @@ from fastapi.testclient import TestClient
 from api.app import create_app
 from api.ratelimit import TokenBuckets
 from service.settings import ServiceSettings
+from tests.offline import offline_service
 
 TOKEN = "rate-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -23,20 +24,10 @@ class FakeClock:
         return self.t
 
 
-def _offline_service(settings: ServiceSettings) -> Any:
-    """A placement service whose link points at a closed port: no autopilot needed here."""
-    from service.mavlink_link import LinkConfig, MavlinkLink
-    from service.placement import PlacementService
-    from service.policy_runtime import load_policy
-
-    link = MavlinkLink(LinkConfig("tcp:127.0.0.1:1", reconnect_max_s=0.5))
-    return PlacementService(settings, link, load_policy(settings.policy))
-
-
 def _app(**settings: Any) -> Any:
     return create_app(
         ServiceSettings(api_token=TOKEN, policy="min-distance", **settings),
-        service_factory=_offline_service,
+        service_factory=offline_service,
     )
 
 

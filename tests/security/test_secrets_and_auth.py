@@ -18,6 +18,7 @@ from service.processes import start_service
 from service.settings import ServiceSettings
 from sitl_mock.config import VehicleConfig
 from sitl_mock.server import MockAutopilot
+from tests.offline import offline_service
 from tests.sitl_mock.helpers import wait_for
 
 TOKEN = "sec-" + secrets.token_urlsafe(24)
@@ -31,20 +32,10 @@ V1_ROUTES = [
 ]
 
 
-def _offline_service(settings: ServiceSettings) -> Any:
-    """A placement service whose link points at a closed port: no autopilot needed here."""
-    from service.mavlink_link import LinkConfig, MavlinkLink
-    from service.placement import PlacementService
-    from service.policy_runtime import load_policy
-
-    link = MavlinkLink(LinkConfig("tcp:127.0.0.1:1", reconnect_max_s=0.5))
-    return PlacementService(settings, link, load_policy(settings.policy))
-
-
 @pytest.fixture(scope="module")
 def client() -> Iterator[TestClient]:
     settings = ServiceSettings(api_token=TOKEN, policy="min-distance")
-    with TestClient(create_app(settings, service_factory=_offline_service)) as test_client:
+    with TestClient(create_app(settings, service_factory=offline_service)) as test_client:
         yield test_client
 
 
