@@ -52,6 +52,7 @@ from loadgen import load_phase  # noqa: E402
 
 from service.processes import start_service  # noqa: E402
 from tests.faults.mock_process import start_mock_process  # noqa: E402
+from tests.sitl_mock.helpers import wait_for  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results" / "soak.json"
 USERS = [
@@ -137,17 +138,6 @@ def windows(
     return out, summary
 
 
-def wait_until(condition: Any, timeout_s: float, what: str, interval_s: float = 0.2) -> Any:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = condition()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise RuntimeError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(interval_s)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="10 s + 20 s, to check the script")
@@ -195,16 +185,16 @@ def main() -> None:
         base = f"http://127.0.0.1:{port}"
         auth = {"Authorization": f"Bearer {token}"}
         with httpx.Client(base_url=base, headers=auth, timeout=10.0) as client:
-            wait_until(lambda: client.get("/readyz").status_code == 200, 60, "ready")
-            wait_until(lambda: mock.state()["alt_m"] > 22.0, 60, "airborne")
+            wait_for(lambda: client.get("/readyz").status_code == 200, 60, 0.2, "ready")
+            wait_for(lambda: mock.state()["alt_m"] > 22.0, 60, 0.2, "airborne")
             client.post("/v1/reports", json={"timestamp": 1.0, "users": USERS}).raise_for_status()
-            wait_until(lambda: client.get("/v1/setpoint").json()["target"], 10, "a decision")
-            wait_until(lambda: mock.state()["mode"] == "OFFBOARD", 15, "OFFBOARD")
+            wait_for(lambda: client.get("/v1/setpoint").json()["target"], 10, 0.2, "a decision")
+            wait_for(lambda: mock.state()["mode"] == "OFFBOARD", 15, 0.2, "OFFBOARD")
             out["policy"] = client.get("/v1/policy").json()["name"]
         pid = proc.proc.pid
         sampler = Sampler(pid, mock, sample_s)
         sampler.start()
-        first = wait_until(lambda: sampler.samples and sampler.samples[0], 10, "a first sample")
+        first = wait_for(lambda: sampler.samples and sampler.samples[0], 10, 0.2, "a first sample")
         out["rss_kb_start"] = first[1]
         results = []
         for i, (rate, duration) in enumerate(phases):
