@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -158,6 +159,9 @@ def _announcing_server(config: Any, url: str) -> Any:
         async def startup(self, sockets: list[Any] | None = None) -> None:
             await super().startup(sockets=sockets)
             if not self.should_exit:
-                print(f"tupa serve listening on {url}", flush=True)
+                # One write, newline included: print() writes the text and the newline
+                # separately, and a log line from another thread can land between them.
+                sys.stdout.write(f"tupa serve listening on {url}\n")
+                sys.stdout.flush()
 
     return AnnouncingServer(config)

@@ -235,7 +235,10 @@ def run(args: argparse.Namespace) -> int:
 
     previous = {sig: signal.signal(sig, _on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     # One line on stdout that scripts (and tests using port 0) can read.
-    print(f"sitl-mock {args.flavour} listening on {mock.address}", flush=True)
+    # One write, newline included (print() writes the newline separately; a log line from the
+    # server thread could land in between and hide the line from scripts reading it).
+    sys.stdout.write(f"sitl-mock {args.flavour} listening on {mock.address}\n")
+    sys.stdout.flush()
     try:
         while not stop.wait(0.5):
             pass
