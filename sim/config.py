@@ -154,7 +154,14 @@ class MacConfig:
     aifsn: int = 3
     cw_min: int = 15
     cw_max: int = 1023
+    # The model's contention abstraction (mean idle backoff per TXOP, Bianchi's collision
+    # probability) reads this instead of cw_min: it stands in for ns-3's slot-by-slot EDCA and is
+    # a fitted constant (sim/calibration/fit.py), while cw_min/cw_max stay ns-3's EDCA settings
+    # (the backoff stalls of sim/stalls.py walk that real window ladder).
+    contention_cw_min: int = 15
     retry_limit: int = 7
+    # Model the expiry of packets during long backoff stalls (sim/stalls.py).
+    backoff_stalls: bool = True
     ba_window: int = 64
     max_ampdu_bytes: int = 65535
     block_ack_bytes: int = 32

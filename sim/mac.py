@@ -89,9 +89,25 @@ def contention_overhead(
     return slot_s * cw_min / (n + 1.0), 1.0 / (1.0 - p)
 
 
+@njit(cache=True)
+def idle_slots_per_transmission(n_contenders: float, collision_prob: float, cw_min: int) -> float:
+    """Mean idle slots between two transmissions in Bianchi's model, ``n_contenders`` stations.
+
+    Each station transmits in a slot with probability tau, tied to the collision probability by
+    ``p = 1 − (1 − tau)^(n − 1)``; a slot is idle with probability ``(1 − tau)^n``.
+    """
+    n = max(n_contenders, 1.0)
+    if n < 1.0 + 1e-6 or collision_prob <= 0.0:
+        tau = 2.0 / (cw_min + 2.0)
+    else:
+        tau = 1.0 - (1.0 - collision_prob) ** (1.0 / (n - 1.0))
+    idle = (1.0 - tau) ** n
+    return idle / max(1.0 - idle, 1e-12)
+
+
 def collision_table(mac: MacConfig) -> np.ndarray:
     """Bianchi's saturated collision probability p(n), indexed by the number of stations n."""
-    return _collision_probability_table(mac.cw_min, mac.cw_max)
+    return _collision_probability_table(mac.contention_cw_min, mac.cw_max)
 
 
 @lru_cache(maxsize=4)

@@ -29,12 +29,23 @@ from numba import njit
 
 from sim.channel import SPEED_OF_LIGHT_MPS, rician_power_gain
 from sim.config import AreaConfig, NetworkConfig
-from sim.mac import collision_table, contention_overhead, effective_contenders, fair_txop_rate
+from sim.mac import (
+    collision_table,
+    contention_overhead,
+    effective_contenders,
+    fair_txop_rate,
+    idle_slots_per_transmission,
+)
 from sim.phy import LinkTable, expected_link, sampled_link
 from sim.queues import advance_queue
+from sim.stalls import mean_backoff_slots, stall_lookup, stall_table
 
 # Fading draws of the rate manager per user and step in stochastic mode.
 RATE_DRAWS_PER_STEP = 8
+# Sharing passes with backoff stalls, and how far each pass moves the stall estimate.
+STALL_PASSES = 8
+STALL_DAMPING = 0.5
+STALL_TOLERANCE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -75,7 +86,12 @@ class _Constants(NamedTuple):
     threshold_db: np.ndarray
     collision_table: np.ndarray
     slot_s: float
+    contention_cw_min: int
     cw_min: int
+    cw_max: int
+    backoff_stalls: bool
+    stall_table: np.ndarray
+    sharing_passes: int
     aifs_s: float
     transmissions: int
     mac_queue_packets: float
@@ -112,7 +128,12 @@ class NetworkModel:
             threshold_db=mcs.threshold_db,
             collision_table=collision_table(c.mac),
             slot_s=c.mac.slot_s,
+            contention_cw_min=c.mac.contention_cw_min,
             cw_min=c.mac.cw_min,
+            cw_max=c.mac.cw_max,
+            backoff_stalls=c.mac.backoff_stalls,
+            stall_table=stall_table(c.queue.mac_max_delay_s, c.mac.cw_min, c.mac.cw_max),
+            sharing_passes=STALL_PASSES if c.mac.backoff_stalls else 2,
             aifs_s=c.mac.aifs_s,
             transmissions=c.mac.retry_limit + 1,
             mac_queue_packets=float(c.queue.mac_queue_packets),
@@ -201,6 +222,11 @@ def _simulate(
     attempt_rate = np.empty(n_users)
     overhead = np.empty(n_users)
     mpdu_air = np.empty(n_users)
+    stalled = np.zeros(n_users)
+    stall_wait = np.zeros(n_users)
+    own_share = np.zeros(n_users)
+    stall_next = np.zeros(n_users)
+    wait_next = np.zeros(n_users)
     for b in range(batch):
         # Channel and link of every user.
         for u in range(n_users):
@@ -225,27 +251,50 @@ def _simulate(
             attempts_per_packet[u] = (
                 (1.0 - residual[u]) / success[u] if success[u] > 1e-9 else k.transmissions
             )
-            demand[u] = arrival_pps[u] + backlog_in[b, u] / step_s if connected else 0.0
-            attempt_rate[u] = demand[u] * attempts_per_packet[u]
+            stalled[u] = 0.0
+            stall_wait[u] = 0.0
 
-        # Airtime sharing, twice: contenders of the second pass come from the first.
+        # Airtime sharing, in passes: the contenders and the backoff stalls of a pass come from
+        # the one before (stalled arrivals expire unsent and free their airtime).
         n_contenders = 0.0
         for u in range(n_users):
-            n_contenders += 1.0 if attempt_rate[u] > 0.0 else 0.0
+            has_traffic = arrival_pps[u] + backlog_in[b, u] > 0.0
+            n_contenders += 1.0 if has_traffic and connected_out[b, u] else 0.0
         nu = np.inf
-        for _ in range(2):
+        for sharing_pass in range(k.sharing_passes):
+            for u in range(n_users):
+                demand[u] = (
+                    arrival_pps[u] * (1.0 - stalled[u]) + backlog_in[b, u] / step_s
+                    if connected_out[b, u]
+                    else 0.0
+                )
+                attempt_rate[u] = demand[u] * attempts_per_packet[u]
             backoff_s, inflation = contention_overhead(
-                n_contenders, k.collision_table, k.slot_s, k.cw_min
+                n_contenders, k.collision_table, k.slot_s, k.contention_cw_min
             )
             for u in range(n_users):
                 overhead[u] = k.aifs_s + backoff_s + inflation * phy_overhead[u]
                 mpdu_air[u] = inflation * mpdu[u]
             nu = fair_txop_rate(attempt_rate, overhead, mpdu_air, max_mpdus)
             n_contenders = effective_contenders(attempt_rate, nu)
+            if k.backoff_stalls and sharing_pass < k.sharing_passes - 1:
+                # Stalls free airtime, which shortens stalls: damped, or the estimate
+                # oscillates between a saturated and an idle cell. The last pass only shares.
+                _stall_fractions(
+                    k, attempt_rate, overhead, mpdu_air, max_mpdus, success, nu,
+                    n_contenders, inflation, stall_next, wait_next, own_share,
+                )  # fmt: skip
+                change = 0.0
+                for u in range(n_users):
+                    change = max(change, abs(stall_next[u] - stalled[u]))
+                    stalled[u] += STALL_DAMPING * (stall_next[u] - stalled[u])
+                    stall_wait[u] += STALL_DAMPING * (wait_next[u] - stall_wait[u])
+                if change < STALL_TOLERANCE and sharing_pass > 0:
+                    break  # converged (or nobody stalls): this pass's sharing stands
 
         # Queues, delivery, delay and loss of every user.
         for u in range(n_users):
-            arrival = arrival_pps[u]
+            arrival = arrival_pps[u] * (1.0 - stalled[u])
             served_attempts = min(attempt_rate[u], nu * max_mpdus[u])
             txop_rate = max(min(attempt_rate[u], nu), 1e-12)
             service = min(served_attempts / attempts_per_packet[u], demand[u])
@@ -264,23 +313,85 @@ def _simulate(
             backlog_out[b, u] = backlog
             codel_out[b, u] = count
             delivered[b, u] = service * (1.0 - residual[u])
-            arrived = arrival * step_s
+            arrived = arrival_pps[u] * step_s
             if arrived > 0.0:
-                lost = dropped + service * residual[u] * step_s
+                lost = dropped + service * residual[u] * step_s + arrived * stalled[u]
                 plr[b, u] = min(max(lost / arrived, 0.0), 1.0)
-            if arrival <= 0.0:
+            if arrival_pps[u] <= 0.0:
                 delay[b, u] = 0.0
             elif delivered[b, u] <= 0.0:
                 delay[b, u] = k.unserved_delay_s
             else:
                 # Waiting in the queue (Little's law), for the next TXOP while the A-MPDU
                 # fills, the TXOP itself, and one TXOP interval per retransmission.
+                # A stalled station's packets wait for the end of its backoff stall instead.
                 mpdus_per_txop = max(served_attempts / txop_rate, 1.0)
+                waiting = (mpdus_per_txop - 1.0) / (2.0 * service) + (
+                    attempts_per_packet[u] - 1.0
+                ) / txop_rate
                 delay[b, u] = (
                     mean_backlog / service
-                    + (mpdus_per_txop - 1.0) / (2.0 * service)
+                    + max(waiting, stall_wait[u])
                     + overhead[u]
                     + mpdus_per_txop * mpdu_air[u]
-                    + (attempts_per_packet[u] - 1.0) / txop_rate
                 )
     return delivered, delay, plr, backlog_out, codel_out, snr_out, connected_out
+
+
+@njit(cache=True)
+def _stall_fractions(
+    k: _Constants,
+    attempt_rate: np.ndarray,
+    overhead: np.ndarray,
+    mpdu_air: np.ndarray,
+    max_mpdus: np.ndarray,
+    success: np.ndarray,
+    nu: float,
+    n_contenders: float,
+    inflation: float,
+    stalled: np.ndarray,
+    stall_wait: np.ndarray,
+    own_share: np.ndarray,
+) -> None:
+    """Fill ``stalled`` and ``stall_wait`` (sim.stalls) for the sharing solved at ``nu``.
+
+    The cell's idle slots per second: when the channel is saturated, a backlogged station
+    counts down every idle slot between its attempts, so the idle slots per second are its
+    attempts per second (``nu`` TXOPs, inflated by collisions) times the mean backoff it draws
+    per attempt; otherwise Bianchi's idle slots before each transmission plus the airtime
+    nobody uses. A station's slot lasts the time it does not spend on air itself divided by
+    those idle slots (alone in the cell, a slot is a slot). An attempt fails when it collides
+    or its PPDU is lost (the subframe error stands in for the whole PPDU: a fade takes all of
+    it). Every station with traffic can
+    stall, saturated or not: a saturated one's queue ages through the stall as well.
+    """
+    n_users = attempt_rate.size
+    collision_prob = 1.0 - 1.0 / inflation
+    idle_per_tx = idle_slots_per_transmission(n_contenders, collision_prob, k.contention_cw_min)
+    transmissions = 0.0
+    busy = 0.0
+    for u in range(n_users):
+        r = attempt_rate[u]
+        if r <= 0.0:
+            own_share[u] = 0.0
+            continue
+        txops = min(r, nu)
+        transmissions += txops * inflation
+        own_share[u] = txops * overhead[u] + min(r, nu * max_mpdus[u]) * mpdu_air[u]
+        busy += own_share[u]
+    if np.isfinite(nu):
+        # A backlogged station counts down every idle slot of the cell between its attempts.
+        idle_slots_per_s = nu * inflation * mean_backoff_slots(collision_prob, k.cw_min, k.cw_max)
+    else:
+        idle_slots_per_s = transmissions * idle_per_tx + max(1.0 - busy, 0.0) / k.slot_s
+    idle_slots_per_s = max(idle_slots_per_s, 1e-9)
+    for u in range(n_users):
+        r = attempt_rate[u]
+        if r <= 0.0:
+            stalled[u] = 0.0
+            stall_wait[u] = 0.0
+            continue
+        failure = 1.0 - (1.0 - collision_prob) * success[u]
+        # A station's countdown pauses for the others' airtime, not for its own.
+        slot_time_s = max((1.0 - min(own_share[u], 1.0)) / idle_slots_per_s, k.slot_s)
+        stalled[u], stall_wait[u] = stall_lookup(k.stall_table, failure, slot_time_s)

@@ -99,12 +99,12 @@ FREE: tuple[FreeConstant, ...] = (
         "PhyConfig.per_slope_per_db: steepness of the same waterfall",
     ),
     FreeConstant(
-        "cw_min",
+        "contention_cw_min",
         3,
         63,
         8,
         True,
-        "MacConfig.cw_min as the model uses it: only in its contention abstraction (mean idle "
+        "MacConfig.contention_cw_min: the CWmin of the model's contention abstraction (mean idle "
         "backoff per TXOP = CWmin/(n + 1) slots, and Bianchi's saturated collision probability "
         "with CWmax 1023), which stands in for ns-3's slot-by-slot EDCA",
     ),
@@ -113,7 +113,7 @@ DEFAULTS: dict[str, float] = {
     "per_offset_db": 0.0,
     "threshold_offset_db": 0.0,
     "per_slope_per_db": NetworkConfig().phy.per_slope_per_db,
-    "cw_min": NetworkConfig().mac.cw_min,
+    "contention_cw_min": NetworkConfig().mac.contention_cw_min,
 }
 
 
@@ -129,7 +129,7 @@ def make_config(values: dict[str, float], base: NetworkConfig | None = None) -> 
         ),
         per_slope_per_db=float(v["per_slope_per_db"]),
     )
-    mac = replace(base.mac, cw_min=round(v["cw_min"]))
+    mac = replace(base.mac, contention_cw_min=round(v["contention_cw_min"]))
     return replace(base, phy=phy, mac=mac)
 
 
@@ -362,7 +362,7 @@ def run_fit(
             "phy.per_mid_snr_db": list(config.phy.per_mid_snr_db),
             "phy.ideal_threshold_db": list(config.phy.ideal_threshold_db),
             "phy.per_slope_per_db": config.phy.per_slope_per_db,
-            "mac.cw_min": config.mac.cw_min,
+            "mac.contention_cw_min": config.mac.contention_cw_min,
             "mac.cw_max": config.mac.cw_max,
         },
         "errors": {

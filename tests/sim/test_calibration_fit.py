@@ -25,11 +25,13 @@ def test_defaults_give_the_default_configuration():
 
 
 def test_make_config_moves_only_the_free_constants():
-    config = fit.make_config({"per_offset_db": -0.5, "threshold_offset_db": 1.0, "cw_min": 31})
+    config = fit.make_config(
+        {"per_offset_db": -0.5, "threshold_offset_db": 1.0, "contention_cw_min": 31}
+    )
     base = NetworkConfig()
     assert config.phy.per_mid_snr_db == tuple(x - 0.5 for x in base.phy.per_mid_snr_db)
     assert config.phy.ideal_threshold_db == tuple(x + 1.0 for x in base.phy.ideal_threshold_db)
-    assert config.mac.cw_min == 31 and config.mac.cw_max == base.mac.cw_max
+    assert config.mac.contention_cw_min == 31 and config.mac.cw_min == base.mac.cw_min
     assert replace(config, phy=base.phy, mac=base.mac) == base
 
 
