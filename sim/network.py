@@ -43,9 +43,9 @@ from sim.stalls import mean_backoff_slots, stall_lookup, stall_table
 # Fading draws of the rate manager per user and step in stochastic mode.
 RATE_DRAWS_PER_STEP = 8
 # Sharing passes with backoff stalls, and how far each pass moves the stall estimate.
-STALL_PASSES = 8
+STALL_PASSES = 6
 STALL_DAMPING = 0.5
-STALL_TOLERANCE = 1e-3
+STALL_TOLERANCE = 1e-2
 
 
 @dataclass(frozen=True)
@@ -289,7 +289,7 @@ def _simulate(
                     change = max(change, abs(stall_next[u] - stalled[u]))
                     stalled[u] += STALL_DAMPING * (stall_next[u] - stalled[u])
                     stall_wait[u] += STALL_DAMPING * (wait_next[u] - stall_wait[u])
-                if change < STALL_TOLERANCE and sharing_pass > 0:
+                if change < STALL_TOLERANCE:
                     break  # converged (or nobody stalls): this pass's sharing stands
 
         # Queues, delivery, delay and loss of every user.
