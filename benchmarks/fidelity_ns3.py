@@ -4,10 +4,12 @@ Reads the committed ns-3 results (``sim/calibration/ns3_<queueing>.json``, built
 ``python -m sim.calibration.build run``), evaluates the same cases with the fast model in
 expected mode under the same protocol (0.5 s warm-up from empty queues, 2 s measured) and
 writes ``benchmarks/results/fidelity_ns3.json`` and ``fidelity_ns3.png``. Every figure is
-computed twice: with the model's default constants (``variants``) and with the constants
-fitted to the fit part of the set (``fitted``: ``sim/calibration/fitted.json``, made by
-``python -m sim.calibration.fit``); ``held_out_default_vs_fitted`` puts the held-out target
-figures side by side with ns-3's own seed-to-seed error (the noise floor). The figures:
+computed twice: with the model's default constants (``variants``), which are the constants
+fitted to the fit part of the set (``sim/calibration/fitted.json``, made by
+``python -m sim.calibration.fit``), and with the hand-set constants the fit started from
+(``hand_set``: ``sim.calibration.fit.HAND_SET``); ``held_out_hand_set_vs_default`` puts the
+held-out target figures side by side with ns-3's own seed-to-seed error (the noise floor).
+The figures:
 
 * per-user throughput relative error ``|fast − ns3| / ns3`` (ns-3 throughput floored at
   10 kbit/s), median and p90, for all users and for the congested ones (ns-3 loss > 1 %),
@@ -40,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from sim.calibration.fit import load_fitted, make_config
+from sim.calibration.fit import HAND_SET, load_fitted, make_config
 from sim.config import NetworkConfig
 from sim.evaluate import CaseMetrics, evaluate_case
 from sim.files import load_cases
@@ -435,11 +437,12 @@ def seed_vs_seed(ns3: dict[str, Any], held: set[str]) -> dict[str, Any]:
 
 
 def comparison(result: dict[str, Any]) -> dict[str, Any]:
-    """Held-out target figures side by side: default constants, fitted constants, target
-    (placement agreement also over all six groups: the fit never used the groups' ranking)."""
+    """Held-out target figures side by side: hand-set constants, default (fitted) constants,
+    target (placement agreement also over all six groups: the fit never used the groups'
+    ranking)."""
     out = {}
     for variant, block in result["variants"].items():
-        fitted = result["fitted"]["variants"][variant]
+        hand_set = result["hand_set"]["variants"][variant]
 
         def figures(b: dict[str, Any]) -> dict[str, Any]:
             t = b["held_out"]["throughput_rel_error"]
@@ -452,12 +455,12 @@ def comparison(result: dict[str, Any]) -> dict[str, Any]:
                 "placement_agreement_mean_held_out_groups": b["placement"]["mean_ratio_held_out"],
             }
 
-        d, f = figures(block), figures(fitted)
+        d, h = figures(block), figures(hand_set)
         noise = block["ns3_seed_vs_seed_held_out"]["throughput_rel_error"]
         out[variant] = {
             k: {
+                "hand_set": h[k],
                 "default": d[k],
-                "fitted": f[k],
                 "target": TARGETS.get(k, TARGETS["placement_agreement_mean"]),
             }
             for k in d
@@ -532,7 +535,7 @@ def speed(cases: dict[str, Case], live: bool, ns3_docs: dict[str, Any]) -> dict[
 
 def scatter(rows_by_config: dict[str, dict[str, list[dict[str, Any]]]], path: Path) -> None:
     """Fast vs ns-3 per user: throughput (top) and delay (bottom), log axes, one column per
-    queueing variant and set of constants (default, fitted); held-out users filled, congested
+    queueing variant and set of constants (default, hand-set); held-out users filled, congested
     users (ns-3 loss > 1 %) in red."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -616,7 +619,8 @@ def main(argv: list[str] | None = None) -> int:
             "seeds": ns3_docs["fq-codel"].get("seeds"),
         },
         "fast_model": "expected mode (rng=None), same warm-up and window; 'variants': the "
-        "default constants (sim/config.py), 'fitted': the constants of sim/calibration/fitted.json",
+        "default constants (sim/config.py, equal to sim/calibration/fitted.json), 'hand_set': "
+        "the hand-set constants the fit started from (sim.calibration.fit.HAND_SET)",
         "definitions": {
             "throughput_rel_error": "|fast - ns3| / max(ns3, 10 kbit/s), per user",
             "congested_user": "ns-3 loss ratio > 1 % in the window",
@@ -629,14 +633,15 @@ def main(argv: list[str] | None = None) -> int:
         "variants": {},
     }
     fitted_doc = load_fitted()
-    configs = {"default": NetworkConfig(), "fitted": make_config(fitted_doc["fitted"])}
-    result["fitted"] = {
+    configs = {"default": NetworkConfig(), "hand_set": HAND_SET}
+    result["fit"] = {
         "source": "sim/calibration/fitted.json (python -m sim.calibration.fit)",
         "fitted_on": f"the {fitted_doc['fit_cases']} fit cases only (never the held-out ones)",
+        "fitted_constants_are_the_defaults": make_config(fitted_doc["fitted"]) == NetworkConfig(),
         "constants": fitted_doc["fitted"],
-        "defaults": {k: v["default"] for k, v in fitted_doc["free_constants"].items()},
-        "variants": {},
+        "hand_set": {k: v["hand_set"] for k, v in fitted_doc["free_constants"].items()},
     }
+    result["hand_set"] = {"variants": {}}
     rows_by_config: dict[str, dict[str, list[dict[str, Any]]]] = {}
     for name, config in configs.items():
         rows_by_config[name] = {}
@@ -651,13 +656,13 @@ def main(argv: list[str] | None = None) -> int:
                 block["ns3_drop_causes"] = drop_causes(rows, variant)
                 result["variants"][variant] = block
             else:
-                result["fitted"]["variants"][variant] = block
-    result["held_out_default_vs_fitted"] = comparison(result)
-    for variant, table in result["held_out_default_vs_fitted"].items():
+                result["hand_set"]["variants"][variant] = block
+    result["held_out_hand_set_vs_default"] = comparison(result)
+    for variant, table in result["held_out_hand_set_vs_default"].items():
         for figure, entry in table.items():
             print(
-                f"{variant} held-out {figure}: default {entry['default']}, "
-                f"fitted {entry['fitted']} (target {entry['target']})"
+                f"{variant} held-out {figure}: hand-set {entry['hand_set']}, "
+                f"default (fitted) {entry['default']} (target {entry['target']})"
             )
     result["speed"] = speed(cases, not args.no_live, ns3_docs)
     if "speedup_min" in result["speed"]:

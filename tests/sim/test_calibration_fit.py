@@ -19,16 +19,22 @@ def calib() -> fit.Calibration:
     return fit.load_calibration()
 
 
-def test_defaults_give_the_default_configuration():
-    assert fit.make_config(fit.DEFAULTS) == NetworkConfig()
-    assert fit.make_config({}) == NetworkConfig()
+def test_hand_set_values_give_the_hand_set_configuration():
+    assert fit.make_config(fit.HAND_SET_VALUES) == fit.HAND_SET
+    assert fit.make_config({}) == fit.HAND_SET
+
+
+def test_the_model_defaults_are_the_committed_fit():
+    """Refitting without copying the result into sim/config.py fails here."""
+    assert fit.fitted_config() == NetworkConfig()
+    assert NetworkConfig() != fit.HAND_SET
 
 
 def test_make_config_moves_only_the_free_constants():
     config = fit.make_config(
         {"per_offset_db": -0.5, "threshold_offset_db": 1.0, "contention_cw_min": 31}
     )
-    base = NetworkConfig()
+    base = fit.HAND_SET
     assert config.phy.per_mid_snr_db == tuple(x - 0.5 for x in base.phy.per_mid_snr_db)
     assert config.phy.ideal_threshold_db == tuple(x + 1.0 for x in base.phy.ideal_threshold_db)
     assert config.mac.contention_cw_min == 31 and config.mac.cw_min == base.mac.cw_min
@@ -57,11 +63,11 @@ def test_committed_fit_is_within_bounds_and_reproduces_its_figures(calib):
     config = fit.fitted_config()
     assert fit.falls_monotonically(config)
     for part in ("fit", "held_out"):
-        for name, cfg in (("fitted", config), ("default", NetworkConfig())):
+        for name, cfg in (("fitted", config), ("hand_set", fit.HAND_SET)):
             got = fit.figures(calib, cfg, part)
             for variant, committed in doc["errors"][part][name].items():
                 assert got[variant] == pytest.approx(committed, abs=2e-4), (part, name)
-    assert doc["objective"]["fitted"] < doc["objective"]["default"]
+    assert doc["objective"]["fitted"] < doc["objective"]["hand_set"]
 
 
 def test_fit_never_reads_the_held_out_results(calib, tmp_path):
