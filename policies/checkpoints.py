@@ -24,7 +24,7 @@ from typing import Any
 
 from sim.config import AreaConfig
 from sim.errors import InputError
-from sim.files import atomic_write_json
+from sim.files import atomic_write_json, replacement_mode
 from sim.observation import observation_shape
 
 CHECKPOINT_FORMAT = "tupa-checkpoint/1"
@@ -75,6 +75,7 @@ def save_checkpoint(model: Any, path: Path, metadata: dict[str, Any]) -> None:
     os.close(fd)
     try:
         model.save(tmp_name)
+        os.chmod(tmp_name, replacement_mode(path))
         os.replace(tmp_name, path)
     except BaseException:
         Path(tmp_name).unlink(missing_ok=True)
@@ -173,6 +174,7 @@ def export_checkpoint(
         ):
             for item in src.infolist():
                 out.writestr(item.filename, src.read(item.filename))
+        os.chmod(tmp_name, replacement_mode(dest))
         os.replace(tmp_name, dest)
     except BaseException:
         Path(tmp_name).unlink(missing_ok=True)

@@ -59,7 +59,7 @@ import numpy as np
 
 from policies.evaluation import HETEROGENEITY_BIN_WIDTH, REFERENCE_POLICY, heterogeneity_bin
 from sim.errors import InputError
-from sim.files import atomic_write_json, atomic_write_text
+from sim.files import atomic_write_json, atomic_write_text, replacement_mode
 
 LEARNING_CURVE_FORMAT = "tupa-learning-curve/1"
 LEARNING_CURVE_FILE = "learning_curve.json"
@@ -910,16 +910,6 @@ def render_figures(
 # Writing
 
 
-def _file_mode(path: Path) -> int:
-    """The mode of the file ``path`` replaces, else 0o666 minus the umask."""
-    try:
-        return path.stat().st_mode & 0o7777
-    except FileNotFoundError:
-        mask = os.umask(0o022)  # the umask can only be read by setting it
-        os.umask(mask)
-        return 0o666 & ~mask
-
-
 def _atomic_write_bytes(path: Path, data: bytes) -> None:
     """``sim.files.atomic_write_text`` for bytes: temporary file in the same directory,
     fsync, rename over ``path``; on an error the temporary file is removed."""
@@ -929,7 +919,7 @@ def _atomic_write_bytes(path: Path, data: bytes) -> None:
             handle.write(data)
             handle.flush()
             os.fsync(handle.fileno())
-        os.chmod(tmp_name, _file_mode(path))
+        os.chmod(tmp_name, replacement_mode(path))
         os.replace(tmp_name, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

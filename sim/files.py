@@ -52,11 +52,16 @@ _UAV_FIELDS = ("x_m", "y_m", "z_m")
 # Atomic writes
 
 
-def _current_umask() -> int:
-    # os.umask can only be read by setting it; the window is a few instructions.
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
+def replacement_mode(path: Path) -> int:
+    """The permission bits a file written to ``path`` should get: those of the file it
+    replaces, else the usual 0o666 minus the umask (``tempfile.mkstemp`` makes files 0o600)."""
+    try:
+        return Path(path).stat().st_mode & 0o7777
+    except FileNotFoundError:
+        # os.umask can only be read by setting it; the window is a few instructions.
+        mask = os.umask(0o022)
+        os.umask(mask)
+        return 0o666 & ~mask
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -70,10 +75,7 @@ def atomic_write_text(path: Path, text: str) -> None:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        mode = path.stat().st_mode & 0o7777
-    except FileNotFoundError:
-        mode = 0o666 & ~_current_umask()
+    mode = replacement_mode(path)
     fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as handle:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import replace
 from pathlib import Path
 
@@ -257,3 +258,21 @@ def test_export_keeps_the_weights_and_drops_the_optimizer_state(tmp_path, random
         original.policy.state_dict().items(), copy.policy.state_dict().items(), strict=True
     ):
         assert k1 == k2 and th.equal(v1, v2)
+
+
+def test_checkpoint_files_get_the_usual_permissions(tmp_path, random_ddqn):
+    """Saved and exported zips are readable like any file the user writes (umask), not 0o600
+    as the temporary files they are written through."""
+    from policies.checkpoints import export_checkpoint
+
+    old_mask = os.umask(0o022)
+    try:
+        source = tmp_path / "trained.zip"
+        meta = {"algorithm": "ddqn", "strategy": "spec", "observation_shape": [6, 20, 20]}
+        save_checkpoint(random_ddqn, source, meta)
+        dest = tmp_path / "ddqn-x.zip"
+        export_checkpoint(source, dest)
+    finally:
+        os.umask(old_mask)
+    for path in (source, dest, dest.with_suffix(".json")):
+        assert path.stat().st_mode & 0o777 == 0o644, path
