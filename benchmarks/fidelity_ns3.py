@@ -584,7 +584,9 @@ def scatter(rows_by_config: dict[str, dict[str, list[dict[str, Any]]]], path: Pa
             ax.set_ylim(lo, hi)
             ax.set_xlabel(f"ns-3 {label}")
             ax.set_ylabel(f"fast model {label}")
-            ax.set_title(f"{variant}, {name} constants: per-user {label.split(' (')[0]}")
+            ax.set_title(
+                f"{variant}, {name.replace('_', '-')} constants: per-user {label.split(' (')[0]}"
+            )
             ax.grid(True, which="major", lw=0.3)
             if row_i == 0 and col == 0:
                 ax.legend(fontsize=8, loc="upper left")
