@@ -3,7 +3,8 @@ the shipped DDQN, or load-weighted when no checkpoint is shipped) + the simulate
 controller, on free loopback ports; every process is stopped at the end.
 
 In a heterogeneous scenario (one heavy user, two light ones) the vehicle must end nearer to the
-load-weighted optimum than to the min-distance point.
+load-weighted optimum than to the min-distance point, at a position where the network model's
+utility is clearly above the min-distance point's.
 """
 
 from __future__ import annotations
@@ -19,19 +20,30 @@ from policies.baselines import make_policy
 from service.controller_sim import SimulatedNetwork, TruePosition, run_scenario
 from service.frames import FrameConfig
 from service.processes import TupaProcess, start_service, start_sitl_mock
+from sim.network import NetworkModel
 from sim.scenarios import Scenario
+from sim.utility import network_utility
 from tests.sitl_mock.helpers import wait_for
 
 pytestmark = pytest.mark.slow
 
 FRAMES = FrameConfig(-250.0, -250.0)  # home (take-off) at the area's centre
-# One heavy user east of the centre, two light ones far to the west: the load-weighted optimum
-# lies ~120 m from the min-distance point.
+# One heavy user far east, two light ones far to the west: the load-weighted optimum lies
+# ~170 m from the min-distance point, and placement matters (the model's best grid position
+# scores 0.12 utility above the min-distance point; with users nearer the centre the whole area
+# scores within 0.001 and any final position is right).
 SCENARIO = Scenario(
     "heavy-east",
-    np.array([[395.0, 254.0], [178.0, 478.0], [165.0, 104.0]]),
+    np.array([[450.0, 250.0], [60.0, 60.0], [60.0, 440.0]]),
     np.array([36e6, 2e6, 2e6]),
 )
+
+
+def model_utility(position_m: np.ndarray) -> float:
+    """The expected-mode utility of one 1 s step at ``position_m`` from empty queues."""
+    model = NetworkModel()
+    r = model.step(position_m[None, :], SCENARIO.users_xy_m, SCENARIO.load_bps, step_s=1.0)
+    return float(network_utility(r.throughput_bps[0], r.delay_s[0], r.plr[0], SCENARIO.load_bps))
 
 
 @pytest.fixture
@@ -85,4 +97,5 @@ def test_vehicle_ends_nearer_the_load_weighted_optimum(loop: tuple[str, str, int
     to_weighted = np.linalg.norm(final[:2] - weighted[:2])
     to_plain = np.linalg.norm(final[:2] - plain[:2])
     assert to_weighted < to_plain, (final, weighted, plain)
+    assert model_utility(final) > model_utility(plain) + 0.05, (final, plain)
     assert np.linalg.norm(final[:2] - np.asarray(records[0].position_m)[:2]) > 50.0  # it flew
