@@ -288,7 +288,7 @@ def _simulate(
                 for u in range(n_users):
                     change = max(change, abs(stall_next[u] - stalled[u]))
                     stalled[u] += STALL_DAMPING * (stall_next[u] - stalled[u])
-                    stall_wait[u] += STALL_DAMPING * (wait_next[u] - stall_wait[u])
+                    stall_wait[u] = wait_next[u]  # feeds nothing back: not damped
                 if change < STALL_TOLERANCE:
                     break  # converged (or nobody stalls): this pass's sharing stands
 
