@@ -36,8 +36,8 @@ from functools import lru_cache
 import numpy as np
 from numba import njit
 
-# Failures in a row beyond which the remaining probability mass is ignored (q^32 is negligible
-# for any q the cell produces; the geometric tail is cut, not renormalised).
+# Failures in a row computed one by one; the rest of the geometric tail (beyond the last window
+# doubling, so each further failure adds the same CWmax backoff) is added in closed form.
 MAX_FAILURES = 32
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 
@@ -101,6 +101,15 @@ def backoff_stall(
         delivered_sum += prob * delivered
         wait_sum += prob * 0.5 * delivered * delivered
         prob *= q
+    # More than MAX_FAILURES failures (probability ``prob`` now): on average 1 / (1 − q) more
+    # attempts at CWmax; such gaps are long, so their spread is left out.
+    window = cw_max + 0.0
+    tail_mean_s = mean_s + (0.5 * window * slot_time_s + transmission_s) / (1.0 - q)
+    tail_delivered = min(tail_mean_s, lifetime_s)
+    gap_sum += prob * tail_mean_s
+    expired_sum += prob * (tail_mean_s - tail_delivered)
+    delivered_sum += prob * tail_delivered
+    wait_sum += prob * 0.5 * tail_delivered * tail_delivered
     if gap_sum <= 0.0:
         return 0.0, 0.0
     return expired_sum / gap_sum, wait_sum / max(delivered_sum, 1e-300)

@@ -28,7 +28,9 @@ def _monte_carlo(q: float, slot_time_s: float, tx_s: float, n: int = 200_000):
     return expired.sum() / gaps.sum(), (0.5 * delivered**2).sum() / delivered.sum()
 
 
-@pytest.mark.parametrize("q, slot_time_s", [(0.5, 0.5e-3), (0.6, 0.5e-3), (0.45, 1.0e-3)])
+@pytest.mark.parametrize(
+    "q, slot_time_s", [(0.5, 0.5e-3), (0.6, 0.5e-3), (0.45, 1.0e-3), (0.9, 2e-4)]
+)
 def test_expiry_and_wait_match_a_simulation_of_the_gap_process(q, slot_time_s):
     expired, wait_s = backoff_stall(q, slot_time_s, 2e-4, LIFETIME_S, CW_MIN, CW_MAX)
     mc_expired, mc_wait_s = _monte_carlo(q, slot_time_s, 2e-4)
