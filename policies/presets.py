@@ -25,9 +25,9 @@ does not give DDPG's exploration noise or the dense layer sizes: the values belo
 - a faster ε decay (0.05 per episode) matching the shorter episodes, and learning rate 5e-4.
 
 The shipped ``ddqn-gen10k`` (this preset, 2000 episodes, seed 1, trained on the current
-network model) reached 0.987 of the oracle (mean 0.985) on the same 100 test scenarios in
-578 s, on a machine shared with other jobs. Its median learning curve was 0.73 / 0.81 / 0.82 /
-0.95 / 0.997 at 100 / 200 / 500 / 1000 / 2000 episodes.
+network model) reached 0.988 of the oracle (mean 0.987) on the same 100 test scenarios in
+874 s, on a machine shared with other jobs. Its median learning curve was 0.81 / 0.80 / 0.82 /
+0.92 / 0.997 at 100 / 200 / 500 / 1000 / 2000 episodes.
 
 Both presets give DDPG's critic dense layers after the action (``Preset.critic_hidden``);
 before that fix DDPG had reached only a median of 0.47 after 200 episodes. ``fast`` DDPG then
@@ -45,9 +45,11 @@ scenarios):
   0.69 / 0.78 / 0.81 at 100 / 200 / 500 / 1000 / 2000 episodes and the final mean 0.808 of
   the oracle (756 s); with γ = 0 it was 0.45 / 0.47 / 0.84 / 0.999 / 0.999 and 0.987 of the
   oracle (mean 0.982, 568 s). These comparisons ran on the previous network model (hand-set
-  constants, no backoff stalls). On the current one the shipped ``ddpg-gen10k`` reached 0.987 of
-  the oracle (mean 0.985, 503 s). This makes ``fast`` DDPG a one-step (contextual-bandit)
-  actor-critic; what it gives up is planning for the queue backlog a placement leaves behind.
+  constants, no backoff stalls). On the current one the shipped ``ddpg-gen10k`` (seed 2)
+  reached 0.995 of the oracle (mean 0.993, 518 s); seed 1 collapsed, its tanh output saturated
+  at one corner from the first evaluation on, so check a run's learning curve. γ = 0 makes
+  ``fast`` DDPG a one-step (contextual-bandit) actor-critic; what it gives up is planning for
+  the queue backlog a placement leaves behind.
 """
 
 from __future__ import annotations
