@@ -367,7 +367,6 @@ def _stall_fractions(
     """
     n_users = attempt_rate.size
     collision_prob = 1.0 - 1.0 / inflation
-    idle_per_tx = idle_slots_per_transmission(n_contenders, collision_prob, k.contention_cw_min)
     transmissions = 0.0
     busy = 0.0
     for u in range(n_users):
@@ -383,6 +382,7 @@ def _stall_fractions(
         # A backlogged station counts down every idle slot of the cell between its attempts.
         idle_slots_per_s = nu * inflation * mean_backoff_slots(collision_prob, k.cw_min, k.cw_max)
     else:
+        idle_per_tx = idle_slots_per_transmission(n_contenders, collision_prob, k.contention_cw_min)
         idle_slots_per_s = transmissions * idle_per_tx + max(1.0 - busy, 0.0) / k.slot_s
     idle_slots_per_s = max(idle_slots_per_s, 1e-9)
     for u in range(n_users):
