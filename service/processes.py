@@ -36,9 +36,22 @@ class ProcessFailedError(RuntimeError):
 
 
 class TupaProcess:
-    def __init__(self, args: Sequence[str], name: str, env: dict[str, str] | None = None) -> None:
+    """``python -m MODULE ARGS`` (by default ``service.cli``, the ``tupa`` command) as a child.
+
+    ``cwd`` is where it runs (default: the caller's directory); a module outside the installed
+    packages, such as a test helper, needs the repository root.
+    """
+
+    def __init__(
+        self,
+        args: Sequence[str],
+        name: str,
+        env: dict[str, str] | None = None,
+        module: str = "service.cli",
+        cwd: str | os.PathLike[str] | None = None,
+    ) -> None:
         self.name = name
-        self.args = [sys.executable, "-m", "service.cli", *args]
+        self.args = [sys.executable, "-m", module, *args]
         self._lines: deque[str] = deque(maxlen=2000)
         self._cond = threading.Condition()
         child_env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
@@ -48,6 +61,7 @@ class TupaProcess:
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
             text=True,
+            cwd=cwd,
             env=child_env,
             preexec_fn=_detach_and_die_with_parent,
         )

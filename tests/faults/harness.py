@@ -151,6 +151,21 @@ class Harness:
         self._apis.append(api)
         return api
 
+    def flying_service(self, mavlink: str, *args: str, env: dict[str, str] | None = None) -> Api:
+        """:meth:`service` on ``mavlink`` that arms and takes off, and places with
+        ``load-weighted`` on every report (what the fault tests fly with)."""
+        return self.service(
+            "--mavlink",
+            mavlink,
+            "--arm-and-takeoff",
+            "--policy",
+            "load-weighted",
+            "--decision-mode",
+            "on-report",
+            *args,
+            env=env,
+        )
+
     def close(self) -> None:
         for api in self._apis:
             api.close()

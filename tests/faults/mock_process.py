@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import signal
-import subprocess
 import sys
 import threading
 from collections.abc import Sequence
@@ -25,7 +24,7 @@ from typing import Any
 
 import httpx
 
-from service.processes import TupaProcess, _detach_and_die_with_parent
+from service.processes import TupaProcess
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -91,27 +90,7 @@ class MockProcess(TupaProcess):
     """A running :mod:`tests.faults.mock_process` (see the module docstring)."""
 
     def __init__(self, args: Sequence[str]) -> None:
-        # TupaProcess runs ``python -m service.cli``; this runs our wrapper module instead.
-        from collections import deque
-
-        self.name = "sitl-mock"
-        self.args = [sys.executable, "-m", "tests.faults.mock_process", *args]
-        self._lines: deque[str] = deque(maxlen=2000)
-        self._cond = threading.Condition()
-        import os
-
-        self.proc = subprocess.Popen(
-            self.args,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL,
-            text=True,
-            cwd=REPO,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"},
-            preexec_fn=_detach_and_die_with_parent,
-        )
-        self._reader = threading.Thread(target=self._read, name="mock-output", daemon=True)
-        self._reader.start()
+        super().__init__(args, "sitl-mock", module="tests.faults.mock_process", cwd=REPO)
         self.port = 0
         self.stats_url = ""
         self._http = httpx.Client(timeout=2.0)

@@ -28,14 +28,8 @@ def test_a_vehicle_that_fails_signing_is_named_in_readyz_and_never_commanded(
     vehicle_key = secrets.token_hex(32)
     service_key = vehicle_key if same_key else secrets.token_hex(32)
     mock = harness.mock(*PX4_FAST, "--signing-key", vehicle_key, "--listen", "tcp:127.0.0.1:0")
-    api = harness.service(
-        "--mavlink",
+    api = harness.flying_service(
         f"tcp:127.0.0.1:{mock.port}",
-        "--arm-and-takeoff",
-        "--policy",
-        "load-weighted",
-        "--decision-mode",
-        "on-report",
         env={"TUPA_MAVLINK_SIGNING_KEY": service_key},
     )
     if same_key:
