@@ -151,13 +151,20 @@ class Harness:
         self._apis.append(api)
         return api
 
-    def flying_service(self, mavlink: str, *args: str, env: dict[str, str] | None = None) -> Api:
-        """:meth:`service` on ``mavlink`` that arms and takes off, and places with
-        ``load-weighted`` on every report (what the fault tests fly with)."""
+    def placing_service(
+        self,
+        mavlink: str,
+        *args: str,
+        arm_and_takeoff: bool = True,
+        env: dict[str, str] | None = None,
+    ) -> Api:
+        """:meth:`service` on ``mavlink`` that places with ``load-weighted`` on every report
+        (what the fault tests fly with), arming and taking off unless told not to."""
+        takeoff = ("--arm-and-takeoff",) if arm_and_takeoff else ()
         return self.service(
             "--mavlink",
             mavlink,
-            "--arm-and-takeoff",
+            *takeoff,
             "--policy",
             "load-weighted",
             "--decision-mode",

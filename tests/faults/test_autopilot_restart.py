@@ -35,7 +35,7 @@ RESUME_WITHIN_S = 5.0
 def test_autopilot_killed_mid_flight_then_restarted(harness: Harness) -> None:
     mock = harness.mock(*PX4_FAST, "--listen", "tcp:127.0.0.1:0")
     port = mock.port
-    api = harness.flying_service(
+    api = harness.placing_service(
         f"tcp:127.0.0.1:{port}",
     )
     api.wait_ready()

@@ -45,13 +45,9 @@ def api(checkpoint_dir: Path) -> Iterator[Api]:
     harness = Harness()
     try:
         mock = harness.mock(*PX4_FAST, "--listen", "tcp:127.0.0.1:0")
-        service = harness.service(
-            "--mavlink",
+        service = harness.placing_service(
             f"tcp:127.0.0.1:{mock.port}",
-            "--policy",
-            "load-weighted",
-            "--decision-mode",
-            "on-report",
+            arm_and_takeoff=False,
             env={"TUPA_POLICY_DIRS": json.dumps([str(checkpoint_dir)])},
         )
         service.wait_ready()

@@ -38,7 +38,7 @@ def test_vehicle_reaches_its_targets_through_a_lossy_jittery_link(
 ) -> None:
     mock = harness.mock(*PX4_FAST, "--listen", "udp:127.0.0.1:0")
     proxy = harness.proxy(mock.port, loss, JITTER_S, seed=int(loss * 100))
-    api = harness.flying_service(
+    api = harness.placing_service(
         f"udpout:127.0.0.1:{proxy.port}",
     )
     api.wait_ready(45.0)

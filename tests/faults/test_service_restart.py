@@ -55,7 +55,7 @@ def test_service_killed_failsafe_holds_and_restart_moves_nothing(
     state_file = tmp_path / "state.json"
     mock = harness.mock(*PX4_FAST, *NO_GCS_FAILSAFE, "--listen", "tcp:127.0.0.1:0")
     args = (f"tcp:127.0.0.1:{mock.port}", "--state-file", str(state_file))
-    api = harness.flying_service(*args)
+    api = harness.placing_service(*args)
     api.wait_ready()
     wait_airborne(mock)
     assert api.client.put("/v1/policy", json={"policy": "min-distance"}).status_code == 200
@@ -82,7 +82,7 @@ def test_service_killed_failsafe_holds_and_restart_moves_nothing(
     held = ned_to_area(mock.state()["position_ned_m"])
 
     restarted = time.monotonic()
-    api = harness.flying_service(*args)
+    api = harness.placing_service(*args)
     api.wait_ready()
     report_recovery("service restart -> ready (start to /readyz 200)", time.monotonic() - restarted)
     setpoint = api.setpoint()
@@ -128,7 +128,7 @@ def test_restart_with_arm_and_takeoff_does_not_arm_until_a_fresh_report(
         )
     )
     mock = harness.mock(*PX4_FAST, *NO_GCS_FAILSAFE, "--listen", "tcp:127.0.0.1:0")
-    api = harness.flying_service(
+    api = harness.placing_service(
         f"tcp:127.0.0.1:{mock.port}",
         "--state-file",
         str(state_file),

@@ -28,7 +28,7 @@ def test_a_vehicle_that_fails_signing_is_named_in_readyz_and_never_commanded(
     vehicle_key = secrets.token_hex(32)
     service_key = vehicle_key if same_key else secrets.token_hex(32)
     mock = harness.mock(*PX4_FAST, "--signing-key", vehicle_key, "--listen", "tcp:127.0.0.1:0")
-    api = harness.flying_service(
+    api = harness.placing_service(
         f"tcp:127.0.0.1:{mock.port}",
         env={"TUPA_MAVLINK_SIGNING_KEY": service_key},
     )
@@ -65,13 +65,9 @@ def test_a_signing_vehicle_without_a_key_on_our_side_is_named_in_readyz(harness:
     mock = harness.mock(
         *PX4_FAST, "--signing-key", secrets.token_hex(32), "--listen", "tcp:127.0.0.1:0"
     )
-    api = harness.service(
-        "--mavlink",
+    api = harness.placing_service(
         f"tcp:127.0.0.1:{mock.port}",
-        "--policy",
-        "load-weighted",
-        "--decision-mode",
-        "on-report",
+        arm_and_takeoff=False,
     )
     readyz = wait_for(
         lambda: (
