@@ -150,17 +150,14 @@ def stall_lookup(table: np.ndarray, failure_prob: float, slot_time_s: float) -> 
     j = min(int(fs), LOG_SLOT_POINTS - 2)
     a = fq - i
     b = fs - j
-    out0 = 0.0
-    out1 = 0.0
-    for m in range(2):
-        v = (
-            (1.0 - a) * (1.0 - b) * table[m, i, j]
-            + a * (1.0 - b) * table[m, i + 1, j]
-            + (1.0 - a) * b * table[m, i, j + 1]
-            + a * b * table[m, i + 1, j + 1]
-        )
-        if m == 0:
-            out0 = v
-        else:
-            out1 = v
-    return out0, out1
+    return _bilinear(table[0], i, j, a, b), _bilinear(table[1], i, j, a, b)
+
+
+@njit(cache=True)
+def _bilinear(grid: np.ndarray, i: int, j: int, a: float, b: float) -> float:
+    return (
+        (1.0 - a) * (1.0 - b) * grid[i, j]
+        + a * (1.0 - b) * grid[i + 1, j]
+        + (1.0 - a) * b * grid[i, j + 1]
+        + a * b * grid[i + 1, j + 1]
+    )
