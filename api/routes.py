@@ -112,8 +112,10 @@ def to_report(body: ReportIn, service: PlacementService) -> Report:
 )
 async def post_report(body: ReportIn, request: Request) -> DecisionOut:
     """Accept the users' latest metrics. Answers with the decision the report triggered
-    (``decision_mode=on-report``) or the current target (``paced``); ``target`` is null until
-    the first decision (for instance while the MAVLink link is down: the report is kept)."""
+    (``decision_mode=on-report``) or the current target (``paced``, or a report that cannot be
+    decided at once: ``target`` is null before the first decision). A report that arrives while
+    the MAVLink link is down is kept and decided once the link is back, if still fresh;
+    ``GET /v1/setpoint`` shows that decision."""
     service = _service(request)
     report = to_report(body, service)
     try:

@@ -12,7 +12,9 @@ Decisions: with ``decision_mode="paced"`` a background thread decides once every
 paper's time step) from the latest report; with ``"on-report"`` each accepted report triggers a
 decision at once. A decision needs a fresh report (received at most ``report_max_age_s`` ago;
 otherwise the target is held) and the vehicle's position (link up; a report that arrives while the
-link is down is kept, and the decision waits for the link). Discrete-move policies take their next
+link is down is kept, and the decision waits for the link: the paced thread retries every step,
+and in ``on-report`` mode a watcher thread decides as soon as the link is back, if the report is
+still fresh). Discrete-move policies take their next
 move once the vehicle has reached its current target (moves take flight time; the paper's agent
 acts from where it arrived). Targets go through the link, which clamps them to the geofence.
 
@@ -53,6 +55,9 @@ from sim.files import atomic_write_json
 from sim.observation import UserReports
 
 log = logging.getLogger(__name__)
+
+LINK_POLL_S = 0.05
+"""How often the ``on-report`` watcher looks at the link while a report waits for it."""
 
 
 @dataclass(frozen=True)
@@ -101,6 +106,7 @@ class PlacementService:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._waiting_for_link = threading.Event()  # a report was held because the link is down
         self._report: Report | None = None
         self._report_received: float | None = None  # monotonic
         self._last_timestamp_s = -math.inf
@@ -146,12 +152,16 @@ class PlacementService:
             else:
                 self.link.arm_and_takeoff()
         if self.settings.decision_mode == "paced":
-            self._thread = threading.Thread(target=self._run, name="placement", daemon=True)
-            self._thread.start()
+            target, name = self._run, "placement"
+        else:
+            target, name = self._decide_when_link_returns, "placement-link-watch"
+        self._thread = threading.Thread(target=target, name=name, daemon=True)
+        self._thread.start()
         return self
 
     def stop(self, timeout_s: float = 5.0) -> None:
         self._stop.set()
+        self._waiting_for_link.set()  # wakes the on-report watcher
         if self._thread is not None:
             self._thread.join(timeout_s)
             self._thread = None
@@ -251,6 +261,7 @@ class PlacementService:
         state = self.link.state()
         if state.link != "up" or state.position_m is None:
             self._count("decisions_waiting_link")
+            self._waiting_for_link.set()
             return None
         vehicle = np.asarray(state.position_m, dtype=float)
         current = np.asarray(previous.target_m, dtype=float) if previous else vehicle
@@ -289,6 +300,20 @@ class PlacementService:
         except Exception:
             self._count("decision_errors")
             log.exception("decision failed; holding the current target")
+
+    def _decide_when_link_returns(self) -> None:
+        """``on-report`` mode: a report held because the link was down is decided once the link
+        is up again (if still fresh: :meth:`decide_once` holds a stale one), not only when the
+        next report happens to arrive."""
+        while not self._stop.is_set():
+            if not self._waiting_for_link.wait(0.5):
+                continue
+            state = self.link.state()
+            if state.link == "up" and state.position_m is not None and not self._stop.is_set():
+                self._waiting_for_link.clear()
+                self._decide_guarded()
+            else:
+                self._stop.wait(LINK_POLL_S)
 
     def _run(self) -> None:
         step_s = self.settings.step_s

@@ -83,6 +83,23 @@ class Api:
         ts = self.next_timestamp() if timestamp is None else timestamp
         return self.client.post("/v1/reports", json={"timestamp": ts, "users": users})
 
+    def place(self, users: list[dict[str, Any]], timeout_s: float = 20.0) -> dict[str, Any]:
+        """POST a report of ``users`` and return the decision it leads to: the answer itself, or,
+        when the report had to wait for the MAVLink link (a lossy link can lose it for a few
+        seconds), the decision the service takes once the link is back."""
+        posted_at = time.time()
+        response = self.report(users)
+        response.raise_for_status()
+
+        def fresh(decision: dict[str, Any]) -> dict[str, Any] | None:
+            decided_at = decision["decided_at"]
+            new = decision["source"] == "policy" and decided_at is not None
+            return decision if new and decided_at >= posted_at else None
+
+        return fresh(response.json()) or wait_for(
+            lambda: fresh(self.setpoint()), timeout_s, 0.1, "a decision on the report"
+        )
+
     def vehicle(self) -> dict[str, Any]:
         return self.client.get("/v1/vehicle").json()
 

@@ -3,7 +3,9 @@
 ``tupa serve --mavlink udpout:...`` talks to a PX4-flavoured mock (``--listen udp:...``) through
 :class:`~tests.faults.udp_proxy.UdpProxy`, which drops 10 % or 30 % of the datagrams in each
 direction and delays the rest by 0-30 ms (so some also arrive out of order). Arming, takeoff,
-OFFBOARD and two placements must still succeed (commands are retried until acknowledged), and
+OFFBOARD and two placements must still succeed (commands are retried until acknowledged; a report
+that arrives while the service has declared the link lost, after 3 s without a HEARTBEAT, which
+happens now and then at these rates on a loaded machine, is decided once the link is back), and
 the setpoint rate measured at the mock during the second flight must stay above PX4's 2 Hz
 offboard minimum at 10 % loss (about 9 Hz expected of the 10 Hz stream).
 """
@@ -44,11 +46,11 @@ def test_vehicle_reaches_its_targets_through_a_lossy_jittery_link(
     api.wait_ready(45.0)
     wait_airborne(mock, timeout_s=60.0)
 
-    first = target_xyz(api.report(USERS_EAST).json())
+    first = target_xyz(api.place(USERS_EAST))
     wait_at(mock, first, timeout_s=40.0)
     wait_for(lambda: mock.state()["mode"] == "OFFBOARD", 5.0, 0.1, "OFFBOARD at the first target")
 
-    second = target_xyz(api.report(USERS_NORTH).json())
+    second = target_xyz(api.place(USERS_NORTH))
     assert second != first
     before = mock.stats()["setpoints_received"]
     started = time.monotonic()

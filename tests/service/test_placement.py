@@ -172,3 +172,32 @@ def test_a_failing_policy_holds_the_target_instead_of_failing_the_report(
     after = service.submit_report(Report(2.0, ("a", "b", "c"), reports((450.0, 450.0))))
     assert after == before
     assert service.snapshot_counters()["decision_errors"] == 1
+
+
+def test_a_report_held_for_the_link_is_decided_once_the_link_is_back(
+    start_mock: Callable[..., MockAutopilot],
+) -> None:
+    # A port where no vehicle listens yet: the link keeps reconnecting.
+    placeholder = start_mock("px4")
+    port = placeholder.port
+    placeholder.stop()
+    config = ServiceSettings(
+        mavlink=f"tcp:127.0.0.1:{port}",
+        api_token="t",
+        policy="load-weighted",
+        decision_mode="on-report",
+    )
+    service = PlacementService(
+        config, MavlinkLink(LinkConfig(config.mavlink)), load_policy("load-weighted")
+    ).start()
+    try:
+        assert service.submit_report(Report(1.0, ("a", "b", "c"), reports())) is None
+        assert service.snapshot_counters()["decisions_waiting_link"] == 1
+        start_mock("px4", listen=f"tcp:127.0.0.1:{port}")
+        # No new report: the kept one is decided as soon as the vehicle is heard.
+        decision = wait_for(service.current_decision, 20.0, message="decision after link up")
+        assert decision.source == "policy"
+        assert service.snapshot_counters()["decisions"] == 1
+        assert service.vehicle().target_m == pytest.approx(decision.target_m)
+    finally:
+        service.stop()
