@@ -52,7 +52,13 @@ mavlink/MAVSDK#1060), so a ``signing_key`` in the config raises ValueError namin
 
 All MAVSDK calls happen in this module's threads, never in the caller's; MAVSDK's callbacks only
 update the snapshot under a condition variable, and no MAVSDK call is made while holding it (a
-MAVSDK unsubscribe waits for a running callback, which may be waiting for that lock).
+MAVSDK unsubscribe waits for a running callback, which may be waiting for that lock). Tearing a
+session down (link loss, close) first waits, up to ``UNANSWERED_WAIT_S``, for MAVSDK to answer the
+asynchronous calls still in flight (an ``Offboard.start`` is asked for every ``mode_retry_s``),
+and keeps their ctypes callbacks alive until the instance is destroyed: destroying the plugins
+with a command in flight crashed the process natively (SIGSEGV inside the plugins' destroy) within
+the first three link losses of a repeated link-loss test on a loaded machine. MAVSDK's own log lines are queued by its callback
+and logged from a thread of ours (:func:`route_mavsdk_logs_to_python`).
 """
 
 from __future__ import annotations
@@ -61,6 +67,7 @@ import contextlib
 import json
 import logging
 import math
+import queue
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -81,10 +88,34 @@ log = logging.getLogger(__name__)
 MAV_COMP_ID_AUTOPILOT1 = 1
 COMMAND_ACK_TIMEOUT_S = 5.0
 """How long a command may wait for MAVSDK's answer (MAVSDK retransmits within it)."""
+UNANSWERED_WAIT_S = 3.0
+"""How long closing a session waits for MAVSDK to answer the calls still open (MAVSDK gives up
+on an unacknowledged command after about 1.5 s: three tries of 0.5 s)."""
 SIGNING_UNSUPPORTED = (
     "signing_key: the mavsdk backend cannot sign MAVLink 2 (the native mavsdk binding has no "
     "signing API); use mavlink_backend 'pymavlink' for a signed link, or no key"
 )
+
+
+_MAVSDK_LOG_LEVELS = (logging.DEBUG, logging.DEBUG, logging.INFO, logging.WARNING)
+"""MAVSDK's levels (debug, info, warn, err) one step down: it reports every failed connection
+attempt as an error, and the link retries an unreachable vehicle for as long as it runs (its own
+state says so)."""
+_mavsdk_log_lines: queue.SimpleQueue[tuple[int, str, str | None, int]] = queue.SimpleQueue()
+
+
+def _queue_mavsdk_log_line(level: int, message: str, file: str | None, line: int) -> bool:
+    """MAVSDK's log callback, called on MAVSDK's own native threads: only queues the line."""
+    _mavsdk_log_lines.put((int(level), message, file, line))
+    return True  # MAVSDK does not print it itself
+
+
+def _log_mavsdk_lines() -> None:
+    """The ``mavsdk-log`` thread: logs the queued lines to the ``mavsdk`` logger."""
+    logger = logging.getLogger("mavsdk")
+    while True:
+        level, message, file, line = _mavsdk_log_lines.get()
+        logger.log(_MAVSDK_LOG_LEVELS[min(max(level, 0), 3)], "%s (%s:%d)", message, file, line)
 
 
 def route_mavsdk_logs_to_python() -> None:
@@ -92,21 +123,16 @@ def route_mavsdk_logs_to_python() -> None:
 
     MAVSDK has one process-wide log callback; this installs ours only when nobody installed one
     (an application that subscribed its own keeps it). :meth:`MavsdkLink.start` calls it.
+    MAVSDK calls the callback on its own threads, in the middle of its I/O and of its teardown;
+    the callback only queues the line, and a daemon thread of ours hands it to ``logging``, so
+    no logging handler (file or stream I/O, locks) ever runs on a MAVSDK thread.
     """
     import mavsdk.logging as mavsdk_logging
 
     if getattr(mavsdk_logging, "_log_callback_ref", None) is not None:
         return
-    logger = logging.getLogger("mavsdk")
-    # One step down: MAVSDK reports every failed connection attempt as an error, and the link
-    # retries an unreachable vehicle for as long as it runs (its own state says so).
-    levels = (logging.DEBUG, logging.DEBUG, logging.INFO, logging.WARNING)
-
-    def forward(level: int, message: str, file: str | None, line: int) -> bool:
-        logger.log(levels[min(max(int(level), 0), 3)], "%s (%s:%d)", message, file, line)
-        return True
-
-    mavsdk_logging.log_subscribe(forward)
+    threading.Thread(target=_log_mavsdk_lines, name="mavsdk-log", daemon=True).start()
+    mavsdk_logging.log_subscribe(_queue_mavsdk_log_line)
 
 
 def mavsdk_url(url: str) -> str:
@@ -159,6 +185,52 @@ class _Session:
     offboard_fed: bool = False
     """The Offboard plugin got a setpoint since it was made (so MAVSDK may be re-sending it)."""
     keep: list[Any] = field(default_factory=list)
+    """Objects to ``destroy()`` after the instance (its Configuration)."""
+    trampolines: list[Any] = field(default_factory=list)
+    """The ctypes callbacks of asynchronous calls MAVSDK may still answer (a command waiting
+    for its ACK or timeout). A plugin's ``destroy()`` drops its own, but MAVSDK's threads run
+    until the instance itself is destroyed: a late answer into a dropped one is a native crash.
+    Held here until then."""
+    unanswered: int = 0
+    """Asynchronous calls made through :meth:`call_async` that MAVSDK has not answered yet."""
+    answered: threading.Condition = field(default_factory=threading.Condition)
+
+    def hold_callbacks(self, plugin: Any) -> None:
+        """Keep ``plugin``'s pending callbacks alive past its ``destroy()`` (see ``trampolines``;
+        the binding keeps them in ``_callbacks``)."""
+        self.trampolines.extend(getattr(plugin, "_callbacks", ()))
+
+    def call_async(self, start: Callable[[Callable[..., None]], None], callback: Callable) -> None:
+        """``start(answer)``: an asynchronous MAVSDK call whose answer goes to ``callback``,
+        counted in ``unanswered`` until it comes (see :meth:`wait_answered`)."""
+        once = threading.Lock()
+
+        def answer(*args: Any) -> None:
+            try:
+                callback(*args)
+            finally:
+                if once.acquire(blocking=False):
+                    self._answered_one()
+
+        with self.answered:
+            self.unanswered += 1
+        try:
+            start(answer)
+        except BaseException:
+            if once.acquire(blocking=False):
+                self._answered_one()
+            raise
+
+    def _answered_one(self) -> None:
+        with self.answered:
+            self.unanswered -= 1
+            self.answered.notify_all()
+
+    def wait_answered(self, timeout_s: float) -> bool:
+        """Wait until MAVSDK has answered every :meth:`call_async` (a command it gave up on is
+        answered too, with a timeout), at most ``timeout_s``; False if some are still open."""
+        with self.answered:
+            return self.answered.wait_for(lambda: self.unanswered == 0, timeout_s)
 
 
 class MavsdkLink(VehicleLinkBase):
@@ -219,8 +291,15 @@ class MavsdkLink(VehicleLinkBase):
             session, self._session = self._session, None
             if session is None:
                 return
+            # Destroying a plugin whose command MAVSDK has not answered yet can crash MAVSDK
+            # when the answer (or the timeout) comes: let them finish first.
+            if not session.wait_answered(UNANSWERED_WAIT_S):
+                log.debug("closing the MAVSDK session with %d calls unanswered", session.unanswered)
+            for plugin in (session.telemetry, session.action, session.offboard, session.direct):
+                session.hold_callbacks(plugin)
             with contextlib.suppress(Exception):
-                session.sdk.destroy()
+                session.sdk.destroy()  # joins MAVSDK's threads: no callback comes after it
+            session.trampolines.clear()
             for item in session.keep:
                 with contextlib.suppress(Exception):
                     item.destroy()
@@ -255,7 +334,10 @@ class MavsdkLink(VehicleLinkBase):
         rate_hz = self.config.telemetry_rate_hz
         telemetry = session.telemetry
         for name in ("set_rate_position_velocity_ned_async", "set_rate_position_async"):
-            getattr(telemetry, name)(rate_hz, self._on_rate_result)
+            session.call_async(
+                lambda answer, name=name: getattr(telemetry, name)(rate_hz, answer),
+                self._on_rate_result,
+            )
 
     @staticmethod
     def _on_rate_result(result: Any, _user_data: Any) -> None:
@@ -444,6 +526,7 @@ class MavsdkLink(VehicleLinkBase):
         with self._sdk_lock:
             if self._session is not session or session.system is None:
                 return
+            session.hold_callbacks(session.offboard)  # an Offboard.start may be pending
             session.offboard.destroy()
             session.offboard = Offboard(session.system)
             session.offboard_fed = False
@@ -457,7 +540,7 @@ class MavsdkLink(VehicleLinkBase):
         with self._sdk_lock:
             if self._session is not session or not session.offboard_fed:
                 return
-            session.offboard.start_async(self._on_offboard_start)
+            session.call_async(session.offboard.start_async, self._on_offboard_start)
 
     @staticmethod
     def _on_offboard_start(result: Any, _user_data: Any) -> None:
@@ -481,7 +564,7 @@ class MavsdkLink(VehicleLinkBase):
             session = self._session
             if session is None or session.system is None:
                 return None
-            start(session, callback)
+            session.call_async(lambda answer: start(session, answer), callback)
         deadline = time.monotonic() + timeout_s
         while not done.wait(0.1):
             if self._stop.is_set() or time.monotonic() > deadline or self._session is not session:

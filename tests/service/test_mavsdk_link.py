@@ -6,6 +6,7 @@ condition with a timeout, never a fixed sleep.
 
 from __future__ import annotations
 
+import logging
 import math
 import socket
 import time
@@ -117,6 +118,19 @@ def test_unreachable_vehicle_keeps_connecting_without_blocking(open_mavsdk_link)
     assert link.state().link == "connecting"
     assert isinstance(future.exception(timeout=3.0), TimeoutError)
     assert link.state().takeoff.startswith("failed")
+
+
+def test_mavsdk_log_lines_reach_the_mavsdk_logger_off_mavsdk_threads(open_mavsdk_link, caplog):
+    caplog.set_level(logging.DEBUG, logger="mavsdk")
+    open_mavsdk_link(f"tcp:127.0.0.1:{free_udp_port()}", reconnect_min_s=0.05)
+    # Every MAVSDK instance logs (its version, then the connection attempts).
+    record = wait_for(
+        lambda: next((r for r in caplog.records if r.name == "mavsdk"), None),
+        10.0,
+        message="a MAVSDK log line",
+    )
+    assert record.threadName == "mavsdk-log"  # not the MAVSDK thread that produced it
+    assert ".cpp:" in record.getMessage()  # MAVSDK's source location comes along
 
 
 def test_link_comes_up_over_udp_as_with_px4_sitl(start_mock, open_mavsdk_link):
