@@ -56,9 +56,9 @@ MAVSDK unsubscribe waits for a running callback, which may be waiting for that l
 session down (link loss, close) first waits, up to ``UNANSWERED_WAIT_S``, for MAVSDK to answer the
 asynchronous calls still in flight (an ``Offboard.start`` is asked for every ``mode_retry_s``),
 and keeps their ctypes callbacks alive until the instance is destroyed: destroying the plugins
-with a command in flight crashed the process natively (SIGSEGV inside the plugins' destroy) within
-the first three link losses of a repeated link-loss test on a loaded machine. MAVSDK's own log lines are queued by its callback
-and logged from a thread of ours (:func:`route_mavsdk_logs_to_python`).
+with a command in flight crashed the process natively (SIGSEGV inside the plugins' destroy; see
+``benchmarks/mavsdk_link_loss.py``). MAVSDK's own log lines are queued by its callback and logged
+from a thread of ours (:func:`route_mavsdk_logs_to_python`).
 """
 
 from __future__ import annotations
