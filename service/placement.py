@@ -14,9 +14,9 @@ decision at once. A decision needs a fresh report (received at most ``report_max
 otherwise the target is held) and the vehicle's position (link up; a report that arrives while the
 link is down is kept, and the decision waits for the link: the paced thread retries every step,
 and in ``on-report`` mode a watcher thread decides as soon as the link is back, if the report is
-still fresh). Discrete-move policies take their next
-move once the vehicle has reached its current target (moves take flight time; the paper's agent
-acts from where it arrived). Targets go through the link, which clamps them to the geofence.
+still fresh). Discrete-move policies take their next move once the vehicle has reached its current
+target (moves take flight time; the paper's agent acts from where it arrived). Targets go through
+the link, which clamps them to the geofence.
 
 Reports are snapshots of all users; each replaces the previous one (users come and go). A report
 whose ``timestamp`` is older than the last accepted one is ignored and counted.
