@@ -58,6 +58,12 @@ class Scenario:
             raise ValueError(
                 f"load_bps: {load.shape[0]} loads for {xy.shape[0]} users (need one per user)"
             )
+        if not np.all(np.isfinite(xy)):
+            user = int(np.flatnonzero(~np.all(np.isfinite(xy), axis=1))[0])
+            raise ValueError(f"users_xy_m: user {user} has a non-finite position {xy[user]}")
+        if not np.all(np.isfinite(load) & (load >= 0)):
+            user = int(np.flatnonzero(~(np.isfinite(load) & (load >= 0)))[0])
+            raise ValueError(f"load_bps: user {user} has {load[user]}, need a finite load >= 0")
         object.__setattr__(self, "users_xy_m", xy)
         object.__setattr__(self, "load_bps", load)
 

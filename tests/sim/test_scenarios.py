@@ -147,6 +147,23 @@ def test_scenario_arrays_are_read_only_copies() -> None:
         Scenario("s", [1.0, 2.0], [1.0])
 
 
+@pytest.mark.parametrize(
+    ("xy_m", "load_bps", "message"),
+    [
+        ([[1.0, 2.0], [np.nan, 4.0]], [1.0, 1.0], r"users_xy_m: user 1 has a non-finite"),
+        ([[1.0, np.inf]], [1.0], r"users_xy_m: user 0 has a non-finite"),
+        ([[1.0, 2.0]], [np.nan], r"load_bps: user 0 has nan"),
+        ([[1.0, 2.0], [3.0, 4.0]], [1.0, -5.0], r"load_bps: user 1 has -5.0"),
+    ],
+)
+def test_scenario_refuses_non_finite_positions_and_bad_loads(
+    xy_m: list[list[float]], load_bps: list[float], message: str
+) -> None:
+    # What the oracle and the model would otherwise turn into NaN utilities or a crash.
+    with pytest.raises(ValueError, match=message):
+        Scenario("s", xy_m, load_bps)
+
+
 def test_case_holds_a_scenario_and_a_uav() -> None:
     case = Case("c0", [250.0, 250.0, 25.0], [[1.0, 2.0], [3.0, 4.0]], [1e6, 2e6])
     assert case.n_users == 2
