@@ -103,7 +103,8 @@ class PlacementService:
         self.network = network
         self.utility = utility
         self._policy = policy
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # the state below; held for microseconds
+        self._deciding = threading.Lock()  # one decision at a time (see decide_once)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._waiting_for_link = threading.Event()  # a report was held because the link is down
@@ -249,7 +250,15 @@ class PlacementService:
     # ------------------------------------------------------------------ deciding
 
     def decide_once(self) -> Decision | None:
-        """One decision from the latest report (None when held: stale, no link, en route)."""
+        """One decision from the latest report (None when held: stale, no link, en route).
+
+        Decisions are taken one at a time: in ``on-report`` mode concurrent reports and the link
+        watcher may ask together, and the one that reads the latest report must set the target
+        last (unserialised, a slow decision on an older report could overwrite a newer one)."""
+        with self._deciding:
+            return self._decide_latest()
+
+    def _decide_latest(self) -> Decision | None:
         with self._lock:
             report, received, policy = self._report, self._report_received, self._policy
             previous = self._decision
