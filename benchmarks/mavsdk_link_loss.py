@@ -26,6 +26,7 @@ import signal
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -34,6 +35,8 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))  # tests.sitl_mock.helpers is not an installed package
 
 RESULTS = Path(__file__).parent / "results" / "mavsdk_link_loss.json"
+CYCLE_LIMIT_S = 60.0
+"""The child is killed (SIGKILL, reported as such) after this long per asked cycle."""
 
 
 def one_cycle() -> float:
@@ -112,8 +115,11 @@ def main(argv: list[str] | None = None) -> int:
             text=True,
         )
         assert run.stdout is not None
+        # Each cycle's waits are bounded, but a hang inside MAVSDK would not be: a watchdog.
+        watchdog = threading.Timer(CYCLE_LIMIT_S * args.cycles, run.kill)
+        watchdog.start()
         other: collections.deque[str] = collections.deque(maxlen=40)  # its log, for a crash
-        for line in run.stdout:  # each cycle's waits are bounded: the child cannot hang
+        for line in run.stdout:
             if not line.startswith("cycle "):
                 other.append(line)
             elif " recovered " in line:
@@ -123,6 +129,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"\rcycle {len(recovered)}/{args.cycles}", end="", file=sys.stderr)
         print(file=sys.stderr)
         run.wait()
+        watchdog.cancel()
     finally:
         for process in busy:
             process.terminate()
