@@ -89,8 +89,9 @@ MAV_COMP_ID_AUTOPILOT1 = 1
 COMMAND_ACK_TIMEOUT_S = 5.0
 """How long a command may wait for MAVSDK's answer (MAVSDK retransmits within it)."""
 UNANSWERED_WAIT_S = 3.0
-"""How long closing a session waits for MAVSDK to answer the calls still open (MAVSDK gives up
-on an unacknowledged command after about 1.5 s: three tries of 0.5 s)."""
+"""How long closing a session waits for MAVSDK to answer the calls still open. MAVSDK answers an
+unacknowledged command with a timeout after its own retries (3 tries by default); this bound is
+meant to leave room for that, not to be reached."""
 SIGNING_UNSUPPORTED = (
     "signing_key: the mavsdk backend cannot sign MAVLink 2 (the native mavsdk binding has no "
     "signing API); use mavlink_backend 'pymavlink' for a signed link, or no key"
