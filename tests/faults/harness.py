@@ -190,6 +190,14 @@ class Harness:
             env=env,
         )
 
+    def describe(self) -> str:
+        """The last output lines of every process started and the proxies' counters (what a
+        failed test prints, to tell what the service and the vehicle were doing)."""
+        parts = [f"--- {api.proc.name} ({api.base}):\n{api.proc.tail(60)}" for api in self._apis]
+        parts += [f"--- {mock.name} (port {mock.port}):\n{mock.tail(60)}" for mock in self._mocks]
+        parts += [f"--- udp proxy (port {p.port}): {dict(p.counters)}" for p in self._proxies]
+        return "\n".join(parts)
+
     def close(self) -> None:
         for api in self._apis:
             api.close()
