@@ -223,10 +223,9 @@ def _simulate(
     overhead = np.empty(n_users)
     mpdu_air = np.empty(n_users)
     stalled = np.zeros(n_users)
-    stall_wait = np.zeros(n_users)
     own_share = np.zeros(n_users)
     stall_next = np.zeros(n_users)
-    wait_next = np.zeros(n_users)
+    stall_wait = np.zeros(n_users)
     for b in range(batch):
         # Channel and link of every user.
         for u in range(n_users):
@@ -282,13 +281,12 @@ def _simulate(
                 # oscillates between a saturated and an idle cell. The last pass only shares.
                 _stall_fractions(
                     k, attempt_rate, overhead, mpdu_air, max_mpdus, success, nu,
-                    n_contenders, inflation, stall_next, wait_next, own_share,
+                    n_contenders, inflation, stall_next, stall_wait, own_share,
                 )  # fmt: skip
                 change = 0.0
                 for u in range(n_users):
                     change = max(change, abs(stall_next[u] - stalled[u]))
                     stalled[u] += STALL_DAMPING * (stall_next[u] - stalled[u])
-                    stall_wait[u] = wait_next[u]  # feeds nothing back: not damped
                 if change < STALL_TOLERANCE:
                     break  # converged (or nobody stalls): this pass's sharing stands
 
@@ -331,7 +329,7 @@ def _simulate(
                 ) / txop_rate
                 delay[b, u] = (
                     mean_backlog / service
-                    + max(waiting, stall_wait[u])
+                    + max(waiting, stall_wait[u])  # the last stall pass's: not damped
                     + overhead[u]
                     + mpdus_per_txop * mpdu_air[u]
                 )
