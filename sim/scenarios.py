@@ -58,11 +58,13 @@ class Scenario:
             raise ValueError(
                 f"load_bps: {load.shape[0]} loads for {xy.shape[0]} users (need one per user)"
             )
-        if not np.all(np.isfinite(xy)):
-            user = int(np.flatnonzero(~np.all(np.isfinite(xy), axis=1))[0])
+        bad_xy = ~np.isfinite(xy).all(axis=1)
+        if bad_xy.any():
+            user = int(np.argmax(bad_xy))
             raise ValueError(f"users_xy_m: user {user} has a non-finite position {xy[user]}")
-        if not np.all(np.isfinite(load) & (load >= 0)):
-            user = int(np.flatnonzero(~(np.isfinite(load) & (load >= 0)))[0])
+        bad_load = ~(np.isfinite(load) & (load >= 0))
+        if bad_load.any():
+            user = int(np.argmax(bad_load))
             raise ValueError(f"load_bps: user {user} has {load[user]}, need a finite load >= 0")
         object.__setattr__(self, "users_xy_m", xy)
         object.__setattr__(self, "load_bps", load)
