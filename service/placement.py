@@ -81,6 +81,11 @@ class Decision:
     """Unix time, seconds."""
 
 
+def _vehicle_known(state: LinkState) -> bool:
+    """What a decision needs from the link: up, with the vehicle's position."""
+    return state.link == "up" and state.position_m is not None
+
+
 class OutOfOrderReportError(ValueError):
     """A report older than the last accepted one."""
 
@@ -268,7 +273,7 @@ class PlacementService:
             self._count("decisions_held_stale")
             return None
         state = self.link.state()
-        if state.link != "up" or state.position_m is None:
+        if not _vehicle_known(state):
             self._count("decisions_waiting_link")
             self._waiting_for_link.set()
             return None
@@ -317,8 +322,7 @@ class PlacementService:
         while not self._stop.is_set():
             if not self._waiting_for_link.wait(0.5):
                 continue
-            state = self.link.state()
-            if state.link == "up" and state.position_m is not None and not self._stop.is_set():
+            if _vehicle_known(self.link.state()) and not self._stop.is_set():
                 self._waiting_for_link.clear()
                 self._decide_guarded()
             else:
