@@ -41,6 +41,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="arm and take off to the minimum altitude before the first placement",
     )
+    parser.add_argument(
+        "--takeoff-timeout-s",
+        type=float,
+        metavar="S",
+        help="how long the take-off sequence keeps trying, refusals retried with backoff "
+        "(default 300: a real vehicle needs its GPS lock and pre-arm checks first)",
+    )
     parser.add_argument("--host", help="address to listen on (default 127.0.0.1)")
     parser.add_argument("--port", type=int, help="port to listen on (default 8080; 0: any free)")
     parser.add_argument(
@@ -76,6 +83,7 @@ _SETTING_ARGS = (
     "mavlink_backend",
     "policy",
     "arm_and_takeoff",
+    "takeoff_timeout_s",
     "host",
     "port",
     "insecure",

@@ -23,6 +23,7 @@ from api.schemas import (
     PolicyOut,
     Readiness,
     ReportIn,
+    TakeoffOut,
     Target,
     ValidationErrorOut,
     VehicleOut,
@@ -150,6 +151,13 @@ async def get_vehicle(request: Request) -> VehicleOut:
         flavour=state.flavour,
         heartbeat_age_s=state.heartbeat_age_s,
         streaming=state.streaming,
+        takeoff=TakeoffOut(
+            state=state.takeoff,
+            phase=state.takeoff_phase,
+            attempts=state.takeoff_attempts,
+            last_refusal=state.takeoff_last_refusal,
+        ),
+        status_texts=list(state.status_texts),
     )
 
 

@@ -101,6 +101,17 @@ class DecisionOut(BaseModel):
     decided_at: float | None = Field(description="Unix time of the decision, seconds")
 
 
+class TakeoffOut(BaseModel):
+    """Where the arm-and-takeoff sequence stands (``--arm-and-takeoff``)."""
+
+    state: str = Field(description="idle, running, airborne, or 'failed: <reason>'")
+    phase: str | None = Field(description="The step it is at while running")
+    attempts: int = Field(description="How many times the sequence has started")
+    last_refusal: str | None = Field(
+        description="Why the last attempt failed, with the vehicle's STATUSTEXT about it"
+    )
+
+
 class VehicleOut(BaseModel):
     """The vehicle as the service sees it over MAVLink (area frame)."""
 
@@ -115,6 +126,13 @@ class VehicleOut(BaseModel):
                     "flavour": "px4",
                     "heartbeat_age_s": 0.31,
                     "streaming": True,
+                    "takeoff": {
+                        "state": "airborne",
+                        "phase": None,
+                        "attempts": 1,
+                        "last_refusal": None,
+                    },
+                    "status_texts": ["INFO: Takeoff detected"],
                 }
             ]
         }
@@ -127,6 +145,10 @@ class VehicleOut(BaseModel):
     flavour: str | None
     heartbeat_age_s: float | None
     streaming: bool
+    takeoff: TakeoffOut
+    status_texts: list[str] = Field(
+        description="The vehicle's latest STATUSTEXT messages, oldest first ('SEVERITY: text')"
+    )
 
 
 class PolicyOut(BaseModel):

@@ -15,9 +15,10 @@ What the I/O thread does, in a loop:
 
 * sends our own HEARTBEAT at 1 Hz (an onboard controller or a GCS; autopilot INVALID);
 * reads the vehicle's HEARTBEAT (flavour from its ``autopilot`` field, mode, armed),
-  GLOBAL_POSITION_INT, LOCAL_POSITION_NED, EXTENDED_SYS_STATE and COMMAND_ACK;
+  GLOBAL_POSITION_INT, LOCAL_POSITION_NED, EXTENDED_SYS_STATE, EKF_STATUS_REPORT (ArduPilot),
+  COMMAND_ACK, and STATUSTEXT (logged, and the latest kept in :meth:`MavlinkLink.state`);
 * asks for the telemetry it needs with SET_MESSAGE_INTERVAL (and, on ArduPilot, the older
-  REQUEST_DATA_STREAM if positions do not come);
+  REQUEST_DATA_STREAM if no SET_MESSAGE_INTERVAL is accepted);
 * streams the current target as SET_POSITION_TARGET_LOCAL_NED (position only, type_mask 3576,
   MAV_FRAME_LOCAL_NED) at ``setpoint_rate_hz`` while the link is up; a *new* target goes out at
   the loop's next iteration (a few ms: the loop waits at most 5 ms for input) rather than at the
@@ -34,7 +35,9 @@ What the I/O thread does, in a loop:
   for again and the latest target streams again. The mode is not forced back after a loss: a pilot
   who took over keeps control until the next :meth:`MavlinkLink.set_target`.
 
-:meth:`MavlinkLink.arm_and_takeoff` runs in its own worker thread and returns a Future.
+:meth:`MavlinkLink.arm_and_takeoff` runs the take-off sequence the real autopilots need (its
+docstring has the steps) in its own worker thread and returns a Future. Every command goes out
+with all seven params as the MAVLink message set defines them (:mod:`service.mavlink_commands`).
 """
 
 from __future__ import annotations
@@ -47,7 +50,7 @@ import os
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
@@ -63,10 +66,62 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from service import mavlink_commands
+
 log = logging.getLogger(__name__)
 
 LinkHealth = Literal["connecting", "up", "link_lost"]
 Flavour = Literal["ardupilot", "px4", "generic"]
+
+TAKEOFF_TIMEOUT_S = 300.0
+"""How long the take-off sequence keeps trying by default: a real autopilot needs a GPS lock and
+its pre-arm checks first (ArduCopter SITL ~40 s from boot, a real vehicle minutes)."""
+COMMAND_RESEND_S = 1.0
+"""A command not answered within this is sent again (the same command: all are idempotent)."""
+STEP_TIMEOUT_S = 10.0
+"""How long one step of an attempt (an ACK, a mode seen in HEARTBEAT, armed) may take."""
+MODE_SETTLE_S = 1.0
+"""ArduPilot: GUIDED must hold this long in HEARTBEAT before the vehicle is armed (a mode switch
+read at start-up changed it back 0.2 s after it was granted on a real ArduCopter SITL)."""
+CLIMB_START_S = 10.0
+"""After an accepted take-off the vehicle must leave the ground within this (PX4 accepts a
+take-off it then does not fly, and disarms it ~10 s later)."""
+CLIMB_MIN_MPS = 0.5
+"""Slowest average climb accepted on the way to the take-off altitude."""
+IN_AIR_ALT_M = 1.0
+LIFTOFF_ALT_M = 0.3
+LIFTOFF_WAIT_S = 3.0
+"""A refused take-off is still a take-off if the vehicle is this high within this time."""
+"""Armed and this high above home: flying (a vehicle found flying is taken over, not armed)."""
+RETRY_MIN_S = 1.0
+RETRY_MAX_S = 10.0
+"""Backoff between take-off attempts: doubles from min to max."""
+POSITION_FRESH_S = 2.0
+"""LOCAL_POSITION_NED older than this does not count as a position estimate."""
+STATUS_TEXTS_KEPT = 8
+"""How many of the vehicle's latest STATUSTEXTs :meth:`VehicleLinkBase.state` shows."""
+
+EKF_POSITION_FLAGS = mavlink.EKF_POS_HORIZ_ABS | mavlink.EKF_PRED_POS_HORIZ_ABS
+
+
+def ekf_position_ok(flags: int) -> bool:
+    """ArduPilot's EKF_STATUS_REPORT.flags allow arming in GUIDED: an absolute horizontal position
+    (or its prediction, which is what ArduCopter checks while disarmed) and no constant-position
+    mode (the EKF's "no GPS yet" state)."""
+    return bool(flags & EKF_POSITION_FLAGS) and not flags & mavlink.EKF_CONST_POS_MODE
+
+
+def result_name(result: int | None) -> str:
+    """``ACCEPTED``, ``FAILED``, ... for a MAV_RESULT; ``no answer`` for None."""
+    if result is None:
+        return "no answer"
+    entry = mavlink.enums["MAV_RESULT"].get(result)
+    return entry.name.removeprefix("MAV_RESULT_") if entry is not None else f"result {result}"
+
+
+class TakeoffRefused(Exception):  # noqa: N818 (a refusal, not a programming error)
+    """One take-off attempt failed (a refusal, a mode change, no climb): the sequence restarts."""
+
 
 POSITION_ONLY_TYPE_MASK = 3576
 """SET_POSITION_TARGET_LOCAL_NED type_mask: use x, y, z only (ignore velocity, accel, yaw)."""
@@ -212,6 +267,14 @@ class LinkState:
     takeoff: str
     """``idle``, ``running``, ``airborne`` or ``failed: <reason>``."""
     counters: dict[str, int] = field(default_factory=dict)
+    takeoff_phase: str | None = None
+    """While the take-off runs: the step it is at (``waiting for a position estimate``, ...)."""
+    takeoff_attempts: int = 0
+    """How many times the take-off sequence has started (it starts again after a refusal)."""
+    takeoff_last_refusal: str | None = None
+    """Why the last attempt failed, with what the vehicle said about it (its STATUSTEXT)."""
+    status_texts: tuple[str, ...] = ()
+    """The vehicle's latest STATUSTEXT messages, oldest first, as ``SEVERITY: text``."""
 
 
 class VehicleLinkBase(ABC):
@@ -219,9 +282,10 @@ class VehicleLinkBase(ABC):
     vehicle state it exposes (:meth:`state`), the geofenced target it streams (:meth:`set_target`,
     :meth:`clear_target`), the arm-and-takeoff worker's bookkeeping, and the thread lifecycle.
 
-    A backend implements ``_run`` (the I/O thread), ``_command`` and ``_arm_until_accepted``
-    (used by the shared arm-and-takeoff worker) and ``_release`` (drop the connection), and keeps
-    the fields below up to date under ``self._cond``.
+    A backend implements ``_run`` (the I/O thread), ``_ask`` and ``_ask_arm`` (used by
+    the shared take-off sequence) and ``_release`` (drop the connection), keeps the fields below
+    up to date under ``self._cond``, and passes the vehicle's STATUSTEXTs to
+    ``_note_status_text``.
     """
 
     _thread_name = "vehicle-link"
@@ -247,13 +311,19 @@ class VehicleLinkBase(ABC):
         self._position_at: float | None = None
         self._relative_alt_m: float | None = None
         self._home_amsl_m: float | None = None
+        self._ekf_flags: int | None = None  # ArduPilot's EKF_STATUS_REPORT.flags, when it sends it
+        self._status_texts: deque[tuple[float, str]] = deque(maxlen=STATUS_TEXTS_KEPT)
         # Streaming state.
         self._target_m: tuple[float, float, float] | None = None
         self._target_dirty = False  # a new target not sent yet: send it at once
         self._hold_setpoints = False
         self._stream_since: float | None = None
         self._mode_wanted_until = 0.0
+        # Take-off bookkeeping (under self._cond).
         self._takeoff = "idle"
+        self._takeoff_phase: str | None = None
+        self._takeoff_attempts = 0
+        self._takeoff_last_refusal: str | None = None
 
     # Implemented by each backend.
     @abstractmethod
@@ -261,13 +331,14 @@ class VehicleLinkBase(ABC):
         """The I/O thread: connect, read telemetry, stream setpoints, until ``_stop`` is set."""
 
     @abstractmethod
-    def _command(self, command: int, params: Sequence[float], deadline: float) -> None:
-        """Send a COMMAND_LONG until accepted, retrying refusals with backoff, until ``deadline``
-        (TimeoutError naming the last result)."""
+    def _ask(self, command: int, params: Sequence[float], timeout_s: float) -> int | None:
+        """Send a COMMAND_LONG (again, while unanswered) and wait up to ``timeout_s`` for its
+        final COMMAND_ACK: the MAV_RESULT, or None when no answer came."""
 
     @abstractmethod
-    def _arm_until_accepted(self, deadline: float) -> None:
-        """Arm the vehicle, retrying refusals until ``deadline``."""
+    def _ask_arm(self, timeout_s: float) -> int | None:
+        """Ask the vehicle to arm (never forced), once: MAV_RESULT_ACCEPTED, another MAV_RESULT
+        for a refusal, or None when no answer came."""
 
     @abstractmethod
     def _release(self) -> None:
@@ -322,6 +393,10 @@ class VehicleLinkBase(ABC):
                 streaming=self._streaming_now(),
                 takeoff=self._takeoff,
                 counters=dict(self.counters),
+                takeoff_phase=self._takeoff_phase,
+                takeoff_attempts=self._takeoff_attempts,
+                takeoff_last_refusal=self._takeoff_last_refusal,
+                status_texts=tuple(text for _, text in self._status_texts),
             )
 
     def set_target(self, target_m: Sequence[float]) -> tuple[float, float, float]:
@@ -353,15 +428,34 @@ class VehicleLinkBase(ABC):
             self._target_m = None
             self._stream_since = None
 
-    def arm_and_takeoff(self, z_m: float | None = None, timeout_s: float = 60.0) -> Future[None]:
+    def arm_and_takeoff(
+        self, z_m: float | None = None, timeout_s: float = TAKEOFF_TIMEOUT_S
+    ) -> Future[None]:
         """Arm and climb to ``z_m`` (area frame; default the area's ``z_min_m``), in a worker.
 
-        ArduPilot: GUIDED, arm, MAV_CMD_NAV_TAKEOFF (altitude above home). PX4: arm,
-        MAV_CMD_NAV_TAKEOFF (AMSL altitude). Refusals (e.g. no position estimate yet) are retried
-        with backoff until ``timeout_s``. Position setpoints are held back until the vehicle is
-        airborne (on ArduPilot a setpoint while the takeoff is still on the ground cancels it).
-        The Future completes when airborne, or with the reason it failed.
+        The sequence the real autopilots need, started again with backoff after any refusal
+        until ``timeout_s`` (a real GPS lock takes minutes, not seconds):
+
+        1. the vehicle's HEARTBEAT; a vehicle already armed and in the air is taken over as it
+           is (a restart), without arming;
+        2. a usable position estimate: LOCAL_POSITION_NED arriving, and on ArduPilot its
+           EKF_STATUS_REPORT showing an absolute horizontal position out of constant-position
+           mode (ArduCopter refuses to arm in GUIDED before that, "Need Position Estimate");
+        3. ArduPilot: GUIDED asked for and *seen in HEARTBEAT*, held for ``MODE_SETTLE_S``; the
+           vehicle is never armed in another mode (an RC mode switch can change it at any time);
+        4. arm, then MAV_CMD_NAV_TAKEOFF at once (both autopilots disarm a vehicle left armed on
+           the ground for ~10 s): altitude above home on ArduPilot, AMSL on PX4, position and yaw
+           NaN (:mod:`service.mavlink_commands`);
+        5. the climb confirmed: the vehicle leaves the ground within ``CLIMB_START_S`` and reaches
+           90 % of the altitude; disarming or (ArduPilot) leaving GUIDED on the way is a failure.
+
+        Position setpoints are held back until the vehicle is airborne (on ArduPilot a setpoint
+        while the take-off is still on the ground cancels it). Progress, the attempt count, the
+        last refusal and the vehicle's STATUSTEXTs are in :meth:`state`. The Future completes when
+        airborne, or with the reason it gave up.
         """
+        if not (math.isfinite(timeout_s) and timeout_s > 0):
+            raise ValueError(f"timeout_s: must be a positive number, got {timeout_s!r}")
         area = self.config.area
         z_m = area.z_min_m if z_m is None else min(max(float(z_m), area.z_min_m), area.z_max_m)
         future: Future[None] = Future()
@@ -373,6 +467,9 @@ class VehicleLinkBase(ABC):
         )
         with self._cond:
             self._takeoff = "running"
+            self._takeoff_phase = "starting"
+            self._takeoff_attempts = 0
+            self._takeoff_last_refusal = None
             self._hold_setpoints = True
         self._workers.append(worker)
         worker.start()
@@ -403,7 +500,65 @@ class VehicleLinkBase(ABC):
             self.counters["mode_requests"] += 1
             return flavour
 
+    # ------------------------------------------------------------------ the take-off sequence
+
+    def _note_status_text(self, severity: int, text: str) -> None:
+        """A STATUSTEXT from the vehicle: logged and kept for :meth:`state` (call under no lock)."""
+        text = text.strip()
+        if not text:
+            return
+        entry = mavlink.enums["MAV_SEVERITY"].get(severity)
+        name = entry.name.removeprefix("MAV_SEVERITY_") if entry is not None else str(severity)
+        with self._cond:
+            self._status_texts.append((time.monotonic(), f"{name}: {text}"))
+        level = logging.WARNING if severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO
+        log.log(level, "vehicle says: %s", text)
+
+    def _texts_since(self, since: float) -> str:
+        """The vehicle's STATUSTEXTs since ``since`` (monotonic), for a refusal's reason."""
+        with self._cond:
+            texts = [text for at, text in self._status_texts if at >= since]
+        return "; vehicle said: " + " | ".join(texts) if texts else ""
+
+    def _set_phase(self, phase: str) -> None:
+        with self._cond:
+            self._takeoff_phase = phase
+        log.info("take-off: %s", phase)
+
+    def _in_air(self) -> bool:
+        """Armed and at least ``IN_AIR_ALT_M`` above home (call under ``self._cond``)."""
+        return self._armed and (self._relative_alt_m or 0.0) >= IN_AIR_ALT_M
+
+    def _position_estimate_ok(self) -> bool:
+        """A usable position estimate (call under ``self._cond``): LOCAL_POSITION_NED arriving
+        (neither autopilot sends it without a local origin), a home altitude, and, where the
+        vehicle sends EKF_STATUS_REPORT (ArduPilot), its flags as ArduCopter needs them to arm in
+        GUIDED: an absolute horizontal position (or its prediction), not constant-position mode."""
+        now = time.monotonic()
+        if self._position_at is None or now - self._position_at > POSITION_FRESH_S:
+            return False
+        if self._home_amsl_m is None:
+            return False
+        if self._flavour == "ardupilot" and self._ekf_flags is not None:
+            return ekf_position_ok(self._ekf_flags)
+        return True
+
+    def _mode_is(self, name: str) -> bool:
+        """The vehicle's HEARTBEAT shows mode ``name`` (call under ``self._cond``)."""
+        return (
+            self._flavour is not None
+            and self._custom_mode is not None
+            and mode_name(self._flavour, self._custom_mode) == name
+        )
+
+    def _mode_now(self) -> str:
+        with self._cond:
+            if self._flavour is None or self._custom_mode is None:
+                return "unknown"
+            return mode_name(self._flavour, self._custom_mode)
+
     def _wait_for(self, condition: Callable[[], bool], deadline: float, what: str) -> None:
+        """Wait (under ``self._cond``) until ``condition()``; TimeoutError at ``deadline``."""
         with self._cond:
             while not condition():
                 remaining = deadline - time.monotonic()
@@ -413,51 +568,180 @@ class VehicleLinkBase(ABC):
                     raise TimeoutError(f"timed out waiting for {what}")
                 self._cond.wait(min(remaining, 0.2))
 
+    def _step(self, condition: Callable[[], bool], deadline: float, what: str) -> None:
+        """Wait for one step of an attempt: up to ``STEP_TIMEOUT_S`` (a failed attempt), never
+        past the sequence's ``deadline`` (the end)."""
+        step_deadline = min(deadline, time.monotonic() + STEP_TIMEOUT_S)
+        try:
+            self._wait_for(condition, step_deadline, what)
+        except TimeoutError:
+            if time.monotonic() >= deadline:
+                raise
+            raise TakeoffRefused(f"timed out waiting for {what}") from None
+
     def _takeoff_worker(self, z_m: float, timeout_s: float, future: Future[None]) -> None:
         deadline = time.monotonic() + timeout_s
         alt_rel_m = z_m - self.config.frames.area_origin_down_m
-        airborne_alt_m = max(alt_rel_m * 0.9, alt_rel_m - 1.0)
+        backoff_s = RETRY_MIN_S
         try:
-            self._wait_for(
-                lambda: self._health == "up" and self._home_amsl_m is not None,
-                deadline,
-                "the vehicle and its position",
-            )
-            with self._cond:
-                flavour = self._flavour
-                flying = (self._relative_alt_m or 0.0) >= airborne_alt_m and self._armed
-            if not flying:
-                if flavour == "ardupilot":
-                    self._command(
-                        mavlink.MAV_CMD_DO_SET_MODE,
-                        (mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, ARDUPILOT_GUIDED),
-                        deadline,
-                    )
-                if not self._armed:
-                    self._arm_until_accepted(deadline)
-                with self._cond:
-                    home_amsl_m = self._home_amsl_m or 0.0
-                alt_param = alt_rel_m + home_amsl_m if flavour == "px4" else alt_rel_m
-                self._command(
-                    mavlink.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, math.nan, 0, 0, alt_param), deadline
-                )
-                self._wait_for(
-                    lambda: (self._relative_alt_m or 0.0) >= airborne_alt_m,
-                    deadline,
-                    f"{airborne_alt_m:.1f} m above home",
-                )
+            while True:
+                try:
+                    self._takeoff_attempt(alt_rel_m, deadline)
+                    break
+                except TakeoffRefused as refusal:
+                    reason = str(refusal)
+                    with self._cond:
+                        self._takeoff_last_refusal = reason
+                        self.counters["takeoff_refusals"] += 1
+                    log.warning("take-off attempt failed: %s", reason)
+                    if time.monotonic() + backoff_s >= deadline:
+                        raise TimeoutError(
+                            f"not airborne after {timeout_s:.0f} s; last refusal: {reason}"
+                        ) from None
+                    self._set_phase(f"retrying in {backoff_s:.0f} s")
+                    if self._stop.wait(backoff_s):
+                        raise RuntimeError("link closed") from None
+                    backoff_s = min(backoff_s * 2, RETRY_MAX_S)
             with self._cond:
                 self._takeoff = "airborne"
+                self._takeoff_phase = None
                 self._hold_setpoints = False
                 self._mode_wanted_until = time.monotonic() + self.config.mode_request_window_s
-            log.info("airborne at %.1f m above home", alt_rel_m)
+                alt_now_m = self._relative_alt_m or 0.0
+            log.info("airborne at %.1f m above home", alt_now_m)
             future.set_result(None)
         except Exception as exc:
             with self._cond:
                 self._takeoff = f"failed: {exc}"
+                self._takeoff_phase = None
                 self._hold_setpoints = False
             log.warning("arm and takeoff failed: %s", exc)
             future.set_exception(exc)
+
+    def _takeoff_attempt(self, alt_rel_m: float, deadline: float) -> None:
+        """One pass of the sequence (see :meth:`arm_and_takeoff`); TakeoffRefused to retry."""
+        with self._cond:
+            self._takeoff_attempts += 1
+        self._set_phase("waiting for the vehicle")
+        self._wait_for(lambda: self._health == "up", deadline, "the vehicle's HEARTBEAT")
+        with self._cond:
+            if self._in_air():
+                log.info("the vehicle is already flying: taken over without arming")
+                return
+        self._set_phase("waiting for a position estimate")
+        self._wait_for(self._position_estimate_ok, deadline, "a position estimate")
+        with self._cond:
+            flavour = self._flavour
+        if flavour == "ardupilot":
+            self._ensure_mode("GUIDED", ARDUPILOT_GUIDED, deadline)
+        with self._cond:
+            armed = self._armed
+        if not armed:
+            if flavour == "ardupilot" and not self._mode_stays("GUIDED", 0.0):
+                raise TakeoffRefused(f"left GUIDED before arming (now {self._mode_now()})")
+            self._set_phase("arming")
+            asked_at = time.monotonic()
+            result = self._ask_arm(STEP_TIMEOUT_S)
+            if result != mavlink.MAV_RESULT_ACCEPTED:
+                raise TakeoffRefused(
+                    f"arming refused ({result_name(result)}){self._texts_since(asked_at)}"
+                )
+            self._step(lambda: self._armed, deadline, "the vehicle to report armed")
+        if flavour == "ardupilot" and not self._mode_stays("GUIDED", 0.0):
+            raise TakeoffRefused(f"left GUIDED before the take-off (now {self._mode_now()})")
+        with self._cond:
+            if self._in_air():
+                return  # armed in the air: the setpoints take it from here
+            home_amsl_m = self._home_amsl_m or 0.0
+        alt_param = alt_rel_m + home_amsl_m if flavour == "px4" else alt_rel_m
+        self._set_phase("taking off")
+        asked_at = time.monotonic()
+        result = self._ask(
+            mavlink.MAV_CMD_NAV_TAKEOFF, mavlink_commands.takeoff(alt_param), STEP_TIMEOUT_S
+        )
+        if result != mavlink.MAV_RESULT_ACCEPTED and not self._leaving_the_ground():
+            raise TakeoffRefused(
+                f"take-off refused ({result_name(result)}){self._texts_since(asked_at)}"
+            )
+        self._confirm_climb(flavour, alt_rel_m, deadline, asked_at)
+
+    def _leaving_the_ground(self) -> bool:
+        """Armed and climbing within ``LIFTOFF_WAIT_S``: a take-off whose ACCEPTED was lost is
+        refused when sent again (ArduCopter takes off only from the ground), yet it flies."""
+        until = time.monotonic() + LIFTOFF_WAIT_S
+        with self._cond:
+            while not self._stop.is_set():
+                if self._armed and (self._relative_alt_m or 0.0) >= LIFTOFF_ALT_M:
+                    return True
+                remaining = until - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._cond.wait(min(remaining, 0.2))
+        return False
+
+    def _ensure_mode(self, name: str, custom_mode: int, deadline: float) -> None:
+        """Ask for mode ``name`` until HEARTBEAT shows it, held for ``MODE_SETTLE_S``."""
+        with self._cond:
+            already = self._mode_is(name)
+        if not already:
+            self._set_phase(f"asking for {name}")
+            asked_at = time.monotonic()
+            result = self._ask(
+                mavlink.MAV_CMD_DO_SET_MODE, mavlink_commands.set_mode(custom_mode), STEP_TIMEOUT_S
+            )
+            if result != mavlink.MAV_RESULT_ACCEPTED:
+                raise TakeoffRefused(
+                    f"{name} refused ({result_name(result)}){self._texts_since(asked_at)}"
+                )
+            self._step(lambda: self._mode_is(name), deadline, f"HEARTBEAT to show {name}")
+        self._set_phase(f"confirming {name}")
+        if not self._mode_stays(name, MODE_SETTLE_S):
+            raise TakeoffRefused(f"{name} did not hold (now {self._mode_now()})")
+
+    def _mode_stays(self, name: str, hold_s: float) -> bool:
+        """The vehicle is in mode ``name`` and still is ``hold_s`` later."""
+        until = time.monotonic() + hold_s
+        with self._cond:
+            while True:
+                if not self._mode_is(name) or self._health != "up":
+                    return False
+                remaining = until - time.monotonic()
+                if remaining <= 0 or self._stop.is_set():
+                    return True
+                self._cond.wait(min(remaining, 0.2))
+
+    def _confirm_climb(
+        self, flavour: Flavour | None, alt_rel_m: float, deadline: float, asked_at: float
+    ) -> None:
+        """Wait until 90 % of ``alt_rel_m``: leaving the ground within ``CLIMB_START_S``, at no
+        less than ``CLIMB_MIN_MPS`` on average, armed (and in GUIDED on ArduPilot) all along."""
+        self._set_phase("climbing")
+        airborne_alt_m = max(alt_rel_m * 0.9, alt_rel_m - 1.0)
+        started = time.monotonic()
+        climb_by = min(deadline, started + CLIMB_START_S + alt_rel_m / CLIMB_MIN_MPS)
+        with self._cond:
+            while True:
+                alt_m = self._relative_alt_m or 0.0
+                if alt_m >= airborne_alt_m and self._armed:
+                    return
+                now = time.monotonic()
+                why = ""
+                if self._stop.is_set():
+                    raise RuntimeError("link closed")
+                if not self._armed:
+                    why = "disarmed during the take-off"
+                elif flavour == "ardupilot" and not self._mode_is("GUIDED"):
+                    why = "left GUIDED during the take-off"
+                elif now - started > CLIMB_START_S and alt_m < IN_AIR_ALT_M:
+                    why = f"on the ground {CLIMB_START_S:.0f} s after an accepted take-off"
+                elif now > climb_by:
+                    if now >= deadline:
+                        raise TimeoutError(f"timed out waiting for {airborne_alt_m:.1f} m")
+                    why = f"climb too slow: {alt_m:.1f} m after {now - started:.0f} s"
+                if why:
+                    break
+                self._cond.wait(0.2)
+        raise TakeoffRefused(why + self._texts_since(asked_at))
 
 
 class MavlinkLink(VehicleLinkBase):
@@ -478,10 +762,11 @@ class MavlinkLink(VehicleLinkBase):
         self._acks: dict[int, tuple[int, int]] = {}
         self._ack_seq = 0
         self._up_since = 0.0
+        self._interval_accepted = False
         self._fallback_streams_sent = False
 
-    def _arm_until_accepted(self, deadline: float) -> None:
-        self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, (1,), deadline)
+    def _ask_arm(self, timeout_s: float) -> int | None:
+        return self._ask(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink_commands.arm(), timeout_s)
 
     def _release(self) -> None:
         self._close_conn()
@@ -640,6 +925,10 @@ class MavlinkLink(VehicleLinkBase):
     def _handle(self, message: Any) -> None:
         kind = message.get_type()
         now = time.monotonic()
+        if kind == "STATUSTEXT":
+            if self._from_vehicle(message):
+                self._note_status_text(message.severity, message.text)
+            return
         with self._cond:
             if kind == "HEARTBEAT":
                 if message.autopilot == mavlink.MAV_AUTOPILOT_INVALID or message.type in (
@@ -664,6 +953,8 @@ class MavlinkLink(VehicleLinkBase):
                     self._health = "up"
                     self._up_since = now
                     self._position_at = None
+                    self._ekf_flags = None
+                    self._interval_accepted = False
                     self._fallback_streams_sent = False
             elif kind == "LOCAL_POSITION_NED":
                 self._ned = (message.x, message.y, message.z)
@@ -673,9 +964,18 @@ class MavlinkLink(VehicleLinkBase):
                 self._home_amsl_m = (message.alt - message.relative_alt) / 1000.0
             elif kind == "EXTENDED_SYS_STATE":
                 self._landed_state = message.landed_state
+            elif kind == "EKF_STATUS_REPORT":
+                self._ekf_flags = message.flags
             elif kind == "COMMAND_ACK":
+                if message.result == mavlink.MAV_RESULT_IN_PROGRESS:
+                    return  # not the final answer
                 self._ack_seq += 1
                 self._acks[message.command] = (self._ack_seq, message.result)
+                if (
+                    message.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
+                    and message.result == mavlink.MAV_RESULT_ACCEPTED
+                ):
+                    self._interval_accepted = True
             elif kind == "BAD_DATA":
                 self.counters["bad_data"] += 1
                 if "signature" in str(getattr(message, "reason", "")).lower():
@@ -685,30 +985,48 @@ class MavlinkLink(VehicleLinkBase):
                 return
             self._cond.notify_all()
 
-    def _request_telemetry(self, now: float) -> None:
-        """SET_MESSAGE_INTERVAL for what we need, until positions come; ArduPilot fallback."""
+    def _from_vehicle(self, message: Any) -> bool:
+        """The message comes from the vehicle's system (any of its components)."""
         with self._cond:
-            if self._position_at is not None and now - self._position_at < 1.0:
-                return
+            return message.get_srcSystem() == self._target_sys and self._last_hb is not None
+
+    def _request_telemetry(self, now: float) -> None:
+        """SET_MESSAGE_INTERVAL for what we need (every 2 s until it all comes); on ArduPilot
+        also EKF_STATUS_REPORT (the take-off waits on its flags), and the older
+        REQUEST_DATA_STREAM once if no SET_MESSAGE_INTERVAL was accepted 1.5 s after the link
+        came up (an old firmware, or a router that filters it). A real ArduCopter accepts at once
+        but sends no LOCAL_POSITION_NED until its EKF has an origin (~20 s): missing positions
+        alone are no reason to fall back."""
+        with self._cond:
             flavour = self._flavour
+            positions_fresh = self._position_at is not None and now - self._position_at < 1.0
+            ekf_missing = flavour == "ardupilot" and self._ekf_flags is None
             use_fallback = (
                 flavour == "ardupilot"
+                and not self._interval_accepted
                 and not self._fallback_streams_sent
                 and now - self._up_since > 1.5
             )
             if use_fallback:
                 self._fallback_streams_sent = True
             sys_id, comp_id = self._target_sys, self._target_comp
+        if positions_fresh and not ekf_missing and not use_fallback:
+            return
         rate_hz = self.config.telemetry_rate_hz
-        wanted = (
+        wanted = [
             (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, rate_hz),
             (mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, rate_hz),
             (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 2.0),
-        )
+        ]
+        if flavour == "ardupilot":
+            wanted.append((mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT, 2.0))
         for message_id, hz in wanted:
-            self._send_command_long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, (message_id, 1e6 / hz))
+            self._send_command_long(
+                mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                mavlink_commands.set_message_interval(message_id, hz),
+            )
         if use_fallback:
-            log.info("no positions after SET_MESSAGE_INTERVAL: REQUEST_DATA_STREAM fallback")
+            log.info("SET_MESSAGE_INTERVAL not accepted: REQUEST_DATA_STREAM fallback")
             for stream in (mavlink.MAV_DATA_STREAM_POSITION, mavlink.MAV_DATA_STREAM_EXTRA3):
                 self._send(
                     lambda mav, s=stream: mav.request_data_stream_send(
@@ -750,42 +1068,38 @@ class MavlinkLink(VehicleLinkBase):
         if flavour is None:
             return
         main = ARDUPILOT_GUIDED if flavour == "ardupilot" else PX4_MAIN_OFFBOARD
-        custom = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-        self._send_command_long(mavlink.MAV_CMD_DO_SET_MODE, (custom, main))
+        self._send_command_long(mavlink.MAV_CMD_DO_SET_MODE, mavlink_commands.set_mode(main))
 
-    def _send_command_long(self, command: int, params: Sequence[float]) -> bool:
-        """Send COMMAND_LONG ``command`` (params padded with zeros to 7) to the vehicle."""
-        values = [*params, *([0.0] * (7 - len(params)))]
+    def _send_command_long(self, command: int, params: mavlink_commands.Params) -> bool:
+        """Send COMMAND_LONG ``command`` with its seven ``params`` to the vehicle."""
+        values = list(params)
         with self._cond:
             sys_id, comp_id = self._target_sys, self._target_comp
         return self._send(lambda mav: mav.command_long_send(sys_id, comp_id, command, 0, *values))
 
     # ------------------------------------------------------------------ arm and takeoff
 
-    def _command(self, command: int, params: Sequence[float], deadline: float) -> None:
-        """COMMAND_LONG until ACCEPTED, retrying refusals with backoff; TimeoutError at deadline."""
-        backoff_s = 0.3
-        last_result: int | None = None
+    def _ask(self, command: int, params: mavlink_commands.Params, timeout_s: float) -> int | None:
+        """COMMAND_LONG, re-sent every ``COMMAND_RESEND_S`` until the vehicle answers (a lossy
+        radio loses commands and ACKs) or ``timeout_s`` passes: the first final COMMAND_ACK's
+        result, or None."""
+        with self._cond:
+            seq_before = self._ack_seq  # only an ACK newer than this answers us
+        ask_until = time.monotonic() + timeout_s
         while not self._stop.is_set():
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"command {command} not accepted (last result {last_result})")
             with self._cond:
-                seq_before = self._ack_seq  # only an ACK newer than this answers us
                 self.counters["commands_sent"] += 1
             self._send_command_long(command, params)
-            ack_by = min(deadline, time.monotonic() + 1.5)
+            resend_at = min(ask_until, time.monotonic() + COMMAND_RESEND_S)
             with self._cond:
                 while not self._stop.is_set():
                     seq, result = self._acks.get(command, (0, -1))
                     if seq > seq_before:
-                        last_result = result
-                        break
-                    remaining = ack_by - time.monotonic()
+                        return result
+                    remaining = resend_at - time.monotonic()
                     if remaining <= 0:
                         break
                     self._cond.wait(remaining)
-            if last_result == mavlink.MAV_RESULT_ACCEPTED:
-                return
-            self._stop.wait(min(backoff_s, max(0.0, deadline - time.monotonic())))
-            backoff_s = min(backoff_s * 2, 2.0)
-        raise RuntimeError("link closed")
+            if time.monotonic() >= ask_until:
+                return None
+        return None

@@ -88,6 +88,29 @@ log = logging.getLogger(__name__)
 MAV_COMP_ID_AUTOPILOT1 = 1
 COMMAND_ACK_TIMEOUT_S = 5.0
 """How long a command may wait for MAVSDK's answer (MAVSDK retransmits within it)."""
+ACTION_RESULTS = {
+    "COMMAND_DENIED": mavlink.MAV_RESULT_DENIED,
+    "COMMAND_DENIED_NOT_LANDED": mavlink.MAV_RESULT_DENIED,
+    "COMMAND_DENIED_LANDED_STATE_UNKNOWN": mavlink.MAV_RESULT_DENIED,
+    "TIMEOUT": None,
+    "NO_SYSTEM": None,
+    "CONNECTION_ERROR": None,
+    "BUSY": mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
+    "UNSUPPORTED": mavlink.MAV_RESULT_UNSUPPORTED,
+}
+"""MAVSDK's ActionResult names for a refused arming, as the MAV_RESULT they stand for (None: no
+answer); any other refusal counts as MAV_RESULT_FAILED."""
+STATUS_TEXT_SEVERITY = {
+    "EMERGENCY": 0,
+    "ALERT": 1,
+    "CRITICAL": 2,
+    "ERROR": 3,
+    "WARNING": 4,
+    "NOTICE": 5,
+    "INFO": 6,
+    "DEBUG": 7,
+}
+"""MAVSDK's StatusTextType names as MAV_SEVERITY values."""
 UNANSWERED_WAIT_S = 3.0
 """How long closing a session waits for MAVSDK to answer the calls still open. MAVSDK answers an
 unacknowledged command with a timeout after its own retries (3 tries by default); this bound is
@@ -119,6 +142,10 @@ def _log_mavsdk_lines() -> None:
         logger.log(_MAVSDK_LOG_LEVELS[min(max(level, 0), 3)], "%s (%s:%d)", message, file, line)
 
 
+_log_thread: threading.Thread | None = None
+_log_route_lock = threading.Lock()
+
+
 def route_mavsdk_logs_to_python() -> None:
     """Send MAVSDK's own log lines to the ``mavsdk`` Python logger instead of stdout.
 
@@ -130,10 +157,14 @@ def route_mavsdk_logs_to_python() -> None:
     """
     import mavsdk.logging as mavsdk_logging
 
-    if getattr(mavsdk_logging, "_log_callback_ref", None) is not None:
-        return
-    threading.Thread(target=_log_mavsdk_lines, name="mavsdk-log", daemon=True).start()
-    mavsdk_logging.log_subscribe(_queue_mavsdk_log_line)
+    global _log_thread
+    with _log_route_lock:
+        if getattr(mavsdk_logging, "_log_callback_ref", None) is not None:
+            return
+        if _log_thread is None:
+            _log_thread = threading.Thread(target=_log_mavsdk_lines, name="mavsdk-log", daemon=True)
+            _log_thread.start()
+        mavsdk_logging.log_subscribe(_queue_mavsdk_log_line)
 
 
 def mavsdk_url(url: str) -> str:
@@ -254,8 +285,8 @@ class MavsdkLink(VehicleLinkBase):
         route_mavsdk_logs_to_python()
         return super().start()
 
-    def _arm_until_accepted(self, deadline: float) -> None:
-        self._retry("arming", self._arm, deadline)
+    def _ask_arm(self, timeout_s: float) -> int | None:
+        return self._arm(timeout_s)
 
     def _release(self) -> None:
         self._close_session()
@@ -328,6 +359,7 @@ class MavsdkLink(VehicleLinkBase):
             session.telemetry.subscribe_position_velocity_ned(self._on_position_ned)
             session.telemetry.subscribe_position(self._on_position)
             session.telemetry.subscribe_heading(self._on_heading)
+            session.telemetry.subscribe_status_text(self._on_status_text)
             self._request_telemetry(session)
         log.info("MAVSDK found autopilot system %s", session.system_id)
 
@@ -391,6 +423,10 @@ class MavsdkLink(VehicleLinkBase):
             self._relative_alt_m = relative_m
             self._home_amsl_m = absolute_m - relative_m
             self._cond.notify_all()
+
+    def _on_status_text(self, status_text: Any, _user_data: Any) -> None:
+        severity = STATUS_TEXT_SEVERITY.get(getattr(status_text.type, "name", ""), 6)
+        self._note_status_text(severity, status_text.text)
 
     def _on_heading(self, heading: Any, _user_data: Any) -> None:
         if math.isfinite(heading.heading_deg):
@@ -576,7 +612,7 @@ class MavsdkLink(VehicleLinkBase):
         """COMMAND_LONG through MavlinkDirect; the MAV_RESULT of its final ACK, or None."""
         from mavsdk.plugins.mavlink_direct import MavlinkDirectResult, MavlinkMessage
 
-        values = [*params, *([0.0] * (7 - len(params)))]
+        values = list(params)
         with self._sdk_lock:
             session = self._session
             system_id = session.system_id if session is not None else None
@@ -608,41 +644,22 @@ class MavsdkLink(VehicleLinkBase):
         except (ValueError, KeyError, TypeError):
             return None
 
-    def _arm(self) -> int | None:
-        """Arm through the Action plugin; MAV_RESULT_ACCEPTED, or None when refused."""
+    def _arm(self, timeout_s: float) -> int | None:
+        """Arm through the Action plugin: MAV_RESULT_ACCEPTED, the MAV_RESULT MAVSDK's answer
+        stands for when refused, or None when no answer came."""
         from mavsdk.plugins.action import ActionResult
 
-        answer = self._request(
-            lambda s, cb: s.action.arm_async(lambda r, _ud: cb(r)), COMMAND_ACK_TIMEOUT_S
-        )
+        with self._cond:
+            self.counters["commands_sent"] += 1
+        answer = self._request(lambda s, cb: s.action.arm_async(lambda r, _ud: cb(r)), timeout_s)
         if answer is None:
             return None
         if answer[0] == ActionResult.SUCCESS:
             return mavlink.MAV_RESULT_ACCEPTED
         log.debug("arm: %s", getattr(answer[0], "name", answer[0]))
-        return None
+        return ACTION_RESULTS.get(getattr(answer[0], "name", ""), mavlink.MAV_RESULT_FAILED)
 
-    def _retry(self, what: str, attempt: Callable[[], int | None], deadline: float) -> None:
-        """Call ``attempt`` until it answers MAV_RESULT_ACCEPTED, with backoff; TimeoutError."""
-        backoff_s = 0.3
-        last_result: int | None = None
-        while not self._stop.is_set():
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"{what} not accepted (last result {last_result})")
-            with self._cond:
-                self.counters["commands_sent"] += 1
-            last_result = attempt()
-            if last_result == mavlink.MAV_RESULT_ACCEPTED:
-                return
-            self._stop.wait(min(backoff_s, max(0.0, deadline - time.monotonic())))
-            backoff_s = min(backoff_s * 2, 2.0)
-        raise RuntimeError("link closed")
-
-    def _command(self, command: int, params: Sequence[float], deadline: float) -> None:
-        self._retry(
-            f"command {command}",
-            lambda: self._send_command(
-                command, params, min(COMMAND_ACK_TIMEOUT_S, max(0.1, deadline - time.monotonic()))
-            ),
-            deadline,
-        )
+    def _ask(self, command: int, params: Sequence[float], timeout_s: float) -> int | None:
+        with self._cond:
+            self.counters["commands_sent"] += 1
+        return self._send_command(command, params, timeout_s)

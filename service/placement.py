@@ -156,7 +156,7 @@ class PlacementService:
                 self._takeoff_deferred = True
                 log.info("restarted (state file found): arm-and-takeoff waits for a decision")
             else:
-                self.link.arm_and_takeoff()
+                self.link.arm_and_takeoff(timeout_s=self.settings.takeoff_timeout_s)
         if self.settings.decision_mode == "paced":
             target, name = self._run, "placement"
         else:
@@ -229,6 +229,18 @@ class PlacementService:
             reasons.append(f"mavlink link is {state.link}")
         elif state.position_m is None:
             reasons.append("no vehicle position yet (telemetry not received)")
+        if state.takeoff == "running":
+            refusal = (
+                f"; last refusal: {state.takeoff_last_refusal}"
+                if state.takeoff_last_refusal
+                else ""
+            )
+            reasons.append(
+                f"take-off in progress: {state.takeoff_phase} "
+                f"(attempt {state.takeoff_attempts}){refusal}"
+            )
+        elif state.takeoff.startswith("failed"):
+            reasons.append(f"take-off {state.takeoff}")
         signing_failures = state.counters.get("signing_failures", 0)
         if signing_failures and state.link != "up":
             reasons.append(
@@ -290,7 +302,7 @@ class PlacementService:
         started = time.perf_counter()
         if self._takeoff_deferred:  # the first decision after a restart (see start())
             self._takeoff_deferred = False
-            self.link.arm_and_takeoff()
+            self.link.arm_and_takeoff(timeout_s=self.settings.takeoff_timeout_s)
         try:
             target = policy.decide(report.users, vehicle, current)
             clamped = self.link.set_target(tuple(float(v) for v in target))

@@ -35,6 +35,8 @@ class ServiceSettings(BaseSettings):
     """A checkpoint path, or ``min-distance``, ``load-weighted``, ``oracle``."""
     arm_and_takeoff: bool = False
     """Arm and take off to the minimum altitude before the first placement (never by default)."""
+    takeoff_timeout_s: float = Field(default=300.0, gt=0, le=86400, allow_inf_nan=False)
+    """How long the take-off sequence keeps trying (a real vehicle needs its GPS lock first)."""
     host: str = "127.0.0.1"
     port: int = Field(default=8080, ge=0, le=65535)
     api_token: SecretStr | None = None

@@ -64,8 +64,30 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--ready-delay-s",
         type=float,
         default=None,
-        help="seconds until the position estimate is ready; arming and GUIDED/OFFBOARD are "
+        help="seconds until the position estimate is ready; arming in GUIDED/OFFBOARD is "
         "refused before (default: 40 for ardupilot, 10 for px4)",
+    )
+    parser.add_argument(
+        "--origin-delay-s",
+        type=float,
+        default=None,
+        help="seconds until the EKF origin is set; no LOCAL_POSITION_NED before (default: 19 "
+        "for ardupilot, 10 for px4; never later than --ready-delay-s)",
+    )
+    parser.add_argument(
+        "--prearm-delay-s",
+        type=float,
+        default=None,
+        help="seconds until the pre-arm checks pass: arming in modes that need no position "
+        "(default: 22 for ardupilot, 10 for px4; never later than --ready-delay-s)",
+    )
+    parser.add_argument(
+        "--mode-switch-read-s",
+        type=float,
+        default=None,
+        help="ardupilot: when the RC mode switch is first read and sets STABILIZE, undoing an "
+        "earlier GUIDED, as a real ArduCopter SITL did (default 2.2; never later than "
+        "--ready-delay-s; negative: never)",
     )
     parser.add_argument(
         "--offboard-timeout-s",
@@ -181,6 +203,9 @@ def run(args: argparse.Namespace) -> int:
         max_speed_up_mps=args.climb_speed_mps,
         max_speed_down_mps=args.climb_speed_mps,
         ready_delay_s=args.ready_delay_s,
+        origin_delay_s=args.origin_delay_s,
+        prearm_delay_s=args.prearm_delay_s,
+        mode_switch_read_s=args.mode_switch_read_s,
         accel_h_mps2=args.accel_mps2,
         offboard_timeout_s=args.offboard_timeout_s,
         offboard_stream_min_s=args.offboard_stream_min_s,
@@ -201,6 +226,9 @@ def run(args: argparse.Namespace) -> int:
             "max_speed_up_mps": "--climb-speed-mps",
             "max_speed_down_mps": "--climb-speed-mps",
             "ready_delay_s": "--ready-delay-s",
+            "origin_delay_s": "--origin-delay-s",
+            "prearm_delay_s": "--prearm-delay-s",
+            "mode_switch_read_s": "--mode-switch-read-s",
             "offboard_timeout_s": "--offboard-timeout-s",
             "offboard_stream_min_s": "--offboard-stream-min-s",
             "accel_h_mps2": "--accel-mps2",

@@ -21,6 +21,15 @@ class VehicleConfig:
     yaw_rate_max_dps: float = 90.0
     ready_delay_s: float | None = None
     """Time from boot until the position estimate is ready (arming/GUIDED refused before)."""
+    origin_delay_s: float | None = None
+    """Time from boot until the EKF origin is set (no LOCAL_POSITION_NED before); never later
+    than ``ready_delay_s``."""
+    prearm_delay_s: float | None = None
+    """Time from boot until arming passes in modes that need no position; never later than
+    ``ready_delay_s``."""
+    mode_switch_read_s: float | None = None
+    """When the RC mode switch is first read and sets the initial mode (ArduPilot); never later
+    than ``ready_delay_s``. A negative value: never."""
     offboard_timeout_s: float = 1.0
     """PX4 OFFBOARD: setpoints older than this trigger the hold failsafe (PX4's COM_OF_LOSS_T)."""
     offboard_stream_min_s: float = 1.0
@@ -67,6 +76,8 @@ class VehicleConfig:
                 raise ValueError(f"{name}: must be a positive number, got {value!r}")
         optional_non_negative = (
             "ready_delay_s",
+            "origin_delay_s",
+            "prearm_delay_s",
             "fence_radius_m",
             "fence_alt_max_m",
             "rtl_alt_m",
@@ -79,6 +90,14 @@ class VehicleConfig:
                 continue
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name}: must be a number >= 0, got {value!r}")
+        if self.mode_switch_read_s is not None and not (
+            isinstance(self.mode_switch_read_s, int | float)
+            and math.isfinite(self.mode_switch_read_s)
+        ):
+            raise ValueError(
+                f"mode_switch_read_s: must be a number (negative: never), "
+                f"got {self.mode_switch_read_s!r}"
+            )
         if self.land_speed_mps == 0:
             raise ValueError("land_speed_mps: must be positive")
         if self.battery_failsafe_pct >= 100:

@@ -107,7 +107,8 @@ def _ap(name: str, number: int, behaviour: Behaviour, pos: bool, arm: bool, take
 
 ARDUPILOT_MODES: tuple[ModeSpec, ...] = (
     _ap("STABILIZE", 0, Behaviour.HOLD, pos=False, arm=True, takeoff=False),
-    _ap("ALT_HOLD", 2, Behaviour.HOLD, pos=False, arm=True, takeoff=True),
+    # MAV_CMD_NAV_TAKEOFF with param3 = 0 ("must navigate"): the navigating modes only.
+    _ap("ALT_HOLD", 2, Behaviour.HOLD, pos=False, arm=True, takeoff=False),
     _ap("GUIDED", 4, Behaviour.GUIDED, pos=True, arm=True, takeoff=True),
     _ap("LOITER", 5, Behaviour.HOLD, pos=True, arm=True, takeoff=True),
     _ap("RTL", 6, Behaviour.RTL, pos=True, arm=False, takeoff=False),
@@ -184,6 +185,24 @@ class Flavour:
     """Where each autopilot's own SITL starts (ArduPilot: CMAC, Canberra; PX4: Zurich)."""
     ready_delay_s: float
     """Time from boot until the position estimate is good (ArduPilot SITL's EKF needs ~40 s)."""
+    origin_delay_s: float
+    """Time from boot until the EKF has an origin: LOCAL_POSITION_NED is sent from then on
+    (ArduCopter SITL ~19 s, "EKF3 IMU0 origin set")."""
+    prearm_delay_s: float
+    """Time from boot until the pre-arm checks pass: arming is allowed from then on in modes that
+    need no position (ArduCopter SITL ~22 s, in STABILIZE)."""
+    mode_switch_read_s: float | None
+    """When the RC flight-mode switch is first read after boot and sets its mode (the initial
+    mode), undoing a mode a ground station asked for before: a real ArduCopter SITL went from
+    GUIDED back to STABILIZE 0.2 s after granting it, at ~2.2 s. None: no such read."""
+    mode_position_check_armed_only: bool
+    """ArduCopter checks a mode's need for a position only when armed (GUIDED is granted on the
+    ground without one); PX4 checks it always."""
+    takeoff_position_from_params: bool
+    """PX4 reads MAV_CMD_NAV_TAKEOFF params 5/6 (latitude, longitude) as a take-off position when
+    finite; ArduPilot ignores them."""
+    sends_ekf_status: bool
+    """ArduPilot sends EKF_STATUS_REPORT; PX4 does not."""
     rtl_alt_m: float
     land_speed_mps: float
     land_disarm_delay_s: float
@@ -198,12 +217,17 @@ class Flavour:
     result_refused: MavResult
     """COMMAND_ACK result of a command the autopilot understood but refuses right now."""
     text_arm_not_ready: str
+    text_prearm_failing: str
+    """Arming refused before the pre-arm checks pass (any mode)."""
     text_arm_mode: str
     text_disarm_in_air: str
     text_mode_needs_position: str
     """Formatted with ``mode=``."""
     text_offboard_no_stream: str
     text_unknown_mode: str
+    result_interval_refused: MavResult
+    text_interval_refused: str
+    """SET_MESSAGE_INTERVAL for a message the autopilot does not have (``{message_id}``)."""
     text_ready: tuple[str, ...]
     text_auto_disarm: str
     text_offboard_lost: str
@@ -263,6 +287,7 @@ ARDUPILOT = Flavour(
         "POSITION_TARGET_LOCAL_NED": 4.0,
         "POSITION_TARGET_GLOBAL_INT": 2.0,
         "HOME_POSITION": 0.5,
+        "EKF_STATUS_REPORT": 2.0,
     },
     honours_request_data_stream=True,
     params_bytewise=False,
@@ -276,6 +301,12 @@ ARDUPILOT = Flavour(
     target_echo_outside_guided=False,
     default_home=GeoPoint(-35.363261, 149.165230, 584.0),
     ready_delay_s=40.0,
+    origin_delay_s=19.0,
+    prearm_delay_s=22.0,
+    mode_switch_read_s=2.2,
+    mode_position_check_armed_only=True,
+    takeoff_position_from_params=False,
+    sends_ekf_status=True,
     rtl_alt_m=15.0,
     land_speed_mps=0.5,
     land_disarm_delay_s=1.0,
@@ -284,12 +315,15 @@ ARDUPILOT = Flavour(
     takeoff_alt_is_amsl=False,
     result_refused=MavResult.FAILED,
     text_arm_not_ready="Arm: Need Position Estimate",
+    text_prearm_failing="PreArm: AHRS: waiting for home",
     text_arm_mode="Arm: Mode not armable",
     text_disarm_in_air="Disarm: not landed",
     text_mode_needs_position="Mode change to {mode} failed: requires position",
     text_offboard_no_stream="",
     text_unknown_mode="No such mode",
-    text_ready=("EKF3 IMU0 is using GPS", "EKF3 IMU0 origin set"),
+    result_interval_refused=MavResult.DENIED,
+    text_interval_refused="Unknown message id {message_id}",
+    text_ready=("EKF3 IMU0 is using GPS",),
     text_auto_disarm="Disarming motors: no takeoff",
     text_offboard_lost="",
     text_gcs_lost="GCS Failsafe On: {action}",
@@ -333,6 +367,12 @@ PX4 = Flavour(
     target_echo_outside_guided=True,
     default_home=GeoPoint(47.397742, 8.545594, 488.0),
     ready_delay_s=10.0,
+    origin_delay_s=10.0,
+    prearm_delay_s=10.0,
+    mode_switch_read_s=None,
+    mode_position_check_armed_only=False,
+    takeoff_position_from_params=True,
+    sends_ekf_status=False,
     rtl_alt_m=30.0,
     land_speed_mps=0.7,
     land_disarm_delay_s=2.0,
@@ -341,11 +381,14 @@ PX4 = Flavour(
     takeoff_alt_is_amsl=True,
     result_refused=MavResult.TEMPORARILY_REJECTED,
     text_arm_not_ready="Arming denied: no valid position estimate",
+    text_prearm_failing="Arming denied: no valid position estimate",
     text_arm_mode="Arming denied: not possible in this flight mode",
     text_disarm_in_air="Disarming denied: not landed",
     text_mode_needs_position="Switching to {mode} is currently not possible: no position estimate",
     text_offboard_no_stream="Switching to Offboard is currently not possible: no offboard signal",
     text_unknown_mode="Unsupported flight mode",
+    result_interval_refused=MavResult.TEMPORARILY_REJECTED,
+    text_interval_refused="",
     text_ready=("Ready for takeoff!",),
     text_auto_disarm="Disarmed by auto preflight disarming",
     text_offboard_lost="Failsafe activated: no offboard signal, holding",

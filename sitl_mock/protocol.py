@@ -75,7 +75,7 @@ DATA_STREAM_GROUPS: dict[int, tuple[str, ...]] = {
     MAV.MAV_DATA_STREAM_POSITION: ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED"),
     MAV.MAV_DATA_STREAM_EXTRA1: ("ATTITUDE",),
     MAV.MAV_DATA_STREAM_EXTRA2: ("VFR_HUD",),
-    MAV.MAV_DATA_STREAM_EXTRA3: ("BATTERY_STATUS",),
+    MAV.MAV_DATA_STREAM_EXTRA3: ("BATTERY_STATUS", "EKF_STATUS_REPORT"),
 }
 
 # Versions reported in AUTOPILOT_VERSION (major, minor, patch), FIRMWARE_VERSION_TYPE_OFFICIAL.
@@ -191,6 +191,8 @@ class MavlinkProtocol:
             for name in dir(self)
             if name.startswith("_build_")
         }
+        if not self.flavour.sends_ekf_status:
+            del self._builders[MAV.MAVLINK_MSG_ID_EKF_STATUS_REPORT]
         self._handlers: dict[int, Callable[[Link, mavlink.MAVLink_message], None]] = {
             MAV.MAVLINK_MSG_ID_HEARTBEAT: self._on_heartbeat,
             MAV.MAVLINK_MSG_ID_COMMAND_LONG: self._on_command_long,
@@ -348,7 +350,8 @@ class MavlinkProtocol:
 
     def _on_command_int(self, link: Link, message: mavlink.MAVLink_message) -> None:
         m = message
-        params = (m.param1, m.param2, m.param3, m.param4, float(m.x), float(m.y), m.z)
+        # x, y carry latitude/longitude in degE7 in the global frames (the only use we serve).
+        params = (m.param1, m.param2, m.param3, m.param4, m.x * 1e-7, m.y * 1e-7, m.z)
         self._command(link, message, m.target_system, m.target_component, m.command, params)
 
     def _command(
@@ -401,7 +404,7 @@ class MavlinkProtocol:
             outcome = vehicle.set_mode(custom_mode)
             return outcome.result, outcome.reason
         if command == MAV.MAV_CMD_NAV_TAKEOFF:
-            outcome = vehicle.takeoff(p[6])
+            outcome = vehicle.takeoff(p[6], p[4], p[5])
             return outcome.result, outcome.reason
         if command == MAV.MAV_CMD_NAV_LAND:
             outcome = vehicle.land()
@@ -463,7 +466,9 @@ class MavlinkProtocol:
             return MavResult.DENIED, "NaN parameter"
         message_id = int(message_id_f)
         if message_id not in self._builders:
-            return self.flavour.result_refused, f"message {message_id} not available"
+            text = self.flavour.text_interval_refused.format(message_id=message_id)
+            self.vehicle.say(Severity.WARNING, text)
+            return self.flavour.result_interval_refused, f"message {message_id} not available"
         now_s = self.vehicle.time_s
         if interval_us < 0:
             link.streams.set_interval(message_id, None, now_s)
@@ -712,10 +717,17 @@ class MavlinkProtocol:
             heading_cdeg,
         )
 
+    def _build_ekf_status_report(self) -> mavlink.MAVLink_message:
+        ready = self.vehicle.ready
+        variance = 0.02 if ready else 1.0
+        return self._encoder.ekf_status_report_encode(
+            self.vehicle.ekf_flags, variance, variance, 0.02, 0.02, 0.0
+        )
+
     def _build_local_position_ned(self) -> mavlink.MAVLink_message | None:
         vehicle = self.vehicle
-        if not vehicle.ready:
-            return None
+        if not vehicle.origin_set:
+            return None  # neither autopilot has a local frame before its EKF origin
         p, v = vehicle.position, vehicle.velocity
         return self._encoder.local_position_ned_encode(
             self._time_boot_ms, p.n, p.e, p.d, v.n, v.e, v.d

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from sitl_mock.battery import Battery
 from sitl_mock.config import VehicleConfig
 from sitl_mock.flavours import Behaviour, Flavour, MavResult, ModeSpec, Severity
-from sitl_mock.geo import GeoPoint, ned_to_global
+from sitl_mock.geo import GeoPoint, global_to_ned, ned_to_global
 from sitl_mock.kinematics import (
     GRAVITY_MPS2,
     ZERO,
@@ -71,6 +71,17 @@ TOUCHDOWN_ALT_M = 0.05
 LAND_SLOWDOWN_ALT_M = 10.0
 RTL_ARRIVED_M = 1.0
 TAKEOFF_MIN_ALT_M = 1.0
+TAKEOFF_POSITION_MAX_M = 1000.0
+"""PX4: a take-off position (params 5/6) farther than this from the vehicle is accepted and not
+flown (a real PX4 SITL took latitude/longitude 0/0, thousands of km away, that way: AUTO.TAKEOFF,
+no climb, auto-disarm ~10 s later). PX4's exact threshold is not modelled."""
+
+# EKF_STATUS_REPORT flag sets (EKF_STATUS_FLAGS): attitude 1, horizontal velocity 2, vertical
+# velocity 4, relative/absolute horizontal position 8/16, absolute vertical position 32, constant
+# position mode 128, predicted relative/absolute horizontal position 256/512, uninitialised 1024.
+EKF_HEALTHY = 1 | 2 | 4 | 8 | 16 | 32 | 256 | 512
+EKF_NO_GPS = 1 | 4 | 32 | 128
+EKF_UNINITIALIZED = 1024
 
 
 @dataclass(frozen=True)
@@ -122,6 +133,8 @@ class _Takeoff:
     east_m: float
     alt_m: float
     start_s: float | None
+    then_ne: tuple[float, float] | None = None
+    """PX4: where to fly and hold once at altitude (a take-off position), if given."""
 
 
 class Vehicle:
@@ -136,6 +149,34 @@ class Vehicle:
         self.ready_delay_s = (
             cfg.ready_delay_s if cfg.ready_delay_s is not None else flavour.ready_delay_s
         )
+        # The earlier start-up milestones keep their share of a shortened start-up, and never
+        # come after the position estimate.
+        scale = self.ready_delay_s / flavour.ready_delay_s
+        self.origin_delay_s = min(
+            cfg.origin_delay_s
+            if cfg.origin_delay_s is not None
+            else flavour.origin_delay_s * scale,
+            self.ready_delay_s,
+        )
+        self.prearm_delay_s = min(
+            cfg.prearm_delay_s
+            if cfg.prearm_delay_s is not None
+            else flavour.prearm_delay_s * scale,
+            self.ready_delay_s,
+        )
+        default_switch_s = flavour.mode_switch_read_s
+        switch_read_s = (
+            cfg.mode_switch_read_s
+            if cfg.mode_switch_read_s is not None
+            else None
+            if default_switch_s is None
+            else default_switch_s * scale
+        )
+        self.mode_switch_read_s = (
+            None
+            if switch_read_s is None or switch_read_s < 0
+            else min(switch_read_s, self.ready_delay_s)
+        )
         self.rtl_alt_m = cfg.rtl_alt_m if cfg.rtl_alt_m is not None else flavour.rtl_alt_m
         self.land_speed_mps = cfg.land_speed_mps or flavour.land_speed_mps
         self.default_takeoff_alt_m = (
@@ -146,6 +187,9 @@ class Vehicle:
         self.max_speed_down_mps = cfg.max_speed_down_mps
 
         self.time_s = 0.0
+        self.origin_set = False
+        self.prearm_ok = False
+        self._mode_switch_read = False
         self.ready = False
         self.armed = False
         self.landed = True
@@ -220,6 +264,15 @@ class Vehicle:
     def failsafe_active(self) -> bool:
         return self.gcs_failsafe_active or self._battery_failsafe_done
 
+    @property
+    def ekf_flags(self) -> int:
+        """EKF_STATUS_REPORT.flags as ArduPilot's EKF3 reports them: attitude, vertical velocity
+        and position, in constant-position mode until it uses GPS; then every position and
+        velocity flag (831, what a healthy ArduCopter SITL sends)."""
+        if self.ready:
+            return EKF_HEALTHY
+        return EKF_NO_GPS if self.origin_set else EKF_NO_GPS | EKF_UNINITIALIZED
+
     def attitude_rad(self) -> tuple[float, float, float]:
         """(roll, pitch, yaw): the tilt that produces the current horizontal acceleration."""
         a_n, a_e, _ = self.acceleration
@@ -285,6 +338,7 @@ class Vehicle:
         self.armed = True
         self._armed_at_s = self.time_s
         self.counters["arms"] += 1
+        self.counters[f"arms_in_{self.mode.name}"] += 1
         log.info("armed in %s", self.mode.name)
         if self._takeoff is not None and self._takeoff.start_s is None:
             self._takeoff.start_s = self.time_s
@@ -315,7 +369,8 @@ class Vehicle:
     def set_mode_spec(self, spec: ModeSpec) -> CommandOutcome:
         if spec == self.mode:
             return CommandOutcome(MavResult.ACCEPTED, "already in mode")
-        if spec.needs_position and not self.ready:
+        position_checked = self.armed or not self.flavour.mode_position_check_armed_only
+        if spec.needs_position and not self.ready and position_checked:
             text = self.flavour.text_mode_needs_position.format(mode=spec.name)
             self._emit(Severity.WARNING, text)
             return CommandOutcome(self.flavour.result_refused, text)
@@ -334,8 +389,20 @@ class Vehicle:
         self._enter_mode(spec, "command")
         return CommandOutcome(MavResult.ACCEPTED)
 
-    def takeoff(self, alt_param: float) -> CommandOutcome:
-        """MAV_CMD_NAV_TAKEOFF; ``alt_param`` is param7 as sent (its meaning is the flavour's)."""
+    def rc_mode_switch(self, name: str) -> None:
+        """The pilot's RC flight-mode switch (or anything else outside MAVLink) sets mode
+        ``name``: no checks, no answer, as on the real vehicle."""
+        spec = self.flavour.mode(name)
+        if spec != self.mode:
+            self.counters["rc_mode_switches"] += 1
+            self._enter_mode(spec, "RC mode switch")
+
+    def takeoff(
+        self, alt_param: float, lat_deg: float = math.nan, lon_deg: float = math.nan
+    ) -> CommandOutcome:
+        """MAV_CMD_NAV_TAKEOFF; ``alt_param`` is param7 as sent (its meaning is the flavour's),
+        ``lat_deg``/``lon_deg`` params 5/6 (PX4: a take-off position when finite, which is not
+        flown when farther than ``TAKEOFF_POSITION_MAX_M``; ArduPilot ignores them)."""
         flavour = self.flavour
         if not self.ready:
             return CommandOutcome(flavour.result_refused, "no position estimate")
@@ -351,7 +418,22 @@ class Vehicle:
         if fence_alt and alt_m > fence_alt:
             return CommandOutcome(flavour.result_refused, "takeoff altitude outside the fence")
         if flavour.takeoff_mode is not None:
-            return self._start_takeoff_mode(flavour.mode(flavour.takeoff_mode), alt_m)
+            spec = flavour.mode(flavour.takeoff_mode)
+            then_ne: tuple[float, float] | None = None
+            if flavour.takeoff_position_from_params and (
+                math.isfinite(lat_deg) and math.isfinite(lon_deg)
+            ):
+                north_m, east_m, _ = global_to_ned(self.home, lat_deg, lon_deg, 0.0)
+                if math.hypot(north_m - self.position.n, east_m - self.position.e) > (
+                    TAKEOFF_POSITION_MAX_M
+                ):
+                    # Accepted, and the vehicle stays where it is (and auto-disarms).
+                    self._enter_mode(spec, "takeoff")
+                    self.counters["takeoffs_not_flown"] += 1
+                    log.info("take-off position %.5f, %.5f too far: not flown", lat_deg, lon_deg)
+                    return CommandOutcome(MavResult.ACCEPTED, "take-off position too far")
+                then_ne = (north_m, east_m)
+            return self._start_takeoff_mode(spec, alt_m, then_ne)
         # ArduPilot: a "user takeoff" in the current mode, armed and on the ground only.
         if not self.armed:
             return CommandOutcome(flavour.result_refused, "not armed")
@@ -471,6 +553,10 @@ class Vehicle:
 
     # ------------------------------------------------------------------ internals: rules
 
+    def say(self, severity: Severity, text: str) -> None:
+        """Queue a STATUSTEXT for every ground station (the protocol's own refusals use it)."""
+        self._emit(severity, text)
+
     def _emit(self, severity: Severity, text: str) -> None:
         if text:
             self._events.append(StatusText(severity, text))
@@ -481,7 +567,9 @@ class Vehicle:
 
     def _arming_refusal(self) -> str:
         """Why arming is refused now, or "" if it is allowed."""
-        if not self.ready:
+        if not self.prearm_ok:
+            return self.flavour.text_prearm_failing
+        if not self.ready and (self.mode.needs_position or self.flavour.name == "px4"):
             return self.flavour.text_arm_not_ready
         if not self.mode.allows_arming:
             return self.flavour.text_arm_mode
@@ -583,11 +671,14 @@ class Vehicle:
         """Where the vehicle comes to rest if it brakes now (what a new hold mode holds)."""
         return stopping_point(self.position, self.velocity, self._limits())
 
-    def _start_takeoff_mode(self, spec: ModeSpec, alt_m: float) -> CommandOutcome:
-        """PX4: enter AUTO.TAKEOFF; the climb starts now if armed, else when armed."""
+    def _start_takeoff_mode(
+        self, spec: ModeSpec, alt_m: float, then_ne: tuple[float, float] | None = None
+    ) -> CommandOutcome:
+        """PX4: enter AUTO.TAKEOFF; the climb starts now if armed, else when armed, straight up;
+        with a take-off position the vehicle then flies there and holds."""
         self._enter_mode(spec, "takeoff")
         start = self.time_s if self.armed else None
-        self._takeoff = _Takeoff(self.position.n, self.position.e, alt_m, start)
+        self._takeoff = _Takeoff(self.position.n, self.position.e, alt_m, start, then_ne)
         self.counters["takeoffs"] += 1
         log.info("takeoff to %.1f m", alt_m)
         return CommandOutcome(MavResult.ACCEPTED)
@@ -596,11 +687,12 @@ class Vehicle:
         assert self._takeoff is not None
         tk = self._takeoff
         self._takeoff = None
-        self._hold = Vec3(tk.north_m, tk.east_m, -tk.alt_m)
+        north_m, east_m = tk.then_ne if tk.then_ne is not None else (tk.north_m, tk.east_m)
+        self._hold = Vec3(north_m, east_m, -tk.alt_m)
         log.info("takeoff complete at %.1f m", self.alt_m)
         if self.mode.behaviour is Behaviour.TAKEOFF:
             self._enter_mode(self.flavour.mode(self.flavour.hold_mode), "takeoff complete")
-            self._hold = Vec3(tk.north_m, tk.east_m, -tk.alt_m)
+            self._hold = Vec3(north_m, east_m, -tk.alt_m)
 
     def _disarm(self, reason: str) -> None:
         self.armed = False
@@ -609,6 +701,17 @@ class Vehicle:
         log.info("disarmed: %s", reason)
 
     def _update_readiness(self) -> None:
+        now = self.time_s
+        if not self.origin_set and now >= self.origin_delay_s:
+            self.origin_set = True
+            if self.flavour.sends_ekf_status:
+                self._emit(Severity.INFO, "EKF3 IMU0 origin set")
+        if not self.prearm_ok and now >= self.prearm_delay_s:
+            self.prearm_ok = True
+        switch_s = self.mode_switch_read_s
+        if not self._mode_switch_read and switch_s is not None and now >= switch_s:
+            self._mode_switch_read = True
+            self.rc_mode_switch(self.flavour.initial_mode)
         if not self.ready and self.time_s >= self.ready_delay_s:
             self.ready = True
             for text in self.flavour.text_ready:

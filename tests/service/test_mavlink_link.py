@@ -9,22 +9,18 @@ from __future__ import annotations
 import math
 import socket
 import time
-from collections.abc import Callable, Iterator
-from typing import Any, TypeVar
+from typing import TypeVar
 
 import pytest
 
-from service.frames import FrameConfig, area_to_ned
+from service.frames import area_to_ned
 from service.mavlink_link import LinkConfig, MavlinkLink, signing_key_from_passphrase
-from sim.config import AreaConfig
 from sitl_mock.server import MockAutopilot
+from tests.service.conftest import AREA, FRAMES
 from tests.sitl_mock.helpers import wait_for
 
 T = TypeVar("T")
 
-AREA = AreaConfig(size_x_m=60.0, size_y_m=60.0, zone_m=5.0, z_min_m=5.0, z_max_m=20.0)
-FRAMES = FrameConfig(area_origin_north_m=-20.0, area_origin_east_m=-10.0)
-"""Home (the vehicle's NED origin) is at area (10, 20, 0)."""
 HOME_AREA_M = (10.0, 20.0, 0.0)
 FAST_VEHICLE = {"accel_h_mps2": 5.0, "accel_v_mps2": 5.0, "max_speed_up_mps": 5.0}
 
@@ -33,23 +29,6 @@ def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         sock.bind(("127.0.0.1", 0))
         return sock.getsockname()[1]
-
-
-@pytest.fixture
-def open_link() -> Iterator[Callable[..., MavlinkLink]]:
-    """Factory: ``open_link(url, **LinkConfig fields)``: a started link, closed at teardown."""
-    links: list[MavlinkLink] = []
-
-    def _open(url: str, **options: Any) -> MavlinkLink:
-        options.setdefault("area", AREA)
-        options.setdefault("frames", FRAMES)
-        link = MavlinkLink(LinkConfig(url, **options))
-        links.append(link)
-        return link.start()
-
-    yield _open
-    for link in links:
-        link.close()
 
 
 def tcp_url(mock: MockAutopilot) -> str:

@@ -43,7 +43,8 @@ def test_no_telemetry_until_asked_then_set_message_interval_and_data_streams(sta
     client.mav.request_data_stream_send(1, 1, mavlink.MAV_DATA_STREAM_EXTRA1, 5, 1)
     client.wait("ATTITUDE")
     ack = client.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 99999, 1e5)
-    assert ack.result == mavlink.MAV_RESULT_FAILED  # no such message
+    assert ack.result == mavlink.MAV_RESULT_DENIED  # no such message: DENIED, as ArduCopter
+    assert any("99999" in text for text in client.statustexts)  # said before the ACK
 
 
 def test_request_message_and_autopilot_version(start_mock, connect):
@@ -95,13 +96,14 @@ def fly_guided_takeoff(client: MavClient, mock, alt_m: float) -> None:
     for name in ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "POSITION_TARGET_LOCAL_NED"):
         assert client.set_message_interval(name, 10.0).result == mavlink.MAV_RESULT_ACCEPTED
     client.set_message_interval("EXTENDED_SYS_STATE", 5.0)
-    # Arming is refused until the position estimate is ready; clients retry.
+    # Arming is refused until the pre-arm checks pass, and in GUIDED until the EKF uses GPS.
     ack = client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
     assert ack.result == mavlink.MAV_RESULT_FAILED
-    assert "Arm: Need Position Estimate" in client.statustexts
-    client.wait("STATUSTEXT", lambda m: "origin set" in m.text, timeout_s=10.0)
+    assert any(text.startswith("PreArm:") for text in client.statustexts)
+    client.wait("STATUSTEXT", lambda m: "using GPS" in m.text, timeout_s=10.0)
     ack = client.command(mavlink.MAV_CMD_DO_SET_MODE, 1, GUIDED)
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+    client.wait("HEARTBEAT", lambda m: m.custom_mode == GUIDED)
     assert client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == 0
     assert client.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, alt_m).result == 0
     client.wait(
@@ -150,7 +152,7 @@ def test_guided_arm_takeoff_and_fly_to_a_local_ned_setpoint(start_mock, connect)
 def test_setpoint_while_takeoff_is_on_the_ground_leaves_the_vehicle_down(start_mock, connect):
     mock = start_mock("ardupilot", auto_disarm_s=2.0)
     client = connect(mock)
-    client.wait("STATUSTEXT", lambda m: "origin set" in m.text)
+    client.wait("STATUSTEXT", lambda m: "using GPS" in m.text)
     assert client.command(mavlink.MAV_CMD_DO_SET_MODE, 1, GUIDED).result == 0
     assert client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == 0
     assert client.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 10).result == 0
@@ -166,7 +168,7 @@ def test_setpoint_while_takeoff_is_on_the_ground_leaves_the_vehicle_down(start_m
 def test_command_int_and_set_mode_message(start_mock, connect):
     mock = start_mock("ardupilot")
     client = connect(mock)
-    client.wait("STATUSTEXT", lambda m: "origin set" in m.text)
+    client.wait("STATUSTEXT", lambda m: "using GPS" in m.text)
     client.mav.set_mode_send(1, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, GUIDED)
     ack = client.wait("COMMAND_ACK", lambda m: m.command == mavlink.MAVLINK_MSG_ID_SET_MODE)
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED

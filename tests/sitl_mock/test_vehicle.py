@@ -56,18 +56,90 @@ def close_to(vehicle: Vehicle, point: tuple[float, float, float], tol_m: float =
 # ---------------------------------------------------------------- start-up, arming, modes
 
 
-def test_ardupilot_refuses_arming_and_guided_until_the_position_estimate_is_ready():
-    vehicle = Vehicle(ARDUPILOT, VehicleConfig(ready_delay_s=40.0))
+def test_ardupilot_start_up_as_arducopter_sitl_goes_through_it():
+    """Origin ~19 s, pre-arm ~22 s, GPS use ~40 s; GUIDED granted on the ground before any of it
+    (undone by the RC mode switch's first read at ~2.2 s); arming in STABILIZE once the pre-arm
+    checks pass, in GUIDED only once the EKF uses GPS."""
+    vehicle = Vehicle(ARDUPILOT, VehicleConfig())
+    outcome = vehicle.arm()
+    assert outcome.result is MavResult.FAILED
+    assert [e.text for e in vehicle.drain_events()] == ["PreArm: AHRS: waiting for home"]
+    assert vehicle.set_mode_by_name("GUIDED").accepted  # disarmed: no position needed
+    run_vehicle(vehicle, lambda v: v.mode.name == "STABILIZE", max_s=3.0)
+    assert 2.1 < vehicle.time_s < 2.3  # the mode switch's first read
+    assert vehicle.ekf_flags & 128  # constant-position mode: no GPS yet
+    run_vehicle(vehicle, lambda v: v.origin_set, max_s=20.0)
+    assert 18.9 < vehicle.time_s < 19.1
+    assert [e.text for e in vehicle.drain_events()] == ["EKF3 IMU0 origin set"]
+    run_vehicle(vehicle, lambda v: v.prearm_ok, max_s=23.0)
+    assert vehicle.set_mode_by_name("GUIDED").accepted
     outcome = vehicle.arm()
     assert outcome.result is MavResult.FAILED
     assert [e.text for e in vehicle.drain_events()] == ["Arm: Need Position Estimate"]
-    assert vehicle.set_mode_by_name("GUIDED").result is MavResult.FAILED
-    assert not vehicle.armed
+    vehicle.rc_mode_switch("STABILIZE")  # the pilot
+    assert vehicle.arm().accepted  # STABILIZE needs no position
+    assert vehicle.counters["arms_in_STABILIZE"] == 1
+    assert vehicle.takeoff(10.0).result is MavResult.FAILED  # no position estimate yet
+    assert vehicle.disarm().accepted
     run_vehicle(vehicle, lambda v: v.ready, max_s=41.0)
     assert 39.9 < vehicle.time_s < 40.1
-    assert any("origin set" in e.text for e in vehicle.drain_events())
+    assert "EKF3 IMU0 is using GPS" in [e.text for e in vehicle.drain_events()]
+    assert vehicle.ekf_flags == 831
+    assert vehicle.arm().accepted
+    assert vehicle.takeoff(10.0).result is MavResult.FAILED  # STABILIZE: no take-off
+    vehicle.rc_mode_switch("ALT_HOLD")
+    assert vehicle.takeoff(10.0).result is MavResult.FAILED  # ALT_HOLD does not navigate
+    assert vehicle.set_mode_by_name("GUIDED").accepted
+    assert vehicle.takeoff(10.0).accepted
+
+
+def test_ardupilot_refuses_guided_when_armed_without_a_position_and_takeoff_when_disarmed():
+    vehicle = Vehicle(ARDUPILOT, VehicleConfig())
+    run_vehicle(vehicle, lambda v: v.prearm_ok, max_s=23.0)
+    assert vehicle.arm().accepted  # STABILIZE
+    outcome = vehicle.set_mode_by_name("GUIDED")
+    assert outcome.result is MavResult.FAILED
+    assert "requires position" in outcome.reason
+    assert vehicle.disarm().accepted
+    run_vehicle(vehicle, lambda v: v.ready, max_s=41.0)
+    assert vehicle.set_mode_by_name("GUIDED").accepted
+    assert vehicle.takeoff(10.0).result is MavResult.FAILED  # disarmed
+
+
+def test_ardupilot_disarms_10_s_after_arming_without_taking_off():
+    vehicle = Vehicle(ARDUPILOT, VehicleConfig(ready_delay_s=1.0))
+    run_vehicle(vehicle, lambda v: v.ready, max_s=2.0)
     assert vehicle.set_mode_by_name("GUIDED").accepted
     assert vehicle.arm().accepted
+    armed_at = vehicle.time_s
+    run_vehicle(vehicle, lambda v: not v.armed, max_s=12.0)
+    assert 9.9 < vehicle.time_s - armed_at < 10.1
+    assert vehicle.takeoff(10.0).result is MavResult.FAILED
+
+
+def test_px4_takes_off_at_a_near_position_and_not_at_a_far_one():
+    vehicle = Vehicle(PX4, VehicleConfig(ready_delay_s=1.0))
+    run_vehicle(vehicle, lambda v: v.ready, max_s=2.0)
+    home = vehicle.home
+    assert vehicle.arm().accepted
+    # Latitude/longitude 0/0, as a client that writes 0 for "unused": accepted, never flown.
+    assert vehicle.takeoff(home.alt_amsl_m + 10.0, 0.0, 0.0).accepted
+    assert vehicle.mode.name == "AUTO.TAKEOFF"
+    run_vehicle(vehicle, lambda v: not v.armed, max_s=12.0)
+    assert vehicle.alt_m == 0.0 and vehicle.counters["takeoffs_not_flown"] == 1
+    assert "Disarmed by auto preflight disarming" in [e.text for e in vehicle.drain_events()]
+    # NaN: where it stands.
+    assert vehicle.arm().accepted
+    assert vehicle.takeoff(home.alt_amsl_m + 10.0, NAN, NAN).accepted
+    run_vehicle(vehicle, lambda v: v.mode.name == "AUTO.LOITER", max_s=30.0)
+    assert close_to(vehicle, (0.0, 0.0, -10.0), 0.5)
+    # A near take-off position: up, then there.
+    vehicle2 = Vehicle(PX4, VehicleConfig(ready_delay_s=1.0))
+    run_vehicle(vehicle2, lambda v: v.ready, max_s=2.0)
+    there = ned_to_global(home, 30.0, -20.0, 0.0)
+    assert vehicle2.arm().accepted
+    assert vehicle2.takeoff(home.alt_amsl_m + 8.0, there.lat_deg, there.lon_deg).accepted
+    run_vehicle(vehicle2, lambda v: close_to(v, (30.0, -20.0, -8.0)), max_s=40.0)
 
 
 def test_px4_refuses_arming_before_ready_with_temporarily_rejected():
