@@ -98,6 +98,8 @@ RETRY_MAX_S = 10.0
 """Backoff between take-off attempts: doubles from min to max."""
 POSITION_FRESH_S = 2.0
 """LOCAL_POSITION_NED older than this does not count as a position estimate."""
+REFUSAL_TEXT_WAIT_S = 0.5
+"""How long a refusal waits for the vehicle's STATUSTEXT that explains it."""
 STATUS_TEXTS_KEPT = 8
 """How many of the vehicle's latest STATUSTEXTs :meth:`VehicleLinkBase.state` shows."""
 
@@ -511,13 +513,21 @@ class VehicleLinkBase(ABC):
         name = entry.name.removeprefix("MAV_SEVERITY_") if entry is not None else str(severity)
         with self._cond:
             self._status_texts.append((time.monotonic(), f"{name}: {text}"))
+            self._cond.notify_all()
         level = logging.WARNING if severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO
         log.log(level, "vehicle says: %s", text)
 
     def _texts_since(self, since: float) -> str:
-        """The vehicle's STATUSTEXTs since ``since`` (monotonic), for a refusal's reason."""
+        """The vehicle's STATUSTEXTs since ``since`` (monotonic), for a refusal's reason; waits
+        up to ``REFUSAL_TEXT_WAIT_S`` for one (a refusal's text may come just after its ACK)."""
+        until = time.monotonic() + REFUSAL_TEXT_WAIT_S
         with self._cond:
-            texts = [text for at, text in self._status_texts if at >= since]
+            while True:
+                texts = [text for at, text in self._status_texts if at >= since]
+                remaining = until - time.monotonic()
+                if texts or remaining <= 0 or self._stop.is_set():
+                    break
+                self._cond.wait(remaining)
         return "; vehicle said: " + " | ".join(texts) if texts else ""
 
     def _set_phase(self, phase: str) -> None:

@@ -21,6 +21,7 @@ are sampled each step. Queue state carries over between steps: pass the previous
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -29,6 +30,7 @@ from numba import njit
 
 from sim.channel import SPEED_OF_LIGHT_MPS, rician_power_gain
 from sim.config import AreaConfig, NetworkConfig
+from sim.errors import InputError
 from sim.mac import (
     collision_table,
     contention_overhead,
@@ -158,13 +160,29 @@ class NetworkModel:
         rng: np.random.Generator | None = None,
         step_s: float = 1.0,
     ) -> StepResult:
-        """Simulate ``step_s`` seconds for each of the B positions in ``uav_xyz_m`` (B, 3)."""
+        """Simulate ``step_s`` seconds for each of the B positions in ``uav_xyz_m`` (B, 3).
+
+        ``users_xy_m`` is (U, 2), ``load_bps`` (U,), ``state`` (if given) holds (B, U) arrays.
+        Shapes and values are checked here, once per call, never in the compiled kernel: a
+        mismatch, a non-finite position or load, a negative load or a non-positive ``step_s``
+        raises :class:`~sim.errors.InputError` naming the argument.
+        """
         uav = np.atleast_2d(np.asarray(uav_xyz_m, dtype=float))
-        users = np.asarray(users_xy_m, dtype=float).reshape(-1, 2)
-        arrival_pps = np.asarray(load_bps, dtype=float).reshape(-1) / self._packet_bits
-        batch, n_users = uav.shape[0], users.shape[0]
+        users = np.asarray(users_xy_m, dtype=float)
+        load = np.asarray(load_bps, dtype=float)
+        batch, n_users = _check_step_inputs(uav, users, load, step_s)
+        users = users.reshape(n_users, 2)
+        arrival_pps = load.reshape(n_users) / self._packet_bits
         if state is None:
             state = self.initial_state(batch, n_users)
+        elif state.backlog_pkts.shape != (batch, n_users) or state.codel_count.shape != (
+            batch,
+            n_users,
+        ):
+            raise InputError(
+                f"state: queue arrays must be ({batch}, {n_users}) for {batch} positions and "
+                f"{n_users} users, got {state.backlog_pkts.shape} and {state.codel_count.shape}"
+            )
         if rng is None:
             gains_db = np.empty((batch, n_users, 0))
         else:
@@ -191,6 +209,34 @@ class NetworkModel:
             snr_db=snr_db,
             connected=connected,
         )
+
+
+def _check_step_inputs(
+    uav: np.ndarray, users: np.ndarray, load: np.ndarray, step_s: float
+) -> tuple[int, int]:
+    """(B, U) for :meth:`NetworkModel.step`'s arguments, or InputError naming the bad one."""
+    if uav.ndim != 2 or uav.shape[1] != 3:
+        raise InputError(f"uav_xyz_m: must be (B, 3) positions, got shape {uav.shape}")
+    flat_pairs = users.ndim == 1 and users.size % 2 == 0
+    if not (flat_pairs or (users.ndim == 2 and users.shape[1] == 2)):
+        raise InputError(f"users_xy_m: must be (U, 2) positions, got shape {users.shape}")
+    n_users = users.size // 2
+    if load.size != n_users:
+        raise InputError(
+            f"load_bps: must hold one load per user ({n_users}), got shape {load.shape}"
+        )
+    # One sum is finite exactly when every value is (or an absurd 1e308 overflowed it): the
+    # common case costs one pass; the slow path names the argument.
+    if not math.isfinite(float(uav.sum()) + float(users.sum()) + float(load.sum())):
+        for name, values in (("uav_xyz_m", uav), ("users_xy_m", users), ("load_bps", load)):
+            if not np.isfinite(values).all():
+                raise InputError(f"{name}: must be finite")
+        raise InputError("uav_xyz_m, users_xy_m, load_bps: values too large to simulate")
+    if load.size and load.min() < 0:
+        raise InputError("load_bps: loads must be non-negative")
+    if not (math.isfinite(step_s) and step_s > 0):
+        raise InputError(f"step_s: must be a positive number, got {step_s!r}")
+    return uav.shape[0], n_users
 
 
 @njit(cache=True)

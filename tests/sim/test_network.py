@@ -204,3 +204,40 @@ def test_many_users_contend_more():
         r = MODEL.step(uav, xy, np.full(n, 120e6 / n))
         totals.append(r.throughput_bps.sum())
     assert totals[0] >= totals[1] >= totals[2]
+
+
+@pytest.mark.parametrize(
+    ("uav", "users", "loads", "state_shape", "field"),
+    [
+        (
+            [[100.0, 100.0, 25.0]],
+            [[10.0, 10.0], [20.0, 20.0], [30.0, 30.0]],
+            [1e6, 2e6],
+            None,
+            "load_bps",
+        ),
+        ([[100.0, 100.0, 25.0]], [[10.0, 10.0], [20.0, 20.0]], [1e6, 2e6], (2, 2), "state"),
+        ([[100.0, 100.0, 25.0]], [[np.nan, 10.0], [20.0, 20.0]], [1e6, 2e6], None, "users_xy_m"),
+        ([[np.inf, 100.0, 25.0]], [[10.0, 10.0], [20.0, 20.0]], [1e6, 2e6], None, "uav_xyz_m"),
+        ([[100.0, 100.0, 25.0]], [[10.0, 10.0], [20.0, 20.0]], [1e6, -2e6], None, "load_bps"),
+        ([[100.0, 100.0]], [[10.0, 10.0], [20.0, 20.0]], [1e6, 2e6], None, "uav_xyz_m"),
+        ([[100.0, 100.0, 25.0]], [[10.0, 10.0, 1.0]], [1e6], None, "users_xy_m"),
+    ],
+)
+def test_step_refuses_mismatched_or_non_finite_inputs_naming_them(
+    uav, users, loads, state_shape, field
+):
+    """Checked once per call at the public boundary: before, 3 users with 2 loads read past
+    the end of an array, a state of the wrong batch was read out of bounds, and a non-finite
+    position divided by zero inside the compiled kernel."""
+    from sim.errors import InputError
+    from sim.network import QueueState
+
+    model = NetworkModel()
+    state = QueueState.empty(*state_shape) if state_shape else None
+    with pytest.raises(InputError, match=field):
+        model.step(np.array(uav), np.array(users), np.array(loads), state)
+    with pytest.raises(InputError, match="step_s"):
+        model.step(
+            np.array([[1.0, 1.0, 25.0]]), np.array([[1.0, 1.0]]), np.array([1e6]), None, step_s=0.0
+        )
