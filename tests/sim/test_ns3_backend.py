@@ -1,9 +1,11 @@
 """The ns-3 backend: two short cases in ns-3 3.44, their agreement with the fast model, and how
 a crashing or hanging worker is reported.
 
-Skipped when ns-3 is not installed. The check is ``importorskip("ns3")`` rather than ``"ns"``:
-``import ns`` loads all of ns-3 into the test process (~15 s) although the backend only ever
-imports it in its worker process; ``ns3`` is the installed package's cheap top-level namespace.
+The tests that run ns-3 are skipped when it is not installed (the ``runner`` fixture); the check
+is ``importorskip("ns3")`` rather than ``"ns"``: ``import ns`` loads all of ns-3 into the test
+process (~15 s) although the backend only ever imports it in its worker process; ``ns3`` is the
+installed package's cheap top-level namespace. The tests of the missing-ns-3 error and of the
+worker supervision (fake workers) need no ns-3 and always run.
 
 Tolerances published (README, "How faithful is the fast model") for the agreement between
 backends on these cases, with the fast model's default constants (fitted to the calibration
@@ -27,10 +29,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip(
-    "ns3", reason="ns-3 is not installed (pip install 'tupa[ns3]'): the ns-3 backend is optional"
-)
-
 from sim.calibration.fit import HAND_SET
 from sim.config import NetworkConfig
 from sim.errors import InputError
@@ -47,7 +45,7 @@ from sim.ns3_backend import (
 )
 from sim.scenarios import Case
 
-pytestmark = pytest.mark.slow
+NO_NS3 = "ns-3 is not installed (pip install 'tupa[ns3]'): the ns-3 backend is optional"
 
 CLOSE = Case("close", [250.0, 250.0, 25.0], [[260.0, 250.0]], [10e6])
 FAR = Case("far", [0.0, 0.0, 25.0], [[460.0, 460.0]], [40e6])
@@ -55,8 +53,18 @@ FAR = Case("far", [0.0, 0.0, 25.0], [[460.0, 460.0]], [40e6])
 
 @pytest.fixture(scope="module")
 def runner():
+    pytest.importorskip("ns3", reason=NO_NS3)
     with Ns3Runner(niceness=10) as r:
         yield r
+
+
+@pytest.fixture
+def without_ns3_import(monkeypatch):
+    """The fake-worker tests supervise a stand-in process: no ns-3 needed in the runner."""
+    import sim.ns3_backend as backend
+
+    monkeypatch.setattr(backend, "require_ns3", lambda: None)
+    monkeypatch.setattr(backend, "ns3_version", lambda: None)
 
 
 # The fast model with its default (fitted) constants and with the hand-set ones.
@@ -68,6 +76,7 @@ def fast(case: Case, queueing: str, constants: str = "default"):
     return evaluate_case(model, case, None)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("queueing", ["fq-codel", "mac-only"])
 def test_close_single_user_carries_its_whole_load(runner, queueing):
     result = runner.run(CLOSE, Ns3Settings(queueing=queueing))
@@ -83,6 +92,7 @@ def test_close_single_user_carries_its_whole_load(runner, queueing):
         assert m.utility == pytest.approx(reference.utility, abs=0.01)
 
 
+@pytest.mark.slow
 def test_far_user_at_low_mcs_loses_packets(runner):
     result = runner.run(FAR, Ns3Settings(queueing="mac-only"), index=1)
     m, detail = result.metrics, result.detail
@@ -101,6 +111,7 @@ def test_far_user_at_low_mcs_loses_packets(runner):
         assert m.utility == pytest.approx(reference.utility, abs=0.06)
 
 
+@pytest.mark.slow
 def test_fq_codel_queues_instead_of_dropping(runner):
     # 1.5 s of overload: the queue disc (10,240 packets) has not filled up yet.
     result = runner.run(FAR, Ns3Settings(queueing="fq-codel", measure_s=1.0), index=1)
@@ -110,6 +121,7 @@ def test_fq_codel_queues_instead_of_dropping(runner):
     assert result.metrics.plr[0] < 0.05
 
 
+@pytest.mark.slow
 def test_same_seed_and_index_reproduce_exactly(runner):
     settings = Ns3Settings(queueing="mac-only", seed=3, warmup_s=0.2, measure_s=0.5)
     a = runner.run(FAR, settings, index=7)
@@ -160,7 +172,9 @@ def use_fake_worker(tmp_path: Path, monkeypatch, runner: Ns3Runner, mode: str) -
 
 
 @pytest.mark.parametrize(("mode", "message"), [("crash", "exited"), ("hang", "time limit")])
-def test_crashing_or_hanging_worker_reports_the_case(tmp_path, monkeypatch, mode, message):
+def test_crashing_or_hanging_worker_reports_the_case(
+    tmp_path, monkeypatch, mode, message, without_ns3_import
+):
     runner = Ns3Runner(case_timeout_s=2.0, start_timeout_s=30.0)
     use_fake_worker(tmp_path, monkeypatch, runner, mode)
     with runner, pytest.raises(Ns3CaseError, match=message) as info:
@@ -170,7 +184,7 @@ def test_crashing_or_hanging_worker_reports_the_case(tmp_path, monkeypatch, mode
     assert runner._proc is None  # the worker is gone; the next run starts a fresh one
 
 
-def test_worker_that_cannot_start_fails_fast(tmp_path, monkeypatch):
+def test_worker_that_cannot_start_fails_fast(tmp_path, monkeypatch, without_ns3_import):
     with Ns3Runner(start_timeout_s=30.0) as runner:
         use_fake_worker(tmp_path, monkeypatch, runner, "nostart")
         for _ in range(2):
@@ -180,6 +194,7 @@ def test_worker_that_cannot_start_fails_fast(tmp_path, monkeypatch):
             runner.run(FAR)
 
 
+@pytest.mark.slow
 def test_committed_calibration_result_reproduces(runner):
     """sim/calibration/ns3_mac-only.json was made with these settings: case i, seed s."""
     import json
