@@ -15,6 +15,7 @@ import pytest
 
 from service.frames import area_to_ned
 from service.mavlink_link import LinkConfig, MavlinkLink, signing_key_from_passphrase
+from sitl_mock.config import VehicleConfig
 from sitl_mock.server import MockAutopilot
 from tests.service.conftest import AREA, FRAMES
 from tests.sitl_mock.helpers import wait_for
@@ -220,3 +221,64 @@ def test_ardupilot_without_set_message_interval_gets_request_data_stream(
         assert time.monotonic() - up >= 1.4
     else:
         assert mock.stats["commands_unsupported"] == 0
+
+
+@pytest.mark.slow
+def test_mode_requests_stop_after_the_window_so_a_pilot_keeps_control(start_mock, open_link):
+    """Within ``mode_request_window_s`` of a new target the link asks for GUIDED again after a
+    mode change; after it, a pilot who switched away keeps the vehicle."""
+    mock = start_mock("ardupilot", **FAST_VEHICLE)
+    link = open_link(tcp_url(mock), mode_request_window_s=2.0, mode_retry_s=0.2)
+    link.arm_and_takeoff().result(timeout=30.0)
+    link.set_target((12.0, 22.0, 8.0))
+    wait_for(lambda: mock.state().mode == "GUIDED", 5.0, message="GUIDED")
+    mock.with_vehicle(lambda vehicle: vehicle.rc_mode_switch("LOITER"))  # inside the window
+    wait_for(lambda: mock.state().mode == "GUIDED", 5.0, message="GUIDED asked for again")
+    window_end = link._mode_wanted_until
+    wait_for(lambda: time.monotonic() > window_end + 0.3, 5.0, message="the window closed")
+    requests = link.counters["mode_requests"]
+    mock.with_vehicle(lambda vehicle: vehicle.rc_mode_switch("LOITER"))  # the pilot takes over
+    switched = time.monotonic()
+    wait_for(lambda: time.monotonic() - switched > 2.0, 5.0, message="two seconds in LOITER")
+    assert mock.state().mode == "LOITER"
+    assert link.counters["mode_requests"] == requests
+    assert link.state().streaming  # the target still streams; the vehicle ignores it in LOITER
+
+
+def test_heartbeats_of_other_ground_stations_and_companions_are_not_the_vehicle():
+    from pymavlink.dialects.v20 import ardupilotmega as dialect
+
+    link = MavlinkLink(LinkConfig("tcp:127.0.0.1:1", area=AREA, frames=FRAMES))  # not started
+    for source, kind, autopilot in (
+        (255, dialect.MAV_TYPE_GCS, dialect.MAV_AUTOPILOT_INVALID),  # a ground station
+        (1, dialect.MAV_TYPE_ONBOARD_CONTROLLER, dialect.MAV_AUTOPILOT_INVALID),  # a companion
+        (7, dialect.MAV_TYPE_GCS, dialect.MAV_AUTOPILOT_ARDUPILOTMEGA),  # a GCS claiming APM
+    ):
+        encoder = dialect.MAVLink(None, srcSystem=source, srcComponent=190)
+        message = encoder.heartbeat_encode(kind, autopilot, 0, 0, dialect.MAV_STATE_ACTIVE)
+        message.pack(encoder)  # sets the header the link reads
+        link._handle(message)
+    state = link.state()
+    assert state.link == "connecting" and state.flavour is None and state.mode is None
+    assert link._target_sys == 1  # still addressing the default, not a ground station
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("system_id", "component_id"), [(42, 1), (42, 7)])
+def test_a_vehicle_with_other_ids_is_addressed_by_them(open_link, system_id, component_id):
+    mock = MockAutopilot(
+        "tcp:127.0.0.1:0",
+        "ardupilot",
+        VehicleConfig(ready_delay_s=0.3, **FAST_VEHICLE),
+        system_id=system_id,
+        component_id=component_id,
+    ).start()
+    try:
+        link = open_link(tcp_url(mock))
+        link.arm_and_takeoff().result(timeout=30.0)
+        link.set_target((14.0, 24.0, 8.0))
+        wait_for(lambda: mock.stats["setpoints_accepted"] > 5, 10.0, message="setpoints taken")
+        assert mock.stats["not_for_us"] == 0
+        assert (link._target_sys, link._target_comp) == (system_id, component_id)
+    finally:
+        mock.stop()
