@@ -3,11 +3,12 @@
 The link (either backend) streams to an in-process PX4-flavoured mock whose every received local
 setpoint is timestamped (the vehicle's setpoint handler wrapped for the test). Targets are
 changed at random moments of the streamer's 100 ms period. Waiting for the next tick would make
-the delay from ``set_target`` to the first setpoint carrying it the rest of the period: strongly
-anti-correlated with the moment chosen (-1 for a pure tick wait). Sending at once leaves the two
-unrelated, however slow the machine, so that is what the test asserts; the milliseconds are
-printed here and measured in ``benchmarks/service_latency.py`` (README: p50 5.9 ms). The steady
-stream keeps well above PX4's 2 Hz offboard requirement meanwhile (MAVSDK also re-sends the latest
+the delay from ``set_target`` to the first setpoint carrying it the rest of the period: 50 ms in
+the median. Sending at once takes a few milliseconds (the link loop's 5 ms input wait, loopback,
+and the 20 ms minimum gap after a tick). The test asserts the median is under half a period, a
+margin of about ten times that no loaded machine eats without a bug; the milliseconds are printed
+here and measured in ``benchmarks/service_latency.py`` (README: p50 5.9 ms). The steady stream
+keeps well above PX4's 2 Hz offboard requirement meanwhile (MAVSDK also re-sends the latest
 setpoint at 20 Hz itself).
 """
 
@@ -68,14 +69,11 @@ def test_a_new_target_is_on_the_wire_within_milliseconds(start_mock, tap, backen
         wait_for(lambda: len(tap) >= 5, 3.0, message="the stream running")
         rng = random.Random(7)
         delays_s = []
-        phases_s = []
         for i in range(20):
             # Land anywhere in the streamer's period (a condition wait on the tap, then a jitter).
             count = len(tap)
             wait_for(lambda c=count: len(tap) > c, 1.0, 0.001, message="a tick")
-            phase_s = rng.uniform(0.0, PERIOD_S)
-            phases_s.append(phase_s)
-            time.sleep(phase_s)  # the phase offset itself, not a wait
+            time.sleep(rng.uniform(0.0, PERIOD_S))  # the phase offset itself, not a wait
             target = (10.0 + i, 30.0 - i / 2, 8.0 + (i % 3))
             sent = time.monotonic()
             link.set_target(target)
@@ -91,8 +89,5 @@ def test_a_new_target_is_on_the_wire_within_milliseconds(start_mock, tap, backen
     print(f"{backend}: decision to wire: median {np.median(ms):.1f} ms, "
           f"p90 {np.percentile(ms, 90):.1f} ms, max {ms.max():.1f} ms; "
           f"steady rate {steady_hz:.1f} Hz")  # fmt: skip
-    correlation = float(np.corrcoef(phases_s, delays_s)[0, 1])
-    print(f"{backend}: correlation of delay with the moment in the period: {correlation:.2f}")
-    assert correlation > -0.5  # a tick wait gives about -1
-    assert np.median(ms) < 1e3 * PERIOD_S  # and it never waits a whole period in the median
+    assert np.median(ms) < 1e3 * PERIOD_S / 2  # a tick wait: 50 ms; at once: a few ms
     assert steady_hz >= 5.0
