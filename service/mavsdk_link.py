@@ -36,11 +36,15 @@ How it maps onto MAVSDK:
   backend does, so that the vehicle's own offboard-loss failsafe acts (``Offboard.stop`` would
   also switch to Hold). MAVSDK has no call for that, so the Offboard plugin is dropped and made
   anew, which ends its re-sending.
-* arm and takeoff: arming through the Action plugin; the takeoff as MAV_CMD_NAV_TAKEOFF through
-  MavlinkDirect, with the altitude in param7 (AMSL on PX4, above home on ArduPilot), as the
-  pymavlink backend sends it. ``Action.takeoff`` is not used: on PX4 it climbs to MIS_TAKEOFF_ALT,
-  and ``Action.set_takeoff_altitude`` would rewrite that vehicle parameter, which a service must
-  not do behind the operator's back.
+* arm and takeoff: the shared take-off sequence (:meth:`VehicleLinkBase.arm_and_takeoff`);
+  arming through the Action plugin; the takeoff as MAV_CMD_NAV_TAKEOFF through MavlinkDirect,
+  with the params of :mod:`service.mavlink_commands` (NaN as JSON null), as the pymavlink
+  backend sends it. The vehicle's STATUSTEXTs come from Telemetry's ``status_text``. This
+  backend (meant for PX4) does not subscribe to ArduPilot's EKF_STATUS_REPORT: on ArduPilot it
+  waits for LOCAL_POSITION_NED only, and ArduCopter's arming refusals until its EKF uses GPS are
+  retried with backoff. ``Action.takeoff`` is not used: on PX4 it climbs to MIS_TAKEOFF_ALT, and
+  ``Action.set_takeoff_altitude`` would rewrite that vehicle parameter, which a service must not
+  do behind the operator's back.
 * link loss: no vehicle HEARTBEAT for ``heartbeat_timeout_s`` -> ``link_lost``, streaming stops,
   the MAVSDK instance is dropped and made anew with backoff (``reconnect_min_s`` to
   ``reconnect_max_s``); the latest target streams again once the vehicle is back.
