@@ -4,6 +4,7 @@ and the policy runtime (same observation as the environment, valid masked moves)
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -199,5 +200,74 @@ def test_a_report_held_for_the_link_is_decided_once_the_link_is_back(
         assert decision.source == "policy"
         assert service.snapshot_counters()["decisions"] == 1
         assert service.vehicle().target_m == pytest.approx(decision.target_m)
+    finally:
+        service.stop()
+
+
+def test_a_report_held_for_the_link_that_went_stale_meanwhile_is_not_flown(
+    start_mock: Callable[..., MockAutopilot],
+) -> None:
+    placeholder = start_mock("px4")
+    port = placeholder.port
+    placeholder.stop()
+    config = ServiceSettings(
+        mavlink=f"tcp:127.0.0.1:{port}",
+        api_token="t",
+        policy="load-weighted",
+        decision_mode="on-report",
+        report_max_age_s=0.5,
+    )
+    service = PlacementService(
+        config, MavlinkLink(LinkConfig(config.mavlink)), load_policy("load-weighted")
+    ).start()
+    try:
+        assert service.submit_report(Report(1.0, ("a", "b", "c"), reports())) is None
+        held_at = service.snapshot_counters()["decisions_waiting_link"]
+        assert held_at == 1
+        submitted = time.monotonic()
+        wait_for(lambda: time.monotonic() - submitted > 0.6, 2.0, message="the report to age")
+        mock = start_mock("px4", listen=f"tcp:127.0.0.1:{port}")
+        # The link comes back; the watcher looks at the kept report, finds it stale, holds it.
+        wait_for(
+            lambda: service.snapshot_counters().get("decisions_held_stale", 0) >= 1,
+            20.0,
+            message="the stale report held once the link is back",
+        )
+        assert service.current_decision() is None
+        assert service.snapshot_counters().get("decisions", 0) == 0
+        assert service.vehicle().target_m is None
+        assert mock.stats["setpoints_received"] == 0
+    finally:
+        service.stop()
+
+
+@pytest.mark.parametrize(
+    "content",
+    ["{not json", '{"decision": {"target_m": ["nan", 1, 2], "policy": "x"}}', "[1, 2, 3]"],
+    ids=["corrupt", "bad-target", "not-an-object"],
+)
+def test_an_unreadable_state_file_still_makes_the_start_a_restart_that_arms_nothing(
+    start_mock: Callable[..., MockAutopilot], tmp_path: Any, content: str
+) -> None:
+    mock = start_mock("px4")
+    state_file = tmp_path / "state.json"
+    state_file.write_text(content)
+    config = ServiceSettings(
+        mavlink=f"tcp:127.0.0.1:{mock.port}",
+        api_token="t",
+        policy="load-weighted",
+        arm_and_takeoff=True,
+        state_file=state_file,
+    )
+    link = MavlinkLink(LinkConfig(config.mavlink))
+    service = PlacementService(config, link, load_policy("load-weighted")).start()
+    try:
+        wait_for(lambda: service.vehicle().position_m is not None, 10.0, message="telemetry")
+        connected = time.monotonic()
+        wait_for(lambda: time.monotonic() - connected > 2.0, 5.0, message="two seconds connected")
+        assert service.snapshot_counters()["state_restore_errors"] == 1
+        assert link.state().takeoff == "idle"  # deferred to the first fresh decision
+        assert mock.stats.get("arms", 0) == 0 and mock.stats.get("takeoffs", 0) == 0
+        assert not mock.state().armed
     finally:
         service.stop()
