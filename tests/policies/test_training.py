@@ -276,3 +276,52 @@ def test_checkpoint_files_get_the_usual_permissions(tmp_path, random_ddqn):
         os.umask(old_mask)
     for path in (source, dest, dest.with_suffix(".json")):
         assert path.stat().st_mode & 0o777 == 0o644, path
+
+
+def test_ctrl_c_saves_latest_with_its_replay_buffer_and_resume_continues_the_cycle(
+    tmp_path, test_file, monkeypatch
+):
+    """Ctrl-C (KeyboardInterrupt inside SB3's learn) after 4 episodes: latest.zip and the replay
+    buffer are saved, and --resume goes on with the 5th scenario of the cycle, its buffer full."""
+    from policies import training
+    from sim.envs import ScenarioCycle
+
+    out = tmp_path / "run"
+    original_on_step = training.TrainingCallback._on_step
+
+    def interrupt_after_four(self):
+        keep_going = original_on_step(self)
+        if self.run.episodes_done >= 4:
+            raise KeyboardInterrupt
+        return keep_going
+
+    monkeypatch.setattr(training.TrainingCallback, "_on_step", interrupt_after_four)
+    with pytest.raises(KeyboardInterrupt):
+        train(small_config(test_file, out, "ddqn", 12))
+    assert (out / "checkpoints" / "latest.zip").is_file()
+    assert (out / "checkpoints" / "latest_replay.pkl").is_file()
+    assert json.loads((out / training.RUN_FILE).read_text())["episodes_done"] == 4
+
+    monkeypatch.setattr(training.TrainingCallback, "_on_step", original_on_step)
+    visited: list[int] = []
+    original_next = ScenarioCycle.next
+
+    def recording_next(self, rng):
+        visited.append(self._next)
+        return original_next(self, rng)
+
+    monkeypatch.setattr(ScenarioCycle, "next", recording_next)
+    loaded_buffer_sizes: list[int] = []
+    original_load = training.algorithm_class("ddqn").load_replay_buffer
+
+    def recording_load(self, path, *args, **kwargs):
+        original_load(self, path, *args, **kwargs)
+        loaded_buffer_sizes.append(self.replay_buffer.size())
+
+    monkeypatch.setattr(training.algorithm_class("ddqn"), "load_replay_buffer", recording_load)
+    resumed = train(small_config(test_file, out, "ddqn", 8), resume=True)
+    assert resumed["episodes"] == 8
+    # Four episodes of 30 steps, less the last transition: SB3 stores it after the callback.
+    assert loaded_buffer_sizes and loaded_buffer_sizes[0] >= 4 * 30 - 1
+    # SB3 resets the env once when learn() starts: that first episode is the 5th scenario.
+    assert visited[:4] == [4, 5, 0, 1]
