@@ -1,4 +1,5 @@
-"""The FastAPI application: routers, auth, body-size limit, metrics, and the service's lifespan.
+"""The FastAPI application: routers, auth, header-count and body-size limits, rate limit,
+proxy headers (from trusted proxies only), metrics, and the service's lifespan.
 
 ``create_app(settings)`` builds the app; its lifespan opens the placement service (policy loaded
 and checked, MAVLink link started) before the first request and stops it cleanly afterwards.
@@ -80,6 +81,27 @@ class _BodyTooLargeError(Exception):
     pass
 
 
+class HeaderLimit:
+    """Pure ASGI middleware: 431 for a request with more than ``max_headers`` header lines,
+    before anything else looks at them. (Their total size is bounded by the server:
+    :mod:`api.server`.)"""
+
+    def __init__(self, app: ASGIApp, max_headers: int) -> None:
+        self.app = app
+        self.max_headers = max_headers
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http" and len(scope.get("headers", ())) > self.max_headers:
+            await send_error(
+                send,
+                431,
+                f"headers: more than {self.max_headers} header lines",
+                [(b"connection", b"close")],
+            )
+            return
+        await self.app(scope, receive, send)
+
+
 async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
     """422 naming each bad field: ``loc``, ``msg`` and ``type`` only (the offending input is
     not echoed: it may be a NaN that JSON cannot carry, or something large)."""
@@ -146,25 +168,35 @@ def create_app(
     registry.register(ServiceCollector(lambda: app.state.service))
     app.state.registry = registry
     http_metrics = HttpMetrics(registry)
-    # Middlewares, outermost last: rate limit, body size, metrics, token, then the routes.
+    # Middlewares, outermost last: header count, proxy headers (only from trusted proxies),
+    # rate limit, body size, metrics, token, then the routes.
     app.add_middleware(BearerGuard, token=app.state.api_token)
     app.add_middleware(HttpMetricsMiddleware, metrics=http_metrics)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
-    if settings.rate_limit_rps > 0:  # outermost: a flood is turned away before anything else
+    if settings.rate_limit_rps > 0:  # a flood is turned away before anything else runs
         app.add_middleware(
             RateLimit,
             rate_per_s=settings.rate_limit_rps,
             burst=settings.rate_limit_burst,
             on_reject=http_metrics.rate_limited.inc,
+            token=app.state.api_token,
         )
+    if settings.trusted_proxies:  # outside the limit: it counts the client the proxy names
+        from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
+
+        app.add_middleware(ProxyHeadersMiddleware, trusted_hosts=list(settings.trusted_proxies))
+    app.add_middleware(HeaderLimit, max_headers=settings.http_max_headers)
     app.include_router(v1, responses=RATE_LIMITED)
     app.include_router(probes)
     return app
 
 
 def run(settings: ServiceSettings, **uvicorn_options: Any) -> None:
-    """Serve ``settings`` with uvicorn until interrupted."""
+    """Serve ``settings`` with uvicorn (and the limits of :mod:`api.server`) until interrupted."""
     import uvicorn
 
+    from api.server import server_config
+
     app = create_app(settings)
-    uvicorn.run(app, host=settings.host, port=settings.port, **uvicorn_options)
+    config = server_config(app, settings, host=settings.host, port=settings.port, **uvicorn_options)
+    uvicorn.Server(config).run()

@@ -58,7 +58,7 @@ class BearerGuard:
             scope["type"] != "http"
             or self.token is None
             or not (path == self.prefix or path.startswith(self.prefix + "/"))
-            or _header_token_matches(scope, self.token)
+            or is_authenticated(scope, self.token)
         ):
             await self.app(scope, receive, send)
             return
@@ -69,7 +69,20 @@ class BearerGuard:
         await send_error(send, 401, UNAUTHORIZED, [(b"www-authenticate", b"Bearer")])
 
 
-def _header_token_matches(scope: Scope, expected: str) -> bool:
+_AUTHENTICATED = "tupa.authenticated"
+
+
+def is_authenticated(scope: Scope, expected: str) -> bool:
+    """:func:`bearer_token_matches`, computed once per request (the rate limit and the guard
+    both ask; the answer is kept in the request's scope)."""
+    known = scope.get(_AUTHENTICATED)
+    if known is None:
+        known = scope[_AUTHENTICATED] = bearer_token_matches(scope, expected)
+    return bool(known)
+
+
+def bearer_token_matches(scope: Scope, expected: str) -> bool:
+    """True when the request's ``Authorization: Bearer <token>`` header carries ``expected``."""
     for name, value in scope.get("headers", []):
         if name == b"authorization":
             scheme, _, credentials = value.decode("latin-1").partition(" ")

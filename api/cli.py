@@ -123,6 +123,7 @@ def _serve(args: argparse.Namespace) -> int:
     import logging
 
     from api.app import create_app
+    from api.server import server_config
     from service.placement import PlacementService
     from sim.errors import InputError
 
@@ -139,8 +140,6 @@ def _serve(args: argparse.Namespace) -> int:
 
     import socket
 
-    import uvicorn
-
     # Bind first, so that --port 0 gets a free port we can announce; uvicorn serves the socket.
     family = socket.AF_INET6 if ":" in settings.host else socket.AF_INET
     sock = socket.socket(family, socket.SOCK_STREAM)
@@ -151,8 +150,14 @@ def _serve(args: argparse.Namespace) -> int:
         service.link.close()
         raise InputError(f"port: cannot listen on {settings.host}:{settings.port}: {exc}") from None
     port = sock.getsockname()[1]
-    config = uvicorn.Config(
-        app, log_level=args.log_level, access_log=args.log_level == "debug", lifespan="on"
+    # The server's limits (head size, read and keep-alive timeouts, connections, no proxy
+    # headers unless trusted): api.server.
+    config = server_config(
+        app,
+        settings,
+        log_level=args.log_level,
+        access_log=args.log_level == "debug",
+        lifespan="on",
     )
     _announcing_server(config, f"http://{settings.host}:{port}").run(sockets=[sock])
     return 0

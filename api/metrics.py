@@ -41,6 +41,7 @@ class ServiceCollector(Collector):
         reports = CounterMetricFamily("tupa_reports", "User reports, by result", labels=["result"])
         reports.add_metric(["accepted"], counters.get("reports_accepted", 0))
         reports.add_metric(["out_of_order"], counters.get("reports_out_of_order", 0))
+        reports.add_metric(["from_the_future"], counters.get("reports_from_the_future", 0))
         yield reports
         yield CounterMetricFamily(
             "tupa_policy_swaps", "Policies swapped in", value=counters.get("policy_swaps", 0)

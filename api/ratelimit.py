@@ -1,7 +1,10 @@
 """Per-client rate limit: a token bucket per client address, as a pure ASGI middleware.
 
 Each client (the peer address of the connection) has a bucket of ``burst`` tokens that refills
-at ``rate_per_s`` tokens per second; a request takes one token. A request that finds the bucket
+at ``rate_per_s`` tokens per second; a request takes one token. Requests that carry the API
+token and requests that do not (no token, a wrong one: whoever sends them) have separate
+buckets per address, so a flood of unauthenticated requests from the controller's own address
+is limited without spending any of the controller's budget. A request that finds the bucket
 empty is answered ``429 Too Many Requests`` with ``Retry-After`` (whole seconds, at least 1)
 before any route runs. The probes ``/healthz`` and ``/readyz`` are never limited, so that a
 client flooding the service cannot make an orchestrator restart it.
@@ -9,7 +12,9 @@ client flooding the service cannot make an orchestrator restart it.
 The middleware runs on the event loop (one thread), so the buckets need no lock. At most
 ``max_clients`` buckets are kept (least recently seen dropped first): memory stays bounded
 whatever the number of addresses. Behind a reverse proxy every request has the proxy's address:
-limit there instead, or disable this one (``rate_limit_rps = 0``).
+name it in ``trusted_proxies`` (its ``X-Forwarded-For`` then names the client), limit there
+instead, or disable this one (``rate_limit_rps = 0``). ``X-Forwarded-For`` from anyone else is
+ignored: a client must not choose the address it is limited by.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from collections.abc import Callable
 
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from api.auth import is_authenticated
 from api.responses import send_error
 
 log = logging.getLogger(__name__)
@@ -68,7 +74,11 @@ class TokenBuckets:
 
 
 class RateLimit:
-    """Pure ASGI middleware: 429 with ``Retry-After`` for a client over its rate."""
+    """Pure ASGI middleware: 429 with ``Retry-After`` for a client over its rate.
+
+    ``token``: the API token; requests with and without it are counted apart (``None``: no
+    token is configured, every request counts as authenticated).
+    """
 
     def __init__(
         self,
@@ -77,17 +87,21 @@ class RateLimit:
         burst: int,
         on_reject: Callable[[], None] | None = None,
         max_clients: int = 10_000,
+        token: str | None = None,
     ) -> None:
         self.app = app
         self.buckets = TokenBuckets(rate_per_s, burst, max_clients)
         self.on_reject = on_reject
+        self.token = token
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or scope.get("path") in UNLIMITED_PATHS:
             await self.app(scope, receive, send)
             return
         client = scope.get("client")
-        key = str(client[0]) if client else "unknown"
+        address = str(client[0]) if client else "unknown"
+        authenticated = self.token is None or is_authenticated(scope, self.token)
+        key = address if authenticated else f"unauthenticated {address}"
         wait_s = self.buckets.take(key)
         if wait_s <= 0.0:
             await self.app(scope, receive, send)

@@ -1,12 +1,15 @@
 """The routes: ``/v1`` (authenticated) for reports, setpoint, vehicle and policy; probes; metrics.
 
-Handlers that only read the service's state (which it guards with short locks) are ``async``;
-those that may run a policy or load a checkpoint run in the thread pool, so that they never stall
-the event loop.
+Handlers that only read the service's state (which it guards with short locks) are ``async``:
+the probes, the metrics and ``GET /v1/policy`` among them, so that they answer from the event
+loop and never wait for a worker thread. Those that may run a policy or load a checkpoint run in
+the thread pool, so that they never stall the event loop; policy loads run one at a time (a
+second concurrent ``PUT /v1/policy`` gets 409), so they hold at most one worker for long.
 """
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import numpy as np
@@ -28,7 +31,14 @@ from api.schemas import (
     ValidationErrorOut,
     VehicleOut,
 )
-from service.placement import Decision, OutOfOrderReportError, PlacementService, Report
+from service.placement import (
+    Decision,
+    FutureReportError,
+    OutOfOrderReportError,
+    PlacementService,
+    PolicyBusyError,
+    Report,
+)
 from sim.errors import InputError
 from sim.observation import UserReports
 
@@ -50,6 +60,7 @@ _BODY_RESPONSES: dict[int | str, dict[str, Any]] = {
     413: {"model": ErrorOut, "description": "Body over the size limit"},
 }
 
+log = logging.getLogger(__name__)
 v1 = APIRouter(prefix="/v1", dependencies=[Depends(require_token)], responses=_AUTH_RESPONSES)
 probes = APIRouter()
 
@@ -108,7 +119,11 @@ def to_report(body: ReportIn, service: PlacementService) -> Report:
     responses={
         409: {"model": ErrorOut, "description": "Older than the last accepted report: ignored"},
         **_BODY_RESPONSES,
-        422: {"model": ValidationErrorOut, "description": "A field is invalid (named in it)"},
+        422: {
+            "model": ValidationErrorOut,
+            "description": "A field is invalid (named in it), or the timestamp is ahead of the "
+            "service's clock by more than `report_max_future_s`",
+        },
     },
 )
 async def post_report(body: ReportIn, request: Request) -> DecisionOut:
@@ -126,6 +141,8 @@ async def post_report(body: ReportIn, request: Request) -> DecisionOut:
             decision = service.submit_report(report)
     except OutOfOrderReportError as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, detail=str(exc)) from None
+    except FutureReportError as exc:
+        raise _unprocessable(["timestamp"], str(exc)) from None
     return _decision_out(decision)
 
 
@@ -162,7 +179,7 @@ async def get_vehicle(request: Request) -> VehicleOut:
 
 
 @v1.get("/policy", response_model=PolicyOut, summary="The serving policy")
-def get_policy(request: Request) -> PolicyOut:
+async def get_policy(request: Request) -> PolicyOut:
     return PolicyOut(**_service(request).policy.describe())
 
 
@@ -171,24 +188,30 @@ def get_policy(request: Request) -> PolicyOut:
     response_model=PolicyOut,
     summary="Switch to another checkpoint or baseline",
     responses={
+        409: {"model": ErrorOut, "description": "Another policy is being loaded: retry later"},
         **_BODY_RESPONSES,
         422: {"model": ValidationErrorOut, "description": "Unusable policy: the serving one stays"},
     },
 )
 def put_policy(body: PolicyIn, request: Request) -> PolicyOut:
-    """Load and check the new policy fully, then swap it in atomically. A missing, corrupt or
-    mismatched checkpoint is refused with 422 and the serving policy stays in place."""
+    """Load and check the new policy fully, then swap it in atomically. A missing, corrupt,
+    oversized or mismatched checkpoint, or one outside the service's checkpoint directories, is
+    refused with 422 (naming the problem; the service log has the detail) and the serving
+    policy stays in place. One load at a time: 409 while another is in progress."""
     try:
         policy = _service(request).swap_policy(body.policy)
+    except PolicyBusyError as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, detail=str(exc)) from None
     except InputError as exc:
         raise _unprocessable(["policy"], str(exc)) from None
     except (OSError, ValueError) as exc:  # a name the OS refuses (too long, NUL byte, ...)
-        raise _unprocessable(["policy"], f"policy: not a usable path ({exc})") from None
+        log.warning("policy %r: not a usable path: %s", body.policy, exc)
+        raise _unprocessable(["policy"], "policy: not a usable path") from None
     return PolicyOut(**policy.describe())
 
 
 @probes.get("/healthz", response_model=Health, summary="Liveness")
-def healthz() -> Health:
+async def healthz() -> Health:
     return Health(status="ok")
 
 
@@ -198,7 +221,7 @@ def healthz() -> Health:
     summary="Readiness: a policy is loaded and the MAVLink link is up",
     responses={503: {"model": Readiness, "description": "Not ready; reasons listed"}},
 )
-def readyz(request: Request, response: Response) -> Readiness:
+async def readyz(request: Request, response: Response) -> Readiness:
     service = _service(request)
     ready, reasons = service.readiness()
     if not ready:
@@ -214,5 +237,5 @@ def readyz(request: Request, response: Response) -> Readiness:
     response_class=Response,
     responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}, **RATE_LIMITED},
 )
-def metrics(request: Request) -> Response:
+async def metrics(request: Request) -> Response:
     return Response(generate_latest(request.app.state.registry), media_type=CONTENT_TYPE_LATEST)

@@ -1,8 +1,11 @@
 """Pydantic models at the HTTP boundary (and only here): what goes in and out of the API.
 
-Numbers must be finite (``NaN`` and infinities are refused with 422), counts and rates
-non-negative, loss ratios in [0, 1]. Checks that depend on the service's settings (users inside
-the area, unique ids, how many users) are made by the route, with the same 422 error shape.
+Numbers must be finite (``NaN`` and infinities are refused with 422) and within physical ranges
+(rates up to :data:`MAX_BPS`, delays up to :data:`MAX_DELAY_S`, loss ratios in [0, 1],
+positions up to :data:`MAX_POSITION_M`): a finite but absurd number such as 1e308 would
+overflow the policies' arithmetic. Checks that depend on the service's settings (users inside
+the area, unique ids, how many users, a timestamp not from the future) are made by the route or
+the service, with the same 422 error shape.
 """
 
 from __future__ import annotations
@@ -10,6 +13,15 @@ from __future__ import annotations
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
+
+MAX_BPS = 1e12
+"""1 Tbit/s: far above any Wi-Fi user's rate, far below where sums of them could overflow."""
+MAX_DELAY_S = 3600.0
+"""An hour: a packet delay beyond it is a measurement error, not a delay."""
+MAX_POSITION_M = 1e6
+"""1,000 km: a loose bound (the route checks the area itself)."""
+MAX_TIMESTAMP_S = 1e10
+"""The year 2286: a loose bound (the service refuses any timestamp ahead of its clock)."""
 
 
 class _Strict(BaseModel):
@@ -22,14 +34,18 @@ class UserReportIn(_Strict):
 
     id: str = Field(min_length=1, max_length=64, description="The user's id, unique per report")
     x_m: float = Field(
-        ge=0, description="East position in the area frame, metres (at most the area's width)"
+        ge=0,
+        le=MAX_POSITION_M,
+        description="East position in the area frame, metres (at most the area's width)",
     )
     y_m: float = Field(
-        ge=0, description="North position in the area frame, metres (at most the area's depth)"
+        ge=0,
+        le=MAX_POSITION_M,
+        description="North position in the area frame, metres (at most the area's depth)",
     )
-    offered_bps: float = Field(ge=0, description="Offered (uplink) load, bit/s")
-    throughput_bps: float = Field(ge=0, description="Received throughput, bit/s")
-    delay_s: float = Field(ge=0, description="Mean packet delay, seconds")
+    offered_bps: float = Field(ge=0, le=MAX_BPS, description="Offered (uplink) load, bit/s")
+    throughput_bps: float = Field(ge=0, le=MAX_BPS, description="Received throughput, bit/s")
+    delay_s: float = Field(ge=0, le=MAX_DELAY_S, description="Mean packet delay, seconds")
     plr: float = Field(ge=0, le=1, description="Packet loss ratio in [0, 1]")
 
 
@@ -69,7 +85,12 @@ class ReportIn(_Strict):
         },
     )
 
-    timestamp: float = Field(ge=0, description="When it was measured, Unix time in seconds")
+    timestamp: float = Field(
+        ge=0,
+        le=MAX_TIMESTAMP_S,
+        description="When it was measured, Unix time in seconds; at most `report_max_future_s` "
+        "(default 5 s) ahead of the service's clock",
+    )
     users: list[UserReportIn] = Field(min_length=1, description="Every user, at least one")
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -34,9 +35,15 @@ class TrainedAgent:
         area: AreaConfig = AreaConfig(),
         name: str | None = None,
         device: str = "auto",
+        allowed_dirs: Sequence[Path] | None = None,
+        max_bytes: int | None = None,
     ) -> TrainedAgent:
-        """Load a checkpoint (``InputError`` naming the file and the problem if it is unusable)."""
-        model, metadata = load_checkpoint(path, area, device=device)
+        """Load a checkpoint (``CheckpointError``, an ``InputError``, naming the file and the
+        problem if it is unusable). ``allowed_dirs`` and ``max_bytes`` restrict which files
+        may be loaded (see :func:`policies.checkpoints.read_checkpoint`)."""
+        model, metadata = load_checkpoint(
+            path, area, device=device, allowed_dirs=allowed_dirs, max_bytes=max_bytes
+        )
         return cls(model, metadata, name or default_name(metadata, Path(path)))
 
     def begin_episode(self, scenario: UsersLike, area: AreaConfig) -> np.ndarray | None:

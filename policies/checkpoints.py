@@ -9,15 +9,25 @@ A checkpoint ``NAME.zip`` has ``NAME.json`` beside it::
 
 Loading checks the metadata against the zip and against the area it will serve, so a file of the
 wrong algorithm or built for another observation shape fails with one line naming the mismatch.
+
+A checkpoint is a pickle (SB3 unpickles parts of ``data``): loading one runs code. So the files
+are read once, through descriptors that are checked as opened (optionally: inside given
+directories, never a FIFO or device, bounded in size), and the model is loaded from those bytes
+(:func:`read_checkpoint`, :func:`load_checkpoint`); the service adds the directories it trusts.
 """
 
 from __future__ import annotations
 
+import io
 import json
 import os
+import stat
 import subprocess
 import tempfile
 import zipfile
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -32,19 +42,6 @@ CHECKPOINT_FORMAT = "tupa-checkpoint/1"
 
 def metadata_path(checkpoint: Path) -> Path:
     return checkpoint.with_suffix(".json")
-
-
-def resolve_checkpoint(path: Path) -> Path:
-    """``path`` itself if it is a zip, ``path/model.zip`` if it is a training output directory."""
-    path = Path(path)
-    try:
-        if path.is_dir():
-            path = path / "model.zip"
-        if not path.is_file():
-            raise InputError(f"{path}: no such checkpoint")
-    except OSError as exc:  # e.g. a name too long for the file system
-        raise InputError(f"{path}: cannot open ({exc.strerror or exc})") from None
-    return path
 
 
 def git_commit() -> str | None:
@@ -83,62 +80,280 @@ def save_checkpoint(model: Any, path: Path, metadata: dict[str, Any]) -> None:
     atomic_write_json(metadata_path(path), {"format": CHECKPOINT_FORMAT, **metadata})
 
 
+class CheckpointError(InputError):
+    """A checkpoint that cannot be used.
+
+    ``str(error)`` names the file and gives every detail, for the command line and the
+    service's log; :attr:`problem` says what is wrong without any path, file content or library
+    text: what the service may tell an HTTP client.
+    """
+
+    def __init__(self, shown: Path | str, problem: str, detail: str | None = None) -> None:
+        self.path = str(shown)
+        self.problem = problem
+        self.detail = detail
+        super().__init__(f"{shown}: {problem}" + (f" ({detail})" if detail else ""))
+
+
+class CheckpointTooLargeError(CheckpointError):
+    """The checkpoint file, or what its zip expands to, is over the size limit."""
+
+
+NO_SUCH_CHECKPOINT = "no such checkpoint"
+OUTSIDE_ALLOWED = "outside the checkpoint directories this service loads from"
+METADATA_MAX_BYTES = 1024 * 1024
+"""A metadata file is a few kB; a larger one is refused unread."""
+MAX_MEMBERS = 64
+"""An SB3 zip has about seven members."""
+
+
+@dataclass(frozen=True)
+class CheckpointFiles:
+    """A checkpoint read from disk once: the zip's bytes and the metadata beside it."""
+
+    shown: Path
+    """The zip as the caller named it (``DIR/model.zip`` for a training directory)."""
+    real_path: Path
+    """The file the bytes were read from (links resolved)."""
+    zip_bytes: bytes
+    metadata: dict[str, Any]
+
+
+def read_checkpoint(
+    path: Path | str,
+    allowed_dirs: Sequence[Path] | None = None,
+    max_bytes: int | None = None,
+) -> CheckpointFiles:
+    """Read checkpoint ``path`` (a zip, or a training directory holding ``model.zip``) and its
+    metadata JSON, each opened once and checked as opened; ``CheckpointError`` otherwise.
+
+    With ``allowed_dirs`` both files must lie inside one of those directories. The path is
+    resolved once (links and ``..``), checked, and the resolved file is opened without
+    following a final link; the *open* file is then checked again (by the real path of the
+    descriptor) and read through that descriptor, so a link flipped between the check and the
+    read cannot substitute another file. The metadata file is the one beside the real
+    checkpoint, read the same way. Only regular files are read, never waited on: a FIFO or a
+    device is refused. ``max_bytes`` bounds the zip file (the metadata file has its own, small
+    bound, :data:`METADATA_MAX_BYTES`).
+    """
+    shown = Path(path)
+    roots = _roots(allowed_dirs)
+    try:
+        resolved = _resolve_inside(shown, shown, roots)
+        if resolved.is_dir():
+            shown = shown / "model.zip"
+            resolved = _resolve_inside(resolved / "model.zip", shown, roots)
+    except CheckpointError:
+        raise
+    except (OSError, RuntimeError, ValueError) as exc:  # too long a name, a loop of links, NUL
+        raise CheckpointError(shown, "cannot open the checkpoint", _reason(exc)) from None
+    zip_bytes, real_path = _read_checked(
+        resolved, shown, roots, max_bytes, missing=NO_SUCH_CHECKPOINT, what="checkpoint"
+    )
+    meta_shown = metadata_path(shown)
+    try:
+        meta_resolved = _resolve_inside(metadata_path(real_path), meta_shown, roots)
+    except CheckpointError:
+        raise
+    except (OSError, RuntimeError, ValueError) as exc:
+        raise CheckpointError(meta_shown, "cannot open the metadata file", _reason(exc)) from None
+    meta_bytes, _ = _read_checked(
+        meta_resolved,
+        meta_shown,
+        roots,
+        METADATA_MAX_BYTES,
+        missing=f"metadata file {meta_shown.name} is missing",
+        what="metadata file",
+    )
+    return CheckpointFiles(shown, real_path, zip_bytes, _parse_metadata(meta_bytes, meta_shown))
+
+
 def read_metadata(path: Path) -> dict[str, Any]:
     """The metadata of checkpoint ``path`` (a zip or a training directory), checked."""
-    zip_path = resolve_checkpoint(path)
-    meta_path = metadata_path(zip_path)
+    return read_checkpoint(path).metadata
+
+
+def _roots(allowed_dirs: Sequence[Path] | None) -> list[Path] | None:
+    if allowed_dirs is None:
+        return None
+    return [Path(d).resolve() for d in allowed_dirs]
+
+
+def _inside(path: Path, roots: list[Path] | None) -> bool:
+    return roots is None or any(path.is_relative_to(root) for root in roots)
+
+
+def _resolve_inside(path: Path, shown: Path, roots: list[Path] | None) -> Path:
+    """``path`` with links and ``..`` resolved (it need not exist), refused outside ``roots``."""
+    resolved = path.resolve()
+    if not _inside(resolved, roots):
+        raise CheckpointError(shown, OUTSIDE_ALLOWED, f"it resolves to {resolved}")
+    return resolved
+
+
+def _read_checked(
+    resolved: Path,
+    shown: Path,
+    roots: list[Path] | None,
+    max_bytes: int | None,
+    missing: str,
+    what: str,
+) -> tuple[bytes, Path]:
+    """The bytes of the regular file ``resolved`` and its real path, read through one
+    descriptor that was checked (see :func:`read_checkpoint`)."""
+    flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
     try:
-        meta = json.loads(meta_path.read_text())
+        fd = os.open(resolved, flags | getattr(os, "O_CLOEXEC", 0))
     except FileNotFoundError:
-        raise InputError(f"{zip_path}: metadata file {meta_path.name} is missing") from None
-    except (OSError, ValueError, RecursionError) as exc:  # ValueError: bad JSON, UTF-8, digits
-        message = "nested too deeply" if isinstance(exc, RecursionError) else str(exc)
-        raise InputError(f"{meta_path}: not a readable JSON file ({message})") from None
+        raise CheckpointError(shown, missing) from None
+    except OSError as exc:  # ELOOP: the last component became a link after it was resolved
+        raise CheckpointError(shown, f"cannot open the {what}", _reason(exc)) from None
+    with os.fdopen(fd, "rb") as handle:
+        status = os.fstat(fd)
+        if not stat.S_ISREG(status.st_mode):
+            raise CheckpointError(shown, f"the {what} is not a regular file")
+        real_path = _real_path(fd, resolved)
+        if real_path is None or not _inside(real_path, roots):
+            raise CheckpointError(
+                shown, OUTSIDE_ALLOWED, f"the file opened is {real_path or 'unknown'}"
+            )
+        if max_bytes is not None and status.st_size > max_bytes:
+            raise CheckpointTooLargeError(
+                shown, f"the {what} is over the {max_bytes}-byte limit", f"{status.st_size} bytes"
+            )
+        try:
+            data = handle.read() if max_bytes is None else handle.read(max_bytes + 1)
+        except OSError as exc:
+            raise CheckpointError(shown, f"cannot read the {what}", _reason(exc)) from None
+    if max_bytes is not None and len(data) > max_bytes:  # it grew while being read
+        raise CheckpointTooLargeError(shown, f"the {what} is over the {max_bytes}-byte limit")
+    return data, real_path
+
+
+def _real_path(fd: int, opened: Path) -> Path | None:
+    """Where the open file ``fd`` really is: Linux names it in ``/proc/self/fd``; elsewhere
+    ``opened`` if it still names the same file, else None."""
+    try:
+        return Path(os.readlink(f"/proc/self/fd/{fd}"))
+    except OSError:
+        pass
+    try:
+        now, held = os.stat(opened, follow_symlinks=False), os.fstat(fd)
+    except OSError:
+        return None
+    return opened if (now.st_dev, now.st_ino) == (held.st_dev, held.st_ino) else None
+
+
+def _reason(exc: BaseException) -> str:
+    """An exception's text on one line (``strerror`` for OS errors)."""
+    text = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
+    return " ".join(str(text).split())
+
+
+def _parse_metadata(raw: bytes, shown: Path) -> dict[str, Any]:
+    try:
+        meta = json.loads(raw)
+    except (ValueError, RecursionError) as exc:  # ValueError: bad JSON, UTF-8, digits
+        message = "nested too deeply" if isinstance(exc, RecursionError) else _reason(exc)
+        raise CheckpointError(shown, "metadata: not a readable JSON file", message) from None
     if not isinstance(meta, dict) or meta.get("format") != CHECKPOINT_FORMAT:
-        raise InputError(f"{meta_path}: format: expected {CHECKPOINT_FORMAT!r}")
+        raise CheckpointError(shown, f"metadata format: expected {CHECKPOINT_FORMAT!r}")
     if meta.get("algorithm") not in ("ddqn", "ddpg"):
-        raise InputError(
-            f"{meta_path}: algorithm: expected 'ddqn' or 'ddpg', got {meta.get('algorithm')!r}"
+        raise CheckpointError(
+            shown, "metadata algorithm: expected 'ddqn' or 'ddpg'", f"got {meta.get('algorithm')!r}"
         )
     return meta
 
 
+def check_archive(zip_bytes: bytes, shown: Path, max_bytes: int | None = None) -> None:
+    """Refuse, before anything is decompressed for real, a checkpoint zip that is not a zip,
+    has more than :data:`MAX_MEMBERS` members, or expands past ``max_bytes``.
+
+    The expanded size is the sum of the members' declared sizes (``zipfile`` never inflates a
+    member past its declared size: a lying header gives a CRC error, not more data), plus what
+    the compressed members of the torch archives inside (``*.pth`` are zips too) expand to.
+    """
+    try:
+        archive = zipfile.ZipFile(io.BytesIO(zip_bytes))
+    except (zipfile.BadZipFile, ValueError, EOFError) as exc:
+        raise CheckpointError(
+            shown, "not a valid checkpoint zip (corrupt or truncated)", _reason(exc)
+        ) from None
+    with archive:
+        members = archive.infolist()
+        if len(members) > MAX_MEMBERS:
+            raise CheckpointError(shown, f"not a checkpoint zip (over {MAX_MEMBERS} members)")
+        if max_bytes is None:
+            return
+        expanded = sum(member.file_size for member in members)
+        for member in members:
+            if expanded > max_bytes:
+                break
+            if member.filename.endswith(".pth"):
+                expanded += _nested_expansion(archive, member)
+        if expanded > max_bytes:
+            raise CheckpointTooLargeError(
+                shown, f"the checkpoint expands to more than {max_bytes} bytes"
+            )
+
+
+def _nested_expansion(archive: zipfile.ZipFile, member: zipfile.ZipInfo) -> int:
+    """What the compressed members of the zip stored in ``member`` expand to (0 when it is not
+    a zip, or unreadable: loading it will say so)."""
+    try:
+        with zipfile.ZipFile(io.BytesIO(archive.read(member))) as inner:
+            return sum(
+                info.file_size
+                for info in inner.infolist()
+                if info.compress_type != zipfile.ZIP_STORED
+            )
+    except (zipfile.BadZipFile, ValueError, EOFError, OSError, NotImplementedError, zlib.error):
+        return 0
+
+
 def load_checkpoint(
-    path: Path,
+    path: Path | str,
     area: AreaConfig = AreaConfig(),
     algorithm: str | None = None,
     device: str = "auto",
+    allowed_dirs: Sequence[Path] | None = None,
+    max_bytes: int | None = None,
 ) -> tuple[Any, dict[str, Any]]:
     """Load a checkpoint for serving or evaluation: (SB3 model, metadata).
 
-    Raises ``InputError`` (one line: the file and the mismatch) for a missing or corrupt file,
-    the wrong algorithm, or an observation shape other than ``area``'s.
+    Raises :class:`CheckpointError` (one line: the file and the problem) for a missing or
+    corrupt file, the wrong algorithm, or an observation shape other than ``area``'s. The files
+    are read once by :func:`read_checkpoint` (``allowed_dirs``, ``max_bytes``: see there; the
+    zip's expanded size is bounded by ``max_bytes`` too, :func:`check_archive`), and the model
+    is loaded from those bytes, never from the path again.
     """
-    zip_path = resolve_checkpoint(path)
-    meta = read_metadata(zip_path)
+    files = read_checkpoint(path, allowed_dirs, max_bytes)
+    shown, meta = files.shown, files.metadata
     if algorithm is not None and meta["algorithm"] != algorithm:
-        raise InputError(
-            f"{zip_path}: algorithm: expected {algorithm}, the file holds {meta['algorithm']}"
+        raise CheckpointError(
+            shown, f"algorithm: expected {algorithm}, the file holds {meta['algorithm']}"
         )
     expected_shape = list(observation_shape(area))
     if meta.get("observation_shape") != expected_shape:
-        raise InputError(
-            f"{zip_path}: observation_shape: built for {meta.get('observation_shape')!r}, "
-            f"this area needs {expected_shape}"
+        raise CheckpointError(
+            shown,
+            f"observation_shape: built for another area grid (this one needs {expected_shape})",
+            f"built for {meta.get('observation_shape')!r}",
         )
-    if not zipfile.is_zipfile(zip_path):
-        raise InputError(f"{zip_path}: not a valid checkpoint zip (corrupt or truncated)")
+    check_archive(files.zip_bytes, shown, max_bytes)
     model_class = algorithm_class(meta["algorithm"])
     try:
-        model = model_class.load(zip_path, device=device)
+        model = model_class.load(io.BytesIO(files.zip_bytes), device=device)
     except Exception as exc:  # SB3 raises many kinds on a damaged file
-        raise InputError(
-            f"{zip_path}: cannot load the model ({type(exc).__name__}: {exc})"
+        raise CheckpointError(
+            shown, "cannot load the model", f"{type(exc).__name__}: {_reason(exc)}"
         ) from None
     if list(model.observation_space.shape) != expected_shape:
-        raise InputError(
-            f"{zip_path}: observation_shape: the network takes "
-            f"{list(model.observation_space.shape)}, this area needs {expected_shape}"
+        raise CheckpointError(
+            shown,
+            f"observation_shape: the network takes another shape (this area needs "
+            f"{expected_shape})",
+            f"it takes {list(model.observation_space.shape)}",
         )
     return model, meta
 

@@ -19,17 +19,20 @@ target (moves take flight time; the paper's agent acts from where it arrived). T
 the link, which clamps them to the geofence.
 
 Reports are snapshots of all users; each replaces the previous one (users come and go). A report
-whose ``timestamp`` is older than the last accepted one is ignored and counted.
+whose ``timestamp`` is older than the last accepted one is ignored and counted; one stamped more
+than ``report_max_future_s`` ahead of this machine's clock is refused and counted (accepted, it
+would make every honest report after it "older").
 
 Restarts: with a ``state_file`` the serving policy and the last decision are persisted after each
 decision and swap. On start the persisted policy is loaded again (when it differs from the
-configured one; if it cannot be loaded, the configured one serves and the reason is logged and
-counted), and the last target is shown as the current decision with source ``restored`` but is
-*not* streamed: after a restart nothing is sent to the vehicle until a fresh report leads to a
-decision, and ``arm_and_takeoff`` (when set) is deferred to that decision too (whenever the state
-file exists: that is what makes a start a restart), so a restart never arms or moves the vehicle
-by surprise. Meanwhile the vehicle does what its own failsafe for a
-lost setpoint stream does (PX4: hold; ArduPilot GUIDED: hold the last target).
+configured one, and only from ``policy_dirs``, as for a swap: the state file is just a file; if it
+cannot be loaded, the configured one serves and the reason is logged and counted), and the last
+target is shown as the current decision with source ``restored`` but is *not* streamed: after a
+restart nothing is sent to the vehicle until a fresh report leads to a decision, and
+``arm_and_takeoff`` (when set) is deferred to that decision too (whenever the state file exists:
+that is what makes a start a restart), so a restart never arms or moves the vehicle by surprise.
+Meanwhile the vehicle does what its own failsafe for a lost setpoint stream does (PX4: hold;
+ArduPilot GUIDED: hold the last target).
 """
 
 from __future__ import annotations
@@ -48,7 +51,7 @@ import numpy as np
 
 from service.frames import FrameConfig
 from service.mavlink_link import LinkConfig, LinkState
-from service.policy_runtime import ServingPolicy, check_policy_location, load_policy
+from service.policy_runtime import ServingPolicy, load_policy
 from service.settings import ServiceSettings
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
 from sim.files import atomic_write_json
@@ -90,6 +93,14 @@ class OutOfOrderReportError(ValueError):
     """A report older than the last accepted one."""
 
 
+class FutureReportError(ValueError):
+    """A report stamped further ahead of the service's clock than ``report_max_future_s``."""
+
+
+class PolicyBusyError(RuntimeError):
+    """Another policy is being loaded: policies are loaded one at a time."""
+
+
 class PlacementService:
     """Owns the link, the serving policy, the latest report and the current decision."""
 
@@ -110,6 +121,7 @@ class PlacementService:
         self._policy = policy
         self._lock = threading.Lock()  # the state below; held for microseconds
         self._deciding = threading.Lock()  # one decision at a time (see decide_once)
+        self._swapping = threading.Lock()  # one policy load at a time (see swap_policy)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._waiting_for_link = threading.Event()  # a report was held because the link is down
@@ -130,7 +142,10 @@ class PlacementService:
         area = AreaConfig()
         network = NetworkConfig().with_queueing(settings.queueing)
         utility = UtilityConfig()
-        policy = load_policy(settings.policy, area, network, utility)
+        # The operator's own choice: from any directory, within the size limit.
+        policy = load_policy(
+            settings.policy, area, network, utility, max_bytes=settings.checkpoint_max_bytes
+        )
         link_config = LinkConfig(
             url=settings.mavlink,
             area=area,
@@ -178,8 +193,19 @@ class PlacementService:
     def submit_report(self, report: Report) -> Decision | None:
         """Accept a report; decide at once in ``on-report`` mode. Returns the current decision.
 
-        Raises :class:`OutOfOrderReportError` (and counts it) for a report older than the last one.
+        Raises :class:`OutOfOrderReportError` (and counts it) for a report older than the last one,
+        and :class:`FutureReportError` (counted too) for one stamped more than
+        ``report_max_future_s`` ahead of this machine's clock: accepted, it would make every
+        honest report after it "older" until the clock caught up.
         """
+        ahead_s = report.timestamp_s - time.time()
+        if not ahead_s <= self.settings.report_max_future_s:  # also refuses a NaN
+            self._count("reports_from_the_future")
+            raise FutureReportError(
+                f"timestamp: {ahead_s:.3g} s ahead of this service's clock, more than "
+                f"report_max_future_s ({self.settings.report_max_future_s:g} s): a report from "
+                "the future; check the controller's clock"
+            )
         with self._lock:
             if report.timestamp_s < self._last_timestamp_s:
                 self.counters["reports_out_of_order"] += 1
@@ -197,12 +223,30 @@ class PlacementService:
 
     def swap_policy(self, spec: str) -> ServingPolicy:
         """Load and check ``spec`` fully, then swap it in atomically (``InputError`` otherwise:
-        the serving policy stays). Checkpoints load only from ``settings.policy_dirs``."""
-        check_policy_location(spec, self.settings.policy_dirs)
-        policy = load_policy(spec, self.area, self.network, self.utility)
-        with self._lock:
-            self._policy = policy
-            self.counters["policy_swaps"] += 1
+        the serving policy stays).
+
+        Checkpoints load only from ``settings.policy_dirs`` (checked on the file as opened, see
+        :func:`~service.policy_runtime.load_policy`) and up to ``checkpoint_max_bytes``. One
+        swap at a time: while one is loading, another raises :class:`PolicyBusyError` at once
+        (rather than queueing loads, each holding a worker thread).
+        """
+        if not self._swapping.acquire(blocking=False):
+            self._count("policy_swaps_busy")
+            raise PolicyBusyError("policy: another policy is being loaded; retry once it is done")
+        try:
+            policy = load_policy(
+                spec,
+                self.area,
+                self.network,
+                self.utility,
+                allowed_dirs=self.settings.policy_dirs,
+                max_bytes=self.settings.checkpoint_max_bytes,
+            )
+            with self._lock:
+                self._policy = policy
+                self.counters["policy_swaps"] += 1
+        finally:
+            self._swapping.release()
         self._persist()
         log.info("policy switched to %s", policy.name)
         return policy
@@ -406,8 +450,9 @@ class PlacementService:
         return True
 
     def _restore_policy(self, spec: object, path: object) -> None:
-        """Serve the persisted policy ``spec`` when it differs from the configured one and loads;
-        otherwise keep the configured one (and log why)."""
+        """Serve the persisted policy ``spec`` when it differs from the configured one and loads
+        under the checks of ``PUT /v1/policy`` (from ``policy_dirs``, within
+        ``checkpoint_max_bytes``); otherwise keep the configured one (and log why)."""
         if spec is None:
             return
         if not isinstance(spec, str) or not spec.strip():
@@ -422,10 +467,18 @@ class PlacementService:
         if spec == self._policy.spec:
             return
         try:
-            policy = load_policy(spec, self.area, self.network, self.utility)
+            # The state file is only a file: its policy gets the same checks as PUT /v1/policy.
+            policy = load_policy(
+                spec,
+                self.area,
+                self.network,
+                self.utility,
+                allowed_dirs=self.settings.policy_dirs,
+                max_bytes=self.settings.checkpoint_max_bytes,
+            )
         except Exception as exc:  # InputError, or anything a broken checkpoint raises
             log.warning(
-                "state file %s: cannot restore the policy %s (%s); keeping the configured %s",
+                "state file %s: cannot restore the policy %r (%s); keeping the configured %s",
                 path,
                 spec,
                 exc,

@@ -12,15 +12,21 @@ Every kind of policy answers the same question through :class:`ServingPolicy`:
   positions and offered loads.
 
 :func:`load_policy` loads and checks a policy fully (a dry decision on a synthetic report) before
-anyone may swap it in, so a bad file never replaces a working policy.
+anyone may swap it in, so a bad file never replaces a working policy. A checkpoint is a pickle:
+for a client's choice (``PUT /v1/policy``) or the state file's, it is loaded only from the
+allowed directories, read once through a descriptor checked as opened, and only up to a size
+limit (:func:`policies.checkpoints.read_checkpoint`). Its errors tell the problem without paths or
+library text (they go back to HTTP clients); the detail is logged.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 import numpy as np
 
@@ -30,6 +36,10 @@ from sim.errors import InputError
 from sim.observation import UserReports, build_observation
 from sim.zones import MOVES, move_mask, zone_index, zone_position
 
+if TYPE_CHECKING:
+    from policies.checkpoints import CheckpointError
+
+log = logging.getLogger(__name__)
 PolicyKind = Literal["moves", "coordinates", "placement"]
 SHIPPED_CHECKPOINTS = Path(__file__).resolve().parent.parent / "policies" / "checkpoints"
 DEFAULT_CHECKPOINT = SHIPPED_CHECKPOINTS / "ddqn-gen10k.zip"
@@ -132,11 +142,19 @@ def load_policy(
     area: AreaConfig = AreaConfig(),
     network: NetworkConfig = NetworkConfig(),
     utility: UtilityConfig = UtilityConfig(),
+    allowed_dirs: Sequence[Path] | None = None,
+    max_bytes: int | None = None,
 ) -> ServingPolicy:
     """Load ``spec`` (a baseline name or a checkpoint path) and check it can decide.
 
-    Raises :class:`InputError` naming the policy and the problem; nothing is swapped in by this
-    function, so a failure leaves the serving policy untouched.
+    ``allowed_dirs``: a checkpoint must lie in one of these directories (``None``: anywhere, for
+    the operator's own ``--policy``); it is read once, through a checked descriptor, so a link
+    flipped meanwhile cannot substitute another file. ``max_bytes`` bounds the checkpoint file
+    and what its zip expands to (:func:`policies.checkpoints.load_checkpoint`).
+
+    Raises :class:`InputError` ``policy: <problem>``, without paths or library text (it may go
+    back to an HTTP client); the detail, naming the file, is logged as a warning. Nothing is
+    swapped in by this function, so a failure leaves the serving policy untouched.
     """
     from policies.baselines import BASELINES, make_policy
 
@@ -148,12 +166,17 @@ def load_policy(
         policy = BaselinePolicy(spec, make_policy(spec, area, network, utility), spec)
     else:
         from policies.agents import TrainedAgent
+        from policies.checkpoints import CheckpointError
 
-        if not Path(spec).exists():
-            raise InputError(
-                f"policy: {spec}: no such checkpoint (or a baseline: {', '.join(BASELINES)})"
+        try:
+            agent = TrainedAgent.load(
+                Path(spec), area, device="cpu", allowed_dirs=allowed_dirs, max_bytes=max_bytes
             )
-        agent = TrainedAgent.load(Path(spec), area, device="cpu")
+        except CheckpointError as exc:
+            # One log line whatever the path holds (a client chose it).
+            detail = str(exc).replace("\r", "\\r").replace("\n", "\\n")
+            log.warning("policy %r refused: %s", spec, detail)
+            raise InputError(_public_problem(exc, BASELINES)) from None
         kind: PolicyKind = "moves" if agent.algorithm == "ddqn" else "coordinates"
         policy = CheckpointPolicy(
             agent.name, agent.model, agent.metadata, spec, area, utility, kind
@@ -162,27 +185,21 @@ def load_policy(
     return policy
 
 
-def check_policy_location(spec: str, allowed_dirs: tuple[Path, ...]) -> None:
-    """Refuse a checkpoint path outside ``allowed_dirs`` (baseline names always pass).
+def _public_problem(error: CheckpointError, baselines: Iterable[str]) -> str:
+    """What an HTTP client is told about an unusable checkpoint: the field and the problem."""
+    from policies.checkpoints import (
+        NO_SUCH_CHECKPOINT,
+        OUTSIDE_ALLOWED,
+        CheckpointTooLargeError,
+    )
 
-    Paths are compared after resolving symbolic links and ``..``, so neither leads out.
-    """
-    from policies.baselines import BASELINES
-
-    spec = str(spec).strip()
-    if spec in BASELINES:
-        return
-    try:
-        resolved = Path(spec).resolve()
-        roots = [Path(d).resolve() for d in allowed_dirs]
-    except (OSError, RuntimeError, ValueError) as exc:
-        raise InputError(f"policy: cannot resolve the path ({exc})") from None
-    if not any(resolved.is_relative_to(root) for root in roots):
-        shown = ", ".join(str(r) for r in roots) or "none"
-        raise InputError(
-            f"policy: {spec} is outside the checkpoint directories this service loads from "
-            f"({shown}; set TUPA_POLICY_DIRS)"
-        )
+    if error.problem == NO_SUCH_CHECKPOINT:
+        return f"policy: {NO_SUCH_CHECKPOINT} (or a baseline: {', '.join(baselines)})"
+    if error.problem == OUTSIDE_ALLOWED:
+        return f"policy: {OUTSIDE_ALLOWED} (TUPA_POLICY_DIRS)"
+    if isinstance(error, CheckpointTooLargeError):
+        return f"policy: {error.problem} (checkpoint_max_bytes)"
+    return f"policy: {error.problem}"
 
 
 def _dry_run(policy: ServingPolicy, area: AreaConfig) -> None:
@@ -201,8 +218,10 @@ def _dry_run(policy: ServingPolicy, area: AreaConfig) -> None:
     except InputError:
         raise
     except Exception as exc:
-        raise InputError(
-            f"policy: {policy.spec}: fails on a test decision ({type(exc).__name__}: {exc})"
-        ) from None
+        log.warning(
+            "policy %r fails on a test decision: %s: %s", policy.spec, type(exc).__name__, exc
+        )
+        raise InputError("policy: fails on a test decision (see the service log)") from None
     if target.shape != (3,) or not np.all(np.isfinite(target)):
-        raise InputError(f"policy: {policy.spec}: gave a non-finite target {target.tolist()}")
+        log.warning("policy %r gave a test target %s", policy.spec, target.tolist())
+        raise InputError("policy: gives a non-finite target on a test decision")

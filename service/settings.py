@@ -69,7 +69,29 @@ class ServiceSettings(BaseSettings):
     """Where ``PUT /v1/policy`` may load checkpoints from (JSON list in ``TUPA_POLICY_DIRS``):
     a checkpoint is a pickle, so a client must not make the service load an arbitrary file."""
     state_file: Path | None = None
-    """Where the last target and policy are persisted (none: not persisted)."""
+    """Where the last target and policy are persisted (none: not persisted). Its policy is
+    restored only from ``policy_dirs`` (else the configured ``policy`` serves)."""
+    checkpoint_max_bytes: int = Field(default=64 * 1024 * 1024, ge=1024 * 1024)
+    """The largest checkpoint the service loads: the zip file, and what its members expand to
+    (a small zip can expand to gigabytes). The shipped ones expand to 7 and 14 MB."""
+    report_max_future_s: float = Field(default=5.0, ge=0, le=3600, allow_inf_nan=False)
+    """How far ahead of the service's clock a report's ``timestamp`` may be (clock skew); a
+    report further ahead is refused (422): accepted, it would make every later report old."""
+    trusted_proxies: tuple[str, ...] = ()
+    """Peer addresses whose ``X-Forwarded-For`` names the client (JSON list in
+    ``TUPA_TRUSTED_PROXIES``, e.g. ``["127.0.0.1"]`` behind a local reverse proxy). Empty: the
+    header is ignored from everyone, so no client can pick the address it is rate-limited by."""
+    http_max_header_bytes: int = Field(default=32 * 1024, ge=4096, le=1024 * 1024)
+    """The largest request head (request line and headers) accepted; larger: 400, closed."""
+    http_max_headers: int = Field(default=100, ge=10, le=10_000)
+    """The most header lines a request may have; more: 431."""
+    http_request_timeout_s: float = Field(default=10.0, gt=0, le=3600, allow_inf_nan=False)
+    """How long a client has to send a whole request, from its first byte (or from connecting);
+    a connection still sending after that (slow, stalled, or lying about its length) is closed."""
+    http_keep_alive_s: int = Field(default=5, ge=1, le=3600)
+    """How long an idle keep-alive connection is kept open between requests."""
+    http_max_connections: int = Field(default=512, ge=8)
+    """Connections (and requests in progress) at once; beyond: 503 at once."""
 
     @field_validator("area_origin_north_m", "area_origin_east_m", "area_origin_down_m")
     @classmethod

@@ -90,6 +90,21 @@ def clock() -> Clock:
     return Clock()
 
 
+@pytest.fixture(autouse=True)
+def serving_load_weighted(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Every test that uses the module's service starts with ``load-weighted`` serving (asserted,
+    so no test leans on another having restored it) and leaves it so, in any order."""
+    if "client" not in request.fixturenames:
+        yield
+        return
+    client: TestClient = request.getfixturevalue("client")
+    assert client.get("/v1/policy", headers=AUTH).json()["name"] == "load-weighted"
+    yield
+    if client.get("/v1/policy", headers=AUTH).json()["name"] != "load-weighted":
+        restored = client.put("/v1/policy", json={"policy": "load-weighted"}, headers=AUTH)
+        assert restored.status_code == 200
+
+
 def post(client: TestClient, clock: Clock, users: list[dict[str, Any]], **kw: Any) -> Any:
     return client.post("/v1/reports", json={"timestamp": clock(), "users": users}, **kw)
 
@@ -263,7 +278,6 @@ def test_policy_get_and_switch(client: TestClient) -> None:
     switched = client.put("/v1/policy", json={"policy": "min-distance"}, headers=AUTH)
     assert switched.status_code == 200 and switched.json()["name"] == "min-distance"
     assert client.get("/v1/policy", headers=AUTH).json()["kind"] == "placement"
-    client.put("/v1/policy", json={"policy": "load-weighted"}, headers=AUTH)
 
 
 def test_bad_policies_are_refused_and_the_old_one_stays(
@@ -304,31 +318,49 @@ def test_checkpoints_load_only_from_the_allowed_directories(
         assert client.get("/v1/policy", headers=AUTH).json()["name"] == "load-weighted"
     shipped = client.put("/v1/policy", json={"policy": str(DEFAULT_CHECKPOINT)}, headers=AUTH)
     assert shipped.status_code == 200 and shipped.json()["kind"] == "moves"
-    client.put("/v1/policy", json={"policy": "load-weighted"}, headers=AUTH)
 
 
 def test_hot_swap_under_concurrent_reports(client: TestClient, clock: Clock) -> None:
-    failures: list[int] = []
+    """Reports keep being decided while the policy is switched under them. A reporter thread
+    records every unexpected answer *and* every exception (TestClient re-raises the server's own
+    exceptions in the calling thread, which a bare thread would swallow)."""
+    failures: list[object] = []
+    decided_per_swap: list[int] = []
+    decided = [0]
+    lock = threading.Lock()
     stop = threading.Event()
 
     def reporter() -> None:
         while not stop.is_set():
-            response = post(client, clock, [user(1), user(2, offered_bps=25e6)], headers=AUTH)
-            if response.status_code not in (200, 409):  # 409: a thread lost the timestamp race
-                failures.append(response.status_code)
+            try:
+                users = [user(1), user(2, offered_bps=25e6)]
+                response = post(client, clock, users, headers=AUTH)
+            except BaseException as exc:  # a server bug surfaces here
+                failures.append(repr(exc))
+                return
+            if response.status_code == 200:
+                with lock:
+                    decided[0] += 1
+            elif response.status_code != 409:  # 409: a thread lost the timestamp race
+                failures.append((response.status_code, response.text))
 
     threads = [threading.Thread(target=reporter) for _ in range(3)]
     for thread in threads:
         thread.start()
     try:
         for name in ["min-distance", "load-weighted", "oracle", "load-weighted"] * 2:
+            with lock:
+                before = decided[0]
             response = client.put("/v1/policy", json={"policy": name}, headers=AUTH)
             assert response.status_code == 200
+            wait_for(lambda b=before: decided[0] > b + 2, 10.0, message="reports decided")
+            decided_per_swap.append(decided[0] - before)
     finally:
         stop.set()
         for thread in threads:
             thread.join(10)
     assert failures == []
+    assert all(n > 2 for n in decided_per_swap), decided_per_swap
     assert client.get("/v1/policy", headers=AUTH).json()["name"] == "load-weighted"
 
 

@@ -89,9 +89,48 @@ def test_over_the_rate_gets_429_with_retry_after() -> None:
         assert limited.status_code == 429
         assert int(limited.headers["retry-after"]) == 2  # one token at 0.5/s
         assert "rate limit" in limited.json()["detail"]
-        # Unauthenticated requests count too (a flood of wrong tokens is limited as well).
+        # Requests without a valid token have a bucket of their own (per address): they are
+        # limited too, and spend nothing of the authenticated client's budget.
+        assert client.get("/v1/setpoint").status_code == 401
+        assert client.get("/metrics").status_code == 200
+        assert client.get("/v1/setpoint", headers={"Authorization": "Bearer x"}).status_code == 401
         assert client.get("/v1/setpoint").status_code == 429
         assert client.get("/metrics").status_code == 429
+
+
+def test_an_unauthenticated_flood_does_not_starve_the_authenticated_client() -> None:
+    """A flood of wrong tokens (and no tokens) from the controller's own address: it is
+    limited, and the controller's reports still go through."""
+    with TestClient(_app(rate_limit_rps=0.5, rate_limit_burst=3)) as client:
+        flood = [
+            client.post("/v1/reports", json={}, headers={"Authorization": f"Bearer wrong{i}"})
+            for i in range(50)
+        ]
+        codes = [response.status_code for response in flood]
+        assert codes[:3] == [401, 401, 401] and set(codes[3:]) == {429}
+        assert client.get("/v1/setpoint").status_code == 429
+        ok = [client.get("/v1/setpoint", headers=AUTH).status_code for _ in range(3)]
+        assert ok == [200, 200, 200]
+
+
+def _forwarded(client: TestClient, i: int) -> int:
+    headers = {**AUTH, "X-Forwarded-For": f"198.51.100.{i}"}
+    return client.get("/v1/setpoint", headers=headers).status_code
+
+
+def test_x_forwarded_for_counts_only_from_a_trusted_proxy() -> None:
+    """With ``trusted_proxies`` the address a trusted proxy forwards is the client's (its own
+    bucket); from any other peer the header is ignored. Without it (the default) it is ignored
+    from everyone: see tests/security/test_hostile_clients.py for uvicorn's side."""
+    assert ServiceSettings(policy="min-distance").trusted_proxies == ()
+    app = _app(rate_limit_rps=0.5, rate_limit_burst=2, trusted_proxies=("127.0.0.1",))
+    with TestClient(app, client=("127.0.0.1", 40000)) as proxy:
+        assert [_forwarded(proxy, i) for i in range(1, 9)] == [200] * 8
+        assert {_forwarded(proxy, 1) for _ in range(3)} == {200, 429}
+        stranger = TestClient(app, client=("192.0.2.9", 40000))
+        assert [_forwarded(stranger, i) for i in range(1, 5)] == [200, 200, 429, 429]
+    with TestClient(_app(rate_limit_rps=0.5, rate_limit_burst=2), client=("127.0.0.1", 1)) as c:
+        assert [_forwarded(c, i) for i in range(1, 5)] == [200, 200, 429, 429]
 
 
 def test_probes_are_never_limited_and_rejections_are_counted() -> None:
