@@ -234,14 +234,7 @@ class PlacementService:
             self._count("policy_swaps_busy")
             raise PolicyBusyError("policy: another policy is being loaded; retry once it is done")
         try:
-            policy = load_policy(
-                spec,
-                self.area,
-                self.network,
-                self.utility,
-                allowed_dirs=self.settings.policy_dirs,
-                max_bytes=self.settings.checkpoint_max_bytes,
-            )
+            policy = self._load_allowed(spec)
             with self._lock:
                 self._policy = policy
                 self.counters["policy_swaps"] += 1
@@ -449,6 +442,18 @@ class PlacementService:
         )
         return True
 
+    def _load_allowed(self, spec: str) -> ServingPolicy:
+        """``spec`` loaded under the checks a client's choice gets: from ``policy_dirs`` only,
+        within ``checkpoint_max_bytes``."""
+        return load_policy(
+            spec,
+            self.area,
+            self.network,
+            self.utility,
+            allowed_dirs=self.settings.policy_dirs,
+            max_bytes=self.settings.checkpoint_max_bytes,
+        )
+
     def _restore_policy(self, spec: object, path: object) -> None:
         """Serve the persisted policy ``spec`` when it differs from the configured one and loads
         under the checks of ``PUT /v1/policy`` (from ``policy_dirs``, within
@@ -468,14 +473,7 @@ class PlacementService:
             return
         try:
             # The state file is only a file: its policy gets the same checks as PUT /v1/policy.
-            policy = load_policy(
-                spec,
-                self.area,
-                self.network,
-                self.utility,
-                allowed_dirs=self.settings.policy_dirs,
-                max_bytes=self.settings.checkpoint_max_bytes,
-            )
+            policy = self._load_allowed(spec)
         except Exception as exc:  # InputError, or anything a broken checkpoint raises
             log.warning(
                 "state file %s: cannot restore the policy %r (%s); keeping the configured %s",

@@ -175,10 +175,11 @@ def test_a_failing_policy_holds_the_target_instead_of_failing_the_report(
     assert service.snapshot_counters()["decision_errors"] == 1
 
 
-def test_a_report_held_for_the_link_is_decided_once_the_link_is_back(
-    start_mock: Callable[..., MockAutopilot],
-) -> None:
-    # A port where no vehicle listens yet: the link keeps reconnecting.
+def service_waiting_for_a_vehicle(
+    start_mock: Callable[..., MockAutopilot], **settings: Any
+) -> tuple[int, PlacementService]:
+    """A started on-report service (load-weighted) linked to a free port where no vehicle listens
+    yet: the link keeps reconnecting. Returns the port, for a mock to appear on later."""
     placeholder = start_mock("px4")
     port = placeholder.port
     placeholder.stop()
@@ -187,10 +188,16 @@ def test_a_report_held_for_the_link_is_decided_once_the_link_is_back(
         api_token="t",
         policy="load-weighted",
         decision_mode="on-report",
+        **settings,
     )
-    service = PlacementService(
-        config, MavlinkLink(LinkConfig(config.mavlink)), load_policy("load-weighted")
-    ).start()
+    link = MavlinkLink(LinkConfig(config.mavlink))
+    return port, PlacementService(config, link, load_policy("load-weighted")).start()
+
+
+def test_a_report_held_for_the_link_is_decided_once_the_link_is_back(
+    start_mock: Callable[..., MockAutopilot],
+) -> None:
+    port, service = service_waiting_for_a_vehicle(start_mock)
     try:
         assert service.submit_report(Report(1.0, ("a", "b", "c"), reports())) is None
         assert service.snapshot_counters()["decisions_waiting_link"] == 1
@@ -207,19 +214,7 @@ def test_a_report_held_for_the_link_is_decided_once_the_link_is_back(
 def test_a_report_held_for_the_link_that_went_stale_meanwhile_is_not_flown(
     start_mock: Callable[..., MockAutopilot],
 ) -> None:
-    placeholder = start_mock("px4")
-    port = placeholder.port
-    placeholder.stop()
-    config = ServiceSettings(
-        mavlink=f"tcp:127.0.0.1:{port}",
-        api_token="t",
-        policy="load-weighted",
-        decision_mode="on-report",
-        report_max_age_s=0.5,
-    )
-    service = PlacementService(
-        config, MavlinkLink(LinkConfig(config.mavlink)), load_policy("load-weighted")
-    ).start()
+    port, service = service_waiting_for_a_vehicle(start_mock, report_max_age_s=0.5)
     try:
         assert service.submit_report(Report(1.0, ("a", "b", "c"), reports())) is None
         held_at = service.snapshot_counters()["decisions_waiting_link"]
