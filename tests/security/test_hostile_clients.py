@@ -1,7 +1,9 @@
 """Hostile HTTP clients against a real ``tupa serve`` (issue 21, items 4 and 5).
 
-One ``tupa serve`` process on a free loopback port (no autopilot: the HTTP side works without
-one), with a 1 s request-read timeout and a small rate limit, stopped at the end of the module.
+``tupa serve`` processes on free loopback ports (no autopilot: the HTTP side works without one),
+with a 1 s request-read timeout; one without a rate limit, one with a small one for the test of
+the limit, so that no test's outcome depends on another having spent the budget. Both are
+stopped at the end of the module.
 The clients speak raw sockets where a well-behaved library would not do what an attacker does:
 a 100 MB header sent in chunks, a request that stops half-way, a body shorter than announced.
 """
@@ -36,8 +38,7 @@ class Served:
         return f"http://127.0.0.1:{self.port}"
 
 
-@pytest.fixture(scope="module")
-def served() -> Iterator[Served]:
+def _serve(*options: str) -> Iterator[Served]:
     proc, port = start_service(
         [
             "--port",
@@ -46,10 +47,7 @@ def served() -> Iterator[Served]:
             "min-distance",
             "--mavlink",
             "tcp:127.0.0.1:1",  # nothing listens there: no autopilot
-            "--rate-limit-rps",
-            "1",
-            "--rate-limit-burst",
-            "5",
+            *options,
         ],
         env={
             "TUPA_API_TOKEN": TOKEN,
@@ -61,6 +59,18 @@ def served() -> Iterator[Served]:
         yield Served(proc, port)
     finally:
         proc.stop()
+
+
+@pytest.fixture(scope="module")
+def served() -> Iterator[Served]:
+    """No rate limit: what these tests see must not depend on what ran before them."""
+    yield from _serve("--rate-limit-rps", "0")
+
+
+@pytest.fixture(scope="module")
+def served_rate_limited() -> Iterator[Served]:
+    """A small rate limit (1 request/s, burst 5), for the test of the limit itself."""
+    yield from _serve("--rate-limit-rps", "1", "--rate-limit-burst", "5")
 
 
 def _read_until_closed(sock: socket.socket, timeout_s: float) -> bytes:
@@ -178,10 +188,12 @@ def test_a_stalled_connection_is_closed_within_the_read_timeout(
 # --------------------------------------------------------------------------- 5: proxies
 
 
-def test_x_forwarded_for_from_loopback_does_not_dodge_the_rate_limit(served: Served) -> None:
+def test_x_forwarded_for_from_loopback_does_not_dodge_the_rate_limit(
+    served_rate_limited: Served,
+) -> None:
     """uvicorn trusts ``X-Forwarded-For`` from 127.0.0.1 unless told not to: a client that
     sends a new address each time would get a new bucket each time."""
-    with httpx.Client(base_url=served.url, timeout=5.0) as http:
+    with httpx.Client(base_url=served_rate_limited.url, timeout=5.0) as http:
         codes = [
             http.get(
                 "/v1/setpoint", headers={**AUTH, "X-Forwarded-For": f"198.51.100.{i}"}
