@@ -19,7 +19,7 @@ from collections.abc import Sequence
 from concurrent.futures import Future
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
-from service.mavlink_link import LinkConfig, LinkState
+from service.mavlink_link import TAKEOFF_TIMEOUT_S, LinkConfig, LinkState
 
 if TYPE_CHECKING:
     from service.mavlink_link import MavlinkLink
@@ -55,8 +55,11 @@ class VehicleLink(Protocol):
         """Stop streaming (the vehicle's own failsafe for a lost stream then acts)."""
         ...
 
-    def arm_and_takeoff(self, z_m: float | None = None, timeout_s: float = 60.0) -> Future[None]:
-        """Arm and climb (only when asked); the Future completes when airborne."""
+    def arm_and_takeoff(
+        self, z_m: float | None = None, timeout_s: float = TAKEOFF_TIMEOUT_S
+    ) -> Future[None]:
+        """Arm and climb (only when asked), retrying refusals until ``timeout_s``; the Future
+        completes when airborne."""
         ...
 
 
