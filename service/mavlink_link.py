@@ -89,10 +89,10 @@ take-off it then does not fly, and disarms it ~10 s later)."""
 CLIMB_MIN_MPS = 0.5
 """Slowest average climb accepted on the way to the take-off altitude."""
 IN_AIR_ALT_M = 1.0
+"""Armed and this high above home: flying (a vehicle found flying is taken over, not armed)."""
 LIFTOFF_ALT_M = 0.3
 LIFTOFF_WAIT_S = 3.0
 """A refused take-off is still a take-off if the vehicle is this high within this time."""
-"""Armed and this high above home: flying (a vehicle found flying is taken over, not armed)."""
 RETRY_MIN_S = 1.0
 RETRY_MAX_S = 10.0
 """Backoff between take-off attempts: doubles from min to max."""
@@ -378,11 +378,7 @@ class VehicleLinkBase(ABC):
         now = time.monotonic()
         with self._cond:
             position = ned_to_area(*self._ned, self.config.frames) if self._ned else None
-            mode = (
-                mode_name(self._flavour, self._custom_mode)
-                if self._flavour is not None and self._custom_mode is not None
-                else None
-            )
+            mode = self._mode_locked()
             return LinkState(
                 link=self._health,
                 flavour=self._flavour,
@@ -553,19 +549,19 @@ class VehicleLinkBase(ABC):
             return ekf_position_ok(self._ekf_flags)
         return True
 
+    def _mode_locked(self) -> str | None:
+        """The mode the vehicle's HEARTBEAT shows, None before one (call under ``self._cond``)."""
+        if self._flavour is None or self._custom_mode is None:
+            return None
+        return mode_name(self._flavour, self._custom_mode)
+
     def _mode_is(self, name: str) -> bool:
         """The vehicle's HEARTBEAT shows mode ``name`` (call under ``self._cond``)."""
-        return (
-            self._flavour is not None
-            and self._custom_mode is not None
-            and mode_name(self._flavour, self._custom_mode) == name
-        )
+        return self._mode_locked() == name
 
     def _mode_now(self) -> str:
         with self._cond:
-            if self._flavour is None or self._custom_mode is None:
-                return "unknown"
-            return mode_name(self._flavour, self._custom_mode)
+            return self._mode_locked() or "unknown"
 
     def _wait_for(self, condition: Callable[[], bool], deadline: float, what: str) -> None:
         """Wait (under ``self._cond``) until ``condition()``; TimeoutError at ``deadline``."""
@@ -678,16 +674,15 @@ class VehicleLinkBase(ABC):
     def _leaving_the_ground(self) -> bool:
         """Armed and climbing within ``LIFTOFF_WAIT_S``: a take-off whose ACCEPTED was lost is
         refused when sent again (ArduCopter takes off only from the ground), yet it flies."""
-        until = time.monotonic() + LIFTOFF_WAIT_S
-        with self._cond:
-            while not self._stop.is_set():
-                if self._armed and (self._relative_alt_m or 0.0) >= LIFTOFF_ALT_M:
-                    return True
-                remaining = until - time.monotonic()
-                if remaining <= 0:
-                    return False
-                self._cond.wait(min(remaining, 0.2))
-        return False
+        try:
+            self._wait_for(
+                lambda: self._armed and (self._relative_alt_m or 0.0) >= LIFTOFF_ALT_M,
+                time.monotonic() + LIFTOFF_WAIT_S,
+                "lift-off",
+            )
+        except TimeoutError:
+            return False
+        return True
 
     def _ensure_mode(self, name: str, custom_mode: int, deadline: float) -> None:
         """Ask for mode ``name`` until HEARTBEAT shows it, held for ``MODE_SETTLE_S``."""

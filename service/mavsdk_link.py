@@ -104,17 +104,6 @@ ACTION_RESULTS = {
 }
 """MAVSDK's ActionResult names for a refused arming, as the MAV_RESULT they stand for (None: no
 answer); any other refusal counts as MAV_RESULT_FAILED."""
-STATUS_TEXT_SEVERITY = {
-    "EMERGENCY": 0,
-    "ALERT": 1,
-    "CRITICAL": 2,
-    "ERROR": 3,
-    "WARNING": 4,
-    "NOTICE": 5,
-    "INFO": 6,
-    "DEBUG": 7,
-}
-"""MAVSDK's StatusTextType names as MAV_SEVERITY values."""
 UNANSWERED_WAIT_S = 3.0
 """How long closing a session waits for MAVSDK to answer the calls still open. MAVSDK answers an
 unacknowledged command with a timeout after its own retries (3 tries by default); this bound is
@@ -289,9 +278,6 @@ class MavsdkLink(VehicleLinkBase):
         route_mavsdk_logs_to_python()
         return super().start()
 
-    def _ask_arm(self, timeout_s: float) -> int | None:
-        return self._arm(timeout_s)
-
     def _release(self) -> None:
         self._close_session()
 
@@ -429,7 +415,9 @@ class MavsdkLink(VehicleLinkBase):
             self._cond.notify_all()
 
     def _on_status_text(self, status_text: Any, _user_data: Any) -> None:
-        severity = STATUS_TEXT_SEVERITY.get(getattr(status_text.type, "name", ""), 6)
+        # MAVSDK's StatusTextType names are MAV_SEVERITY's without the prefix.
+        name = getattr(status_text.type, "name", "")
+        severity = getattr(mavlink, f"MAV_SEVERITY_{name}", mavlink.MAV_SEVERITY_INFO)
         self._note_status_text(severity, status_text.text)
 
     def _on_heading(self, heading: Any, _user_data: Any) -> None:
@@ -648,7 +636,7 @@ class MavsdkLink(VehicleLinkBase):
         except (ValueError, KeyError, TypeError):
             return None
 
-    def _arm(self, timeout_s: float) -> int | None:
+    def _ask_arm(self, timeout_s: float) -> int | None:
         """Arm through the Action plugin: MAV_RESULT_ACCEPTED, the MAV_RESULT MAVSDK's answer
         stands for when refused, or None when no answer came."""
         from mavsdk.plugins.action import ActionResult
