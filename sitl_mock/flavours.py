@@ -203,6 +203,9 @@ class Flavour:
     finite; ArduPilot ignores them."""
     sends_ekf_status: bool
     """ArduPilot sends EKF_STATUS_REPORT; PX4 does not."""
+    arming_needs_position: bool
+    """Arming is refused without a position estimate in every mode (as the mock's PX4 does);
+    otherwise only in the modes that need one (ArduCopter arms in STABILIZE without it)."""
     rtl_alt_m: float
     land_speed_mps: float
     land_disarm_delay_s: float
@@ -229,6 +232,8 @@ class Flavour:
     text_interval_refused: str
     """SET_MESSAGE_INTERVAL for a message the autopilot does not have (``{message_id}``)."""
     text_ready: tuple[str, ...]
+    text_origin_set: str
+    """When the EKF gets its origin ("" for nothing)."""
     text_auto_disarm: str
     text_offboard_lost: str
     text_gcs_lost: str
@@ -307,6 +312,7 @@ ARDUPILOT = Flavour(
     mode_position_check_armed_only=True,
     takeoff_position_from_params=False,
     sends_ekf_status=True,
+    arming_needs_position=False,
     rtl_alt_m=15.0,
     land_speed_mps=0.5,
     land_disarm_delay_s=1.0,
@@ -324,6 +330,7 @@ ARDUPILOT = Flavour(
     result_interval_refused=MavResult.DENIED,
     text_interval_refused="Unknown message id {message_id}",
     text_ready=("EKF3 IMU0 is using GPS",),
+    text_origin_set="EKF3 IMU0 origin set",
     text_auto_disarm="Disarming motors: no takeoff",
     text_offboard_lost="",
     text_gcs_lost="GCS Failsafe On: {action}",
@@ -373,6 +380,7 @@ PX4 = Flavour(
     mode_position_check_armed_only=False,
     takeoff_position_from_params=True,
     sends_ekf_status=False,
+    arming_needs_position=True,
     rtl_alt_m=30.0,
     land_speed_mps=0.7,
     land_disarm_delay_s=2.0,
@@ -390,6 +398,7 @@ PX4 = Flavour(
     result_interval_refused=MavResult.TEMPORARILY_REJECTED,
     text_interval_refused="",
     text_ready=("Ready for takeoff!",),
+    text_origin_set="",
     text_auto_disarm="Disarmed by auto preflight disarming",
     text_offboard_lost="Failsafe activated: no offboard signal, holding",
     text_gcs_lost="Connection to ground station lost: {action}",

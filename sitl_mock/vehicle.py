@@ -149,34 +149,19 @@ class Vehicle:
         self.ready_delay_s = (
             cfg.ready_delay_s if cfg.ready_delay_s is not None else flavour.ready_delay_s
         )
-        # The earlier start-up milestones keep their share of a shortened start-up, and never
-        # come after the position estimate.
+        # The earlier start-up milestones keep their share of a shortened start-up (a flavour's
+        # default scaled like the position estimate), and never come after it.
         scale = self.ready_delay_s / flavour.ready_delay_s
-        self.origin_delay_s = min(
-            cfg.origin_delay_s
-            if cfg.origin_delay_s is not None
-            else flavour.origin_delay_s * scale,
-            self.ready_delay_s,
-        )
-        self.prearm_delay_s = min(
-            cfg.prearm_delay_s
-            if cfg.prearm_delay_s is not None
-            else flavour.prearm_delay_s * scale,
-            self.ready_delay_s,
-        )
-        default_switch_s = flavour.mode_switch_read_s
-        switch_read_s = (
-            cfg.mode_switch_read_s
-            if cfg.mode_switch_read_s is not None
-            else None
-            if default_switch_s is None
-            else default_switch_s * scale
-        )
-        self.mode_switch_read_s = (
-            None
-            if switch_read_s is None or switch_read_s < 0
-            else min(switch_read_s, self.ready_delay_s)
-        )
+
+        def milestone_s(configured: float | None, default: float) -> float:
+            return min(default * scale if configured is None else configured, self.ready_delay_s)
+
+        self.origin_delay_s = milestone_s(cfg.origin_delay_s, flavour.origin_delay_s)
+        self.prearm_delay_s = milestone_s(cfg.prearm_delay_s, flavour.prearm_delay_s)
+        self.mode_switch_read_s: float | None = None  # negative, or no default: never
+        if cfg.mode_switch_read_s is not None or flavour.mode_switch_read_s is not None:
+            switch_s = milestone_s(cfg.mode_switch_read_s, flavour.mode_switch_read_s or 0.0)
+            self.mode_switch_read_s = switch_s if switch_s >= 0 else None
         self.rtl_alt_m = cfg.rtl_alt_m if cfg.rtl_alt_m is not None else flavour.rtl_alt_m
         self.land_speed_mps = cfg.land_speed_mps or flavour.land_speed_mps
         self.default_takeoff_alt_m = (
@@ -569,7 +554,7 @@ class Vehicle:
         """Why arming is refused now, or "" if it is allowed."""
         if not self.prearm_ok:
             return self.flavour.text_prearm_failing
-        if not self.ready and (self.mode.needs_position or self.flavour.name == "px4"):
+        if not self.ready and (self.mode.needs_position or self.flavour.arming_needs_position):
             return self.flavour.text_arm_not_ready
         if not self.mode.allows_arming:
             return self.flavour.text_arm_mode
@@ -704,8 +689,7 @@ class Vehicle:
         now = self.time_s
         if not self.origin_set and now >= self.origin_delay_s:
             self.origin_set = True
-            if self.flavour.sends_ekf_status:
-                self._emit(Severity.INFO, "EKF3 IMU0 origin set")
+            self._emit(Severity.INFO, self.flavour.text_origin_set)
         if not self.prearm_ok and now >= self.prearm_delay_s:
             self.prearm_ok = True
         switch_s = self.mode_switch_read_s
