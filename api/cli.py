@@ -57,7 +57,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--insecure", action="store_true", default=None, help="allow serving without a token"
     )
     parser.add_argument("--decision-mode", choices=("paced", "on-report"))
-    parser.add_argument("--step-s", type=float, help="decision period in seconds (default 1)")
+    parser.add_argument(
+        "--world",
+        help="the world the policy was trained for (default closed-loop): its decision period",
+    )
+    parser.add_argument(
+        "--step-s", type=float, help="decision period in seconds (default: the world's, 1)"
+    )
     parser.add_argument("--report-max-age-s", type=float, help="older reports are stale")
     parser.add_argument("--state-file", type=Path, help="persist the last target and policy here")
     parser.add_argument(
@@ -88,6 +94,7 @@ _SETTING_ARGS = (
     "port",
     "insecure",
     "decision_mode",
+    "world",
     "step_s",
     "report_max_age_s",
     "state_file",

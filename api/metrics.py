@@ -34,7 +34,7 @@ class ServiceCollector(Collector):
             "tupa_decisions", "Placement decisions, by outcome", labels=["outcome"]
         )
         decisions.add_metric(["decided"], counters.get("decisions", 0))
-        for outcome in ("held_stale", "waiting_link", "held_en_route", "rejected"):
+        for outcome in ("held_stale", "waiting_link", "rejected"):
             decisions.add_metric([outcome], counters.get(f"decisions_{outcome}", 0))
         decisions.add_metric(["error"], counters.get("decision_errors", 0))
         yield decisions

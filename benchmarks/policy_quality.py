@@ -28,6 +28,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +39,7 @@ from policies.baselines import make_policy
 from policies.evaluation import evaluate_policy, heterogeneity_bin
 from sim.config import AreaConfig
 from sim.scenarios import generate_scenarios
+from sim.world import PAPER
 
 RESULTS = Path(__file__).parent / "results" / "policy_quality.json"
 SHIPPED = Path(__file__).resolve().parent.parent / "policies" / "checkpoints"
@@ -51,8 +53,9 @@ def evaluate_all(
 ) -> dict[str, Any]:
     scenarios = generate_scenarios(n_scenarios, n_users, seed=TEST_SEED + n_users, area=area)
     results = {}
+    world = replace(PAPER, area=area)
     for policy in [make_policy("min-distance", area), make_policy("oracle", area), *agents]:
-        results[policy.name] = evaluate_policy(policy, scenarios, area, seed=0, progress=True)
+        results[policy.name] = evaluate_policy(policy, scenarios, world, seed=0, progress=True)
     return results
 
 

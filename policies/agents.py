@@ -10,23 +10,29 @@ import numpy as np
 
 from policies.baselines import UsersLike
 from policies.checkpoints import load_checkpoint
+from policies.residual import residual_target
 from sim.config import AreaConfig
+from sim.world import World, position_to_coordinates
 
 
 class TrainedAgent:
     """A DDQN or DDPG checkpoint answering every step from the observation (deterministic).
 
     DDQN acts in ``tupa/FapDiscrete`` (13 moves, masked with ``info["action_mask"]``), DDPG in
-    ``tupa/FapContinuous`` (absolute coordinates). Episodes start at the environment's default
-    start, as in training's evaluation.
+    ``tupa/FapContinuous`` (absolute coordinates). Episodes start at the world's home, as in
+    training's evaluation.
     """
 
     def __init__(self, model: Any, metadata: dict[str, Any], name: str | None = None) -> None:
         self.model = model
         self.metadata = metadata
         self.algorithm: str = metadata["algorithm"]
+        self.residual_radius_m: float | None = (
+            metadata.get("residual_radius_m") if metadata.get("action") == "residual" else None
+        )
         self.env_kind = "discrete" if self.algorithm == "ddqn" else "continuous"
         self.name = name or default_name(metadata, None)
+        self.area = AreaConfig()
 
     @classmethod
     def load(
@@ -46,19 +52,28 @@ class TrainedAgent:
         )
         return cls(model, metadata, name or default_name(metadata, Path(path)))
 
-    def begin_episode(self, scenario: UsersLike, area: AreaConfig) -> np.ndarray | None:
+    def begin_episode(self, scenario: UsersLike, world: World) -> np.ndarray | None:
+        self.area = world.area
         return None
 
     def act(self, observation: np.ndarray, info: dict[str, Any]) -> Any:
         if self.algorithm == "ddqn":
             return int(self.model.masked_predict(observation[None], info["action_mask"][None])[0])
         action, _ = self.model.predict(observation, deterministic=True)
+        if self.residual_radius_m is not None:
+            target = residual_target(action, info["reports"], self.area, self.residual_radius_m)
+            return position_to_coordinates(target, self.area)
         return np.asarray(action, dtype=np.float32)
 
 
 def default_name(metadata: dict[str, Any], path: Path | None) -> str:
-    """``ddqn-gen10k`` style: algorithm and training strategy, else the file's name."""
+    """A checkpoint's name: the metadata's ``name`` when it has one (the shipped checkpoints),
+    else ``ddqn-gen10k`` style (algorithm, ``residual`` for residual actions, training
+    strategy), else the file's name."""
+    if isinstance(metadata.get("name"), str) and metadata["name"]:
+        return metadata["name"]
     algorithm, strategy = metadata.get("algorithm"), metadata.get("strategy")
     if algorithm and strategy:
-        return f"{algorithm}-{strategy}"
+        residual = "-residual" if metadata.get("action") == "residual" else ""
+        return f"{algorithm}{residual}-{strategy}"
     return path.stem if path is not None else str(algorithm)

@@ -28,6 +28,8 @@ from typing import Literal, Protocol, runtime_checkable
 import numpy as np
 
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
+from sim.observation import UserReports
+from sim.world import World
 
 DistanceMetric = Literal["3d", "ground"]
 
@@ -185,6 +187,20 @@ def _optimal_users(
     return candidates[strength <= eta * (1.0 + 1e-12)]
 
 
+@dataclass(frozen=True)
+class ReportedUsers:
+    """The users of a report (``sim.observation.UserReports``) as ``UsersLike``: what a
+    placement policy re-placing from reports sees."""
+
+    users_xy_m: np.ndarray
+    load_bps: np.ndarray
+
+    @classmethod
+    def of(cls, reports: UserReports) -> ReportedUsers:
+        xy = np.column_stack([reports.x_m, reports.y_m]).astype(float)
+        return cls(xy, np.asarray(reports.offered_bps, dtype=float))
+
+
 def clip_to_volume(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
     """``xyz_m`` (…, 3) clipped into the UAV's volume of ``area``."""
     lower = np.array([0.0, 0.0, area.z_min_m])
@@ -229,29 +245,27 @@ class MinDistancePolicy:
 # --------------------------------------------------------------------------------------------
 # Registry
 
-PolicyFactory = Callable[[AreaConfig, NetworkConfig, UtilityConfig, int], PlacementPolicy]
+PolicyFactory = Callable[[AreaConfig, NetworkConfig, UtilityConfig, int, float], PlacementPolicy]
 
 
 def _min_distance(
-    area: AreaConfig, network: NetworkConfig, utility: UtilityConfig, episode_steps: int
+    area: AreaConfig, network: NetworkConfig, utility: UtilityConfig, steps: int, step_s: float
 ) -> PlacementPolicy:
     return MinDistancePolicy(area)
 
 
 def _load_weighted(
-    area: AreaConfig, network: NetworkConfig, utility: UtilityConfig, episode_steps: int
+    area: AreaConfig, network: NetworkConfig, utility: UtilityConfig, steps: int, step_s: float
 ) -> PlacementPolicy:
     return MinDistancePolicy(area, load_weighted=True)
 
 
 def _oracle(
-    area: AreaConfig, network: NetworkConfig, utility: UtilityConfig, episode_steps: int
+    area: AreaConfig, network: NetworkConfig, utility: UtilityConfig, steps: int, step_s: float
 ) -> PlacementPolicy:
     from policies.oracle import OracleConfig, OraclePolicy
 
-    return OraclePolicy(
-        area, network, utility, OracleConfig(episode_steps=episode_steps, step_s=1.0)
-    )
+    return OraclePolicy(area, network, utility, OracleConfig(episode_steps=steps, step_s=step_s))
 
 
 BASELINES: dict[str, PolicyFactory] = {
@@ -267,15 +281,19 @@ def make_policy(
     network: NetworkConfig = NetworkConfig(),
     utility: UtilityConfig = UtilityConfig(),
     episode_steps: int = 100,
+    world: World | None = None,
 ) -> PlacementPolicy:
     """Build the static policy registered as ``name`` (a key of :data:`BASELINES`).
 
     ``network``, ``utility`` and ``episode_steps`` matter to the oracle only: it optimises the
     utility of an episode of that length under that network configuration (use the queueing the
-    evaluation runs with). Raises ``ValueError`` naming the choices for an unknown name.
+    evaluation runs with). A ``world`` gives all of them (and the step) at once, overriding the
+    others. Raises ``ValueError`` naming the choices for an unknown name.
     """
     try:
         factory = BASELINES[name]
     except KeyError:
         raise ValueError(f"unknown policy {name!r} (choices: {', '.join(BASELINES)})") from None
-    return factory(area, network, utility, episode_steps)
+    if world is not None:
+        return factory(world.area, world.network, world.utility, world.episode_steps, world.step_s)
+    return factory(area, network, utility, episode_steps, 1.0)

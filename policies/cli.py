@@ -9,21 +9,30 @@ from pathlib import Path
 from policies.train_cli import register as register_train
 
 _EVAL_DESCRIPTION = """\
-Evaluate placement policies on a scenario set: one stochastic episode per scenario (the
-paper's 100 steps of 1 s by default), the same fading draws for every policy on a scenario
-(scenario i is reset with seed S + i). A static policy holds its position for the whole episode.
+Evaluate placement policies on a scenario set: one episode per scenario in a world (--world:
+paper, the paper's protocol with a teleporting UAV, by default; closed-loop flies at 10 m/s
+horizontally and 3 m/s vertically from home, with reports one step old; closed-loop-moving adds
+walking users and changing demand; --world-set key=value changes any setting, e.g.
+flight.horizontal_mps=5). Every policy sees the same fading draws, user motion and demand on a
+scenario (scenario i is reset with seed S + i). A static policy (min-distance, load-weighted,
+oracle) is re-placed every step from the latest report; in the closed loop the oracle is the
+tracking oracle, the upper bound of the loop. Under the paper's protocol a static policy starts
+at its placement; in the closed-loop worlds every policy starts at home.
 
 Per scenario: utility = the episode's mean utility; throughput_bps = mean aggregate throughput;
 delay_s = mean of the users' mean delay; plr = mean of the users' mean packet loss ratio;
-heterogeneity = the scenario's index H.
+heterogeneity = the scenario's index H; time_to_final_s = when the utility came within 0.01 of
+its final value (5-step moving mean against the mean of the last 10 steps); trace = the utility
+of every step.
 
 A --policy is a baseline name or a trained checkpoint (model.zip, or a tupa train output
 directory): DDQN checkpoints act in the discrete environment, DDPG ones in the continuous one.
 
 Output (--json): with one --policy, the object
-  {"policy", "n_scenarios", "mean_utility", "median_utility", "p25_utility", "seed",
-   "queueing", "episode_steps", "mode", "scenarios": [{"id", "utility", "heterogeneity",
-   "throughput_bps", "delay_s", "plr", "uav_xyz_m", "ratio_to_oracle"}]}
+  {"policy", "world", "n_scenarios", "mean_utility", "median_utility", "p25_utility",
+   "mean_time_to_final_s", "seed", "queueing", "episode_steps", "mode", "scenarios": [{"id",
+   "utility", "heterogeneity", "throughput_bps", "delay_s", "plr", "time_to_final_s",
+   "uav_xyz_m", "trace", "ratio_to_oracle"}]}
 (ratio_to_oracle: the scenario's utility over the oracle's; the oracle is evaluated on the side
 when it is not among the policies)
 with several, {"results": [object, ...]} in the order given. The file is written atomically,
@@ -69,19 +78,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="S",
         help="fading seed; scenario i uses S + i (default 0)",
     )
+    add_world_arguments(evaluate)
     evaluate.add_argument(
         "--queueing",
         choices=QUEUEING_CHOICES,
-        default="fq-codel",
+        default=None,
         metavar="Q",
         help="queueing above the Wi-Fi MAC: fq-codel (default) or mac-only",
     )
     evaluate.add_argument(
         "--episode-steps",
         type=int,
-        default=100,
+        default=None,
         metavar="N",
-        help="steps (of 1 s) per episode (default 100, the paper's T)",
+        help="steps per episode (default: the world's, 100 as the paper's T)",
     )
     evaluate.add_argument(
         "--no-progress", action="store_true", help="no progress bar (it goes to stderr)"
@@ -91,10 +101,54 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     register_train(subparsers)
 
 
+def add_world_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--world NAME`` and ``--world-set key=value`` (``tupa eval``, ``train``, ``demo``)."""
+    parser.add_argument(
+        "--world",
+        default=None,
+        metavar="NAME",
+        help="the world: paper (default for eval), closed-loop, closed-loop-moving",
+    )
+    parser.add_argument(
+        "--world-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help=(
+            "change one setting of the world, repeat for several: e.g. flight.horizontal_mps=5, "
+            "mobility.model=group, demand.quiet_rate_per_s=0.01, reports.age_steps=2, home=random"
+        ),
+    )
+
+
+def world_from_args(args: argparse.Namespace, default: str, area: object = None) -> object:
+    """The world ``--world``/``--world-set`` describe (``InputError`` naming a bad setting),
+    with ``--queueing`` and ``--episode-steps`` applied when given, over ``area``."""
+    from dataclasses import replace
+
+    from sim.config import NetworkConfig
+    from sim.errors import InputError
+    from sim.world import get_world, world_with
+
+    world = get_world(args.world or default)
+    overrides: dict[str, object] = {}
+    if area is not None:
+        overrides["area"] = area
+    if getattr(args, "queueing", None):
+        overrides["network"] = NetworkConfig().with_queueing(args.queueing)
+    steps = getattr(args, "episode_steps", None)
+    if steps is not None:
+        if steps < 1:
+            raise InputError(f"--episode-steps: must be at least 1, got {steps}")
+        overrides["episode_steps"] = steps
+    if overrides:
+        world = replace(world, **overrides)
+    return world_with(world, args.world_set)
+
+
 def _eval(args: argparse.Namespace) -> int:
     from policies.baselines import BASELINES, make_policy
     from policies.evaluation import evaluate_policy, format_results
-    from sim.config import NetworkConfig
     from sim.errors import InputError
     from sim.files import atomic_write_json, load_scenarios
 
@@ -105,19 +159,17 @@ def _eval(args: argparse.Namespace) -> int:
                 f"--policy: {name!r} is neither a policy ({', '.join(BASELINES)}) "
                 "nor an existing checkpoint"
             )
-    if args.episode_steps < 1:
-        raise InputError(f"--episode-steps: must be at least 1, got {args.episode_steps}")
     if args.seed < 0:
         raise InputError(f"--seed: must be >= 0, got {args.seed}")
 
     area, scenarios = load_scenarios(args.scenarios)
     if not scenarios:
         raise InputError(f"{args.scenarios}: scenarios: empty (nothing to evaluate)")
-    network = NetworkConfig().with_queueing(args.queueing)
+    world = world_from_args(args, "paper", area)
     policies = []
     for name in names:
         if name in BASELINES:
-            policies.append(make_policy(name, area, network, episode_steps=args.episode_steps))
+            policies.append(make_policy(name, world=world))
         else:
             from policies.agents import TrainedAgent
 
@@ -125,17 +177,9 @@ def _eval(args: argparse.Namespace) -> int:
     results = []
     for policy in policies:
         results.append(
-            evaluate_policy(
-                policy,
-                scenarios,
-                area,
-                seed=args.seed,
-                queueing=args.queueing,
-                episode_steps=args.episode_steps,
-                progress=not args.no_progress,
-            )
+            evaluate_policy(policy, scenarios, world, seed=args.seed, progress=not args.no_progress)
         )
-    _add_ratio_to_oracle(results, policies, scenarios, area, network, args)
+    _add_ratio_to_oracle(results, scenarios, world, args)
     document = results[0] if len(results) == 1 else {"results": results}
     try:
         atomic_write_json(args.json, document)
@@ -143,7 +187,8 @@ def _eval(args: argparse.Namespace) -> int:
         raise InputError(f"{args.json}: cannot write: {exc.strerror or exc}") from None
     print(
         f"evaluated {', '.join(names)} on {len(scenarios)} scenarios "
-        f"({args.queueing}, {args.episode_steps} steps, seed {args.seed}); wrote {args.json}"
+        f"(world {world.name}, {world.network.queue.queueing}, {world.episode_steps} steps, "
+        f"seed {args.seed}); wrote {args.json}"
     )
     print(format_results(results))
     return 0
@@ -203,7 +248,7 @@ def _report(args: argparse.Namespace) -> int:
 
 
 def _add_ratio_to_oracle(
-    results: list[dict], policies: list, scenarios: list, area, network, args: argparse.Namespace
+    results: list[dict], scenarios: list, world: object, args: argparse.Namespace
 ) -> None:
     """Add each scenario's ``ratio_to_oracle`` (utility / the oracle's on that scenario) to every
     result; the oracle is evaluated on the side when it is not among the policies."""
@@ -213,12 +258,10 @@ def _add_ratio_to_oracle(
     oracle = next((r for r in results if r["policy"] == "oracle"), None)
     if oracle is None:
         oracle = evaluate_policy(
-            make_policy("oracle", area, network, episode_steps=args.episode_steps),
+            make_policy("oracle", world=world),
             scenarios,
-            area,
+            world,
             seed=args.seed,
-            queueing=args.queueing,
-            episode_steps=args.episode_steps,
             progress=not args.no_progress,
         )
     best = [row["utility"] for row in oracle["scenarios"]]

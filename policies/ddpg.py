@@ -5,6 +5,11 @@ What changes from SB3's DDPG (TD3 with one critic, no target smoothing, no polic
 - **Critic loss** is the Huber loss (the paper) or MSE, chosen by ``loss``.
 - **Target networks** are soft-updated with τ every ``target_update_interval`` gradient steps
   (the paper: 80 % every 2000 steps) instead of a small τ at every step.
+- **Action penalty** (``action_l2``, 0 by default): the actor's loss adds
+  ``action_l2 · mean(a²)``, so an action moves away from 0 only where the critic's gain pays
+  for it. With residual actions (:mod:`policies.residual`) 0 is the load-weighted placement,
+  and the penalty keeps the actor out of tanh's saturated corners, where its gradient vanishes
+  and a run collapses onto one corner for every observation.
 """
 
 from __future__ import annotations
@@ -22,14 +27,22 @@ class IntervalTargetDDPG(DDPG):
     """SB3 ``DDPG`` with a Huber critic loss and interval target updates (module doc)."""
 
     def __init__(
-        self, *args: Any, target_update_interval: int = 1, loss: str = "huber", **kwargs: Any
+        self,
+        *args: Any,
+        target_update_interval: int = 1,
+        loss: str = "huber",
+        action_l2: float = 0.0,
+        **kwargs: Any,
     ) -> None:
         if loss not in ("mse", "huber"):
             raise ValueError(f"loss: must be 'mse' or 'huber', got {loss!r}")
         if target_update_interval < 1:
             raise ValueError(f"target_update_interval: must be >= 1, got {target_update_interval}")
+        if not action_l2 >= 0:
+            raise ValueError(f"action_l2: must be >= 0, got {action_l2}")
         self.target_update_interval = target_update_interval
         self.loss = loss
+        self.action_l2 = action_l2
         super().__init__(*args, **kwargs)
 
     def train(self, gradient_steps: int, batch_size: int = 100) -> None:
@@ -51,9 +64,10 @@ class IntervalTargetDDPG(DDPG):
             critic_loss.backward()
             self.critic.optimizer.step()
 
-            actor_loss = -self.critic.q1_forward(
-                batch.observations, self.actor(batch.observations)
-            ).mean()
+            actions = self.actor(batch.observations)
+            actor_loss = -self.critic.q1_forward(batch.observations, actions).mean()
+            if self.action_l2 > 0:
+                actor_loss = actor_loss + self.action_l2 * (actions**2).mean()
             actor_losses.append(actor_loss.item())
             self.actor.optimizer.zero_grad()
             actor_loss.backward()

@@ -1,17 +1,21 @@
-"""Evaluate a placement policy on a scenario set: one stochastic episode per scenario.
+"""Evaluate a placement policy on a scenario set in a world: one episode per scenario.
 
-Protocol (:func:`evaluate_policy`), for scenario i of the set:
+Protocol (:func:`evaluate_policy`), for scenario i of the set, in a :class:`sim.world.World`
+(``paper`` by default, the paper's protocol; ``closed-loop`` flies):
 
 * one environment (``FapContinuousEnv`` unless the policy asks for the discrete one) with the
-  paper's episode (``episode_steps`` steps of 1 s), fading sampled (stochastic mode) and the
-  chosen queueing variant;
-* ``reset(seed=seed + i)``: every policy sees the same fading draws on the same scenario (the
-  model draws the same number of random numbers per step wherever the UAV is), so differences
-  between policies are the policies', not the dice's;
-* a static policy's UAV starts the episode at its position (the reset step is simulated there
-  and not scored), then holds it for every step; an acting policy (:class:`EpisodePolicy`)
-  starts wherever it asks (the environment's default start if it says ``None``) and picks an
-  action every step from the observation.
+  world's episode (``episode_steps`` steps of ``step_s``), flight, users and reports;
+* ``reset(seed=seed + i)``: every policy sees the same fading draws, user motion and demand
+  changes on the same scenario (the model draws the same number of random numbers per step
+  wherever the UAV is), so differences between policies are the policies', not the dice's;
+* a static placement policy (:class:`StaticAgent`) is re-placed every step from the report the
+  decision sees (``info["reports"]``: users' reported positions and offered loads), the vehicle
+  flying there under the world's limits. Where the world says ``static_start="placement"`` (the
+  paper), its vehicle starts the episode at its placement; otherwise every policy starts at the
+  world's home. The ``oracle`` re-placed every step is the *tracking oracle*: the best static
+  position for the latest report, found with the model, flown to under the same limits;
+* an acting policy (:class:`EpisodePolicy`) starts where it asks (the world's home if it says
+  ``None``) and picks an action every step from the observation.
 
 Per scenario, all as means over the ``episode_steps`` scored steps:
 
@@ -19,11 +23,13 @@ Per scenario, all as means over the ``episode_steps`` scored steps:
 * ``throughput_bps``: aggregate throughput of all users (bit/s);
 * ``delay_s``: the users' mean delay (the mean over users of each user's mean delay, s);
 * ``plr``: the users' mean packet loss ratio;
-* ``heterogeneity``: the scenario's heterogeneity index H (paper eq. 3).
+* ``heterogeneity``: the scenario's heterogeneity index H (paper eq. 3), at the episode start;
+* ``time_to_final_s``: when the utility settled: the first step whose 5-step moving mean lies
+  within 0.01 of the final utility (the mean of the last 10 steps), in seconds from the start;
+* ``trace``: the utility of every step (4 decimals), for the utility-over-time figures.
 
-These are the quantities the utility is made of (up to its normalisation and clipping). The
-summary has the mean, the median and the 25th percentile (linear interpolation) of ``utility``
-over the scenarios.
+The summary has the mean, the median and the 25th percentile (linear interpolation) of
+``utility`` over the scenarios, and the mean ``time_to_final_s``.
 """
 
 from __future__ import annotations
@@ -31,20 +37,23 @@ from __future__ import annotations
 import math
 import sys
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol, runtime_checkable
 
 import numpy as np
 
-from policies.baselines import PlacementPolicy, UsersLike
-from sim.config import AreaConfig, NetworkConfig, Queueing, UtilityConfig
-from sim.envs import EnvConfig, FapContinuousEnv, FapDiscreteEnv
+from policies.baselines import PlacementPolicy, ReportedUsers, UsersLike
+from sim.envs import FapContinuousEnv, FapDiscreteEnv
 from sim.scenarios import Scenario
 from sim.utility import heterogeneity_index
+from sim.world import PAPER, World, position_to_coordinates
 
 EnvKind = Literal["continuous", "discrete"]
 HETEROGENEITY_BIN_WIDTH = 0.05
 REFERENCE_POLICY = "min-distance"
+SETTLED_WITHIN = 0.01  # time_to_final_s: how close to the final utility counts as settled
+SETTLE_WINDOW = 5  # steps of the moving mean compared with the final utility
+FINAL_STEPS = 10  # steps averaged for the final utility
 
 
 @runtime_checkable
@@ -54,53 +63,64 @@ class EpisodePolicy(Protocol):
     ``env_kind`` picks the environment whose action space ``act`` answers in: ``"continuous"``
     (``FapContinuous``: absolute coordinates in [0, 1]³) or ``"discrete"`` (``FapDiscrete``: 13
     moves, masks in ``info["action_mask"]``). ``begin_episode`` is called before each reset with
-    the scenario; it returns the UAV's start position (3,) in metres, or ``None`` for the
-    environment's default start. ``act`` gets the latest observation and info (from the reset,
-    then from each step) and returns the next action.
+    the scenario and the world; it returns the UAV's start position (3,) in metres, or ``None``
+    for the world's home. ``act`` gets the latest observation and info (from the reset, then
+    from each step) and returns the next action.
     """
 
     name: str
     env_kind: EnvKind
 
-    def begin_episode(self, scenario: UsersLike, area: AreaConfig) -> np.ndarray | None: ...
+    def begin_episode(self, scenario: UsersLike, world: World) -> np.ndarray | None: ...
 
     def act(self, observation: np.ndarray, info: dict[str, Any]) -> Any: ...
 
 
 @dataclass
 class StaticAgent:
-    """A :class:`~policies.baselines.PlacementPolicy` as an :class:`EpisodePolicy`: it starts
-    at its position and answers every step with the continuous action that keeps it there."""
+    """A :class:`~policies.baselines.PlacementPolicy` as an :class:`EpisodePolicy`: every step
+    it places from the report the decision sees and answers with the continuous action that
+    targets that placement. Placements are cached for identical reports (static users), and a
+    policy with ``track(users, previous_m)`` (the oracle) is asked through it, so it can start
+    its search from where it placed last."""
 
     policy: PlacementPolicy
     env_kind: EnvKind = "continuous"
+    _world: World = field(default=PAPER, init=False, repr=False)
+    _last_key: tuple[bytes, bytes] | None = field(default=None, init=False, repr=False)
+    _target_m: np.ndarray | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.name = self.policy.name
-        self._action = np.zeros(3)
 
-    def begin_episode(self, scenario: UsersLike, area: AreaConfig) -> np.ndarray:
-        target_m = np.asarray(self.policy.place(scenario), dtype=float)
-        self._action = position_to_action_f64(target_m, area)
-        return target_m
+    def place(self, users: UsersLike) -> np.ndarray:
+        """The placement for ``users`` (cached while they do not change)."""
+        key = (users.users_xy_m.tobytes(), users.load_bps.tobytes())
+        if key != self._last_key or self._target_m is None:
+            track = getattr(self.policy, "track", None)
+            previous = self._target_m
+            target = track(users, previous) if track is not None else self.policy.place(users)
+            self._target_m = np.asarray(target, dtype=float)
+            self._last_key = key
+        return self._target_m
+
+    def begin_episode(self, scenario: UsersLike, world: World) -> np.ndarray | None:
+        self._world = world
+        self._last_key = self._target_m = None
+        if world.static_start == "placement":
+            return self.place(scenario)
+        return None
 
     def act(self, observation: np.ndarray, info: dict[str, Any]) -> np.ndarray:
-        return self._action
+        target_m = self.place(ReportedUsers.of(info["reports"]))
+        return position_to_coordinates(target_m, self._world.area)
 
 
-def position_to_action_f64(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
+def position_to_action_f64(xyz_m: np.ndarray, area: Any) -> np.ndarray:
     """The continuous environment's action for ``xyz_m`` in float64 (``sim.envs``'s
     ``position_to_action`` rounds to float32, which moves the UAV by up to ~30 µm: harmless,
     but then the evaluated position would not be exactly the policy's)."""
-    span_z = area.z_max_m - area.z_min_m
-    action = np.array(
-        [
-            xyz_m[0] / area.size_x_m,
-            xyz_m[1] / area.size_y_m,
-            (xyz_m[2] - area.z_min_m) / span_z if span_z > 0 else 0.0,
-        ]
-    )
-    return np.clip(action, 0.0, 1.0)
+    return position_to_coordinates(xyz_m, area)
 
 
 def as_episode_policy(policy: PlacementPolicy | EpisodePolicy) -> EpisodePolicy:
@@ -119,58 +139,53 @@ def _progress(iterable: Sequence[Scenario], label: str, enabled: bool) -> Any:
     return tqdm(iterable, desc=label, unit="scenario", file=sys.stderr, disable=None, leave=False)
 
 
+def time_to_final_s(trace: np.ndarray, step_s: float) -> float:
+    """Seconds until the utility settled (see the module doc), from a per-step ``trace``."""
+    final = float(np.mean(trace[-FINAL_STEPS:]))
+    window = min(SETTLE_WINDOW, len(trace))
+    moving = np.convolve(trace, np.ones(window) / window, mode="valid")
+    settled = np.flatnonzero(np.abs(moving - final) <= SETTLED_WITHIN)
+    first = int(settled[0]) if len(settled) else len(moving) - 1
+    return (first + 1) * step_s
+
+
 def evaluate_policy(
     policy: PlacementPolicy | EpisodePolicy,
     scenarios: Sequence[Scenario],
-    area: AreaConfig,
+    world: World = PAPER,
     seed: int = 0,
-    queueing: Queueing = "fq-codel",
-    episode_steps: int = 100,
     progress: bool = True,
-    network: NetworkConfig | None = None,
-    utility: UtilityConfig = UtilityConfig(),
-    expected: bool = False,
 ) -> dict[str, Any]:
-    """Run one episode per scenario and summarise (see the module doc for the protocol).
+    """Run one episode per scenario in ``world`` and summarise (see the module doc).
 
-    Returns ``{"policy", "n_scenarios", "mean_utility", "median_utility", "p25_utility",
-    "seed", "queueing", "episode_steps", "mode", "scenarios": [{"id", "utility",
-    "heterogeneity", "throughput_bps", "delay_s", "plr", "uav_xyz_m"}]}`` (``uav_xyz_m``: where
-    the UAV ended the episode),
-    plain floats and strings, ready for JSON. Deterministic given the arguments.
-    ``network`` defaults to the paper's configuration; ``queueing`` overrides its queueing.
-    ``expected=True`` runs the deterministic expected model instead (no fading draws): the
-    game the oracle optimises, for checking it.
+    Returns ``{"policy", "world", "n_scenarios", "mean_utility", "median_utility",
+    "p25_utility", "mean_time_to_final_s", "seed", "queueing", "episode_steps", "mode",
+    "scenarios": [{"id", "utility", "heterogeneity", "throughput_bps", "delay_s", "plr",
+    "time_to_final_s", "uav_xyz_m", "trace"}]}`` (``uav_xyz_m``: where the UAV ended the
+    episode), plain floats and strings, ready for JSON. Deterministic given the arguments.
     """
     if not scenarios:
         raise ValueError("scenarios: the set is empty")
-    if episode_steps < 1:
-        raise ValueError(f"episode_steps: must be >= 1, got {episode_steps}")
     if seed < 0:
         raise ValueError(f"seed: must be >= 0, got {seed}")
     agent = as_episode_policy(policy)
-    config = EnvConfig(
-        episode_steps=episode_steps,
-        expected=expected,
-        network=(network or NetworkConfig()).with_queueing(queueing),
-        utility=utility,
-        area=area,
-    )
     env_class = FapDiscreteEnv if agent.env_kind == "discrete" else FapContinuousEnv
-    env = env_class(scenarios, config=config)
+    env = env_class(scenarios, world=world)
+    area = world.area
+    steps = world.episode_steps
 
     rows = []
     for i, scenario in enumerate(_progress(scenarios, agent.name, progress)):
         options: dict[str, Any] = {"scenario": scenario}
-        start_m = agent.begin_episode(scenario, area)
+        start_m = agent.begin_episode(scenario, world)
         if start_m is not None:
             options["uav_xyz_m"] = np.asarray(start_m, dtype=float)
         observation, info = env.reset(seed=seed + i, options=options)
-        utilities = np.empty(episode_steps)
-        throughput = np.empty(episode_steps)
-        delay = np.empty(episode_steps)
-        plr = np.empty(episode_steps)
-        for t in range(episode_steps):
+        utilities = np.empty(steps)
+        throughput = np.empty(steps)
+        delay = np.empty(steps)
+        plr = np.empty(steps)
+        for t in range(steps):
             observation, reward, terminated, truncated, info = env.step(
                 agent.act(observation, info)
             )
@@ -178,7 +193,7 @@ def evaluate_policy(
             throughput[t] = np.sum(info["throughput_bps"])
             delay[t] = np.mean(info["delay_s"])
             plr[t] = np.mean(info["plr"])
-            if terminated or (truncated and t < episode_steps - 1):
+            if terminated or (truncated and t < steps - 1):
                 raise RuntimeError(f"episode of scenario {scenario.id} ended after {t + 1} steps")
         rows.append(
             {
@@ -188,20 +203,24 @@ def evaluate_policy(
                 "throughput_bps": float(throughput.mean()),
                 "delay_s": float(delay.mean()),
                 "plr": float(plr.mean()),
+                "time_to_final_s": time_to_final_s(utilities, world.step_s),
                 "uav_xyz_m": [float(v) for v in info["uav_xyz_m"]],
+                "trace": [round(float(u), 4) for u in utilities],
             }
         )
     values = np.array([row["utility"] for row in rows])
     return {
         "policy": agent.name,
+        "world": world.name,
         "n_scenarios": len(rows),
         "mean_utility": float(values.mean()),
         "median_utility": float(np.median(values)),
         "p25_utility": float(np.percentile(values, 25)),
+        "mean_time_to_final_s": float(np.mean([row["time_to_final_s"] for row in rows])),
         "seed": seed,
-        "queueing": queueing,
-        "episode_steps": episode_steps,
-        "mode": "expected" if expected else "stochastic",
+        "queueing": world.network.queue.queueing,
+        "episode_steps": steps,
+        "mode": "stochastic" if world.stochastic else "expected",
         "scenarios": rows,
     }
 

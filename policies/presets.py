@@ -102,6 +102,8 @@ class Preset:
     # them (SB3 with ``net_arch=[]``) the critic is linear in the action, its maximum always
     # lies in a corner of the volume, and the actor learns to fly there.
     critic_hidden: tuple[int, ...] = (128, 128)
+    # DDPG actor's penalty on the action's size (policies/ddpg.py); residual actions only.
+    action_l2: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -135,8 +137,19 @@ _FAST_CHANGES: dict[str, Any] = {
 _FAST_DDPG_CHANGES: dict[str, Any] = {"train_freq": 8, "target_update_interval": 500, "gamma": 0.0}
 
 
-def get_preset(name: str, algorithm: str) -> Preset:
-    """The named preset for one algorithm; ``ValueError`` naming the bad argument otherwise."""
+# DDPG with residual actions (policies/residual.py): 0 is the load-weighted placement, and a move
+# away from it must pay for itself; a small penalty also keeps tanh out of its saturated corners.
+RESIDUAL_CHANGES: dict[str, Any] = {"action_l2": 0.02}
+
+
+def get_preset(name: str, algorithm: str, action: str = "coordinates") -> Preset:
+    """The named preset for one algorithm (and DDPG action, ``coordinates`` or ``residual``);
+    ``ValueError`` naming the bad argument otherwise."""
+    preset = _get_preset(name, algorithm)
+    return replace(preset, **RESIDUAL_CHANGES) if action == "residual" else preset
+
+
+def _get_preset(name: str, algorithm: str) -> Preset:
     if algorithm not in ALGORITHMS:
         raise ValueError(f"algo: must be one of {', '.join(ALGORITHMS)}, got {algorithm!r}")
     if name not in PRESET_NAMES:

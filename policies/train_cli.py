@@ -36,6 +36,49 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--queueing", choices=("fq-codel", "mac-only"), default="fq-codel", metavar="Q"
     )
+    parser.add_argument(
+        "--world",
+        default="paper",
+        metavar="NAME",
+        help="the world to train (and evaluate) in: paper (default), closed-loop, "
+        "closed-loop-moving; several separated by commas: one drawn per episode, evaluations in "
+        "the first",
+    )
+    parser.add_argument(
+        "--action",
+        choices=("coordinates", "residual"),
+        default="coordinates",
+        help="DDPG's action: absolute coordinates (the paper) or residual, a correction to the "
+        "load-weighted placement (policies/residual.py)",
+    )
+    parser.add_argument(
+        "--envs",
+        type=int,
+        default=1,
+        metavar="E",
+        help="episodes stepping as one numpy batch (sim.vector_env; default 1). Gradient steps "
+        "are counted per batch step: raise the preset's gradient_steps to keep the update ratio",
+    )
+    parser.add_argument(
+        "--families",
+        default="exponential",
+        metavar="F1,F2",
+        help="scenario families generated training scenarios come from (default exponential; "
+        "see tupa scenarios generate --family)",
+    )
+    parser.add_argument(
+        "--users",
+        default=None,
+        metavar="LO-HI",
+        help="user counts of generated training scenarios, a range (default: the test set's)",
+    )
+    parser.add_argument(
+        "--world-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="change one setting of the world (repeatable), e.g. flight.horizontal_mps=5",
+    )
     parser.add_argument("--checkpoint-every", type=int, default=500, metavar="EPISODES")
     parser.add_argument(
         "--curve-scenarios",
@@ -55,6 +98,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="continue the interrupted run in DIR (its settings; --episodes may raise the target)",
     )
     parser.set_defaults(handler=_train)
+
+
+def _user_range(text: str | None) -> tuple[int, int] | None:
+    from sim.errors import InputError
+
+    if text is None:
+        return None
+    low, _, high = text.partition("-")
+    try:
+        return (int(low), int(high or low))
+    except ValueError:
+        raise InputError(f"--users: expected a count or a range LO-HI, got {text!r}") from None
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -88,6 +143,12 @@ def _train(args: argparse.Namespace) -> int:
             args.test_scenarios,
             args.out,
             queueing=args.queueing,
+            world=args.world,
+            world_set=tuple(args.world_set),
+            families=tuple(f.strip() for f in args.families.split(",")),
+            action=args.action,
+            envs=args.envs,
+            users=_user_range(args.users),
             checkpoint_every=args.checkpoint_every,
             curve_scenarios=args.curve_scenarios,
             final_eval=not args.no_final_eval,

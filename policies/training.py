@@ -5,9 +5,13 @@
 1. **Scenarios** by strategy (paper §IV-A): ``spec`` trains on the test set cycled in order;
    ``gen10k`` on as many unique generated scenarios as episodes, each once; ``gen500`` on 500
    unique scenarios cycled. Generated training scenarios use seed ``TRAIN_SEED_OFFSET + seed``,
-   far from the seeds test sets are drawn with.
-2. **Environment**: ``tupa/FapDiscrete`` for DDQN, ``tupa/FapContinuous`` for DDPG, with the
-   preset's training episode (length and start), stochastic network model.
+   far from the seeds test sets are drawn with. ``families`` and ``users`` (a range) make each
+   generated scenario draw its family and user count (:class:`sim.scenarios.ScenarioSampler`):
+   one checkpoint for many kinds of scenario.
+2. **Environment**: ``tupa/FapDiscrete`` for DDQN, ``tupa/FapContinuous`` for DDPG, in the
+   run's world (``--world``, ``--world-set``: :mod:`sim.world`) with the preset's training
+   episode (length and start). Learning-curve and final evaluations run in the same world with
+   its own episode (100 steps from home).
 3. **Agent** from the preset (``policies.presets``) with the paper's CNN
    (``policies.networks.ZoneMapsCNN``); GPU when torch sees one, CPU otherwise.
 4. **Callbacks**: a progress bar (episodes, recent utility, ETA), TensorBoard logs, a checkpoint
@@ -42,12 +46,14 @@ from policies.checkpoints import algorithm_class, git_commit, save_checkpoint
 from policies.evaluation import evaluate_policy
 from policies.networks import ZoneMapsCNN
 from policies.presets import NetworkPreset, Preset, get_preset
+from policies.residual import RESIDUAL_RADIUS_M, ResidualActions
 from sim.config import AreaConfig, NetworkConfig, Queueing
-from sim.envs import EnvConfig, FapContinuousEnv, FapDiscreteEnv, ScenarioCycle
+from sim.envs import FapContinuousEnv, FapDiscreteEnv, ScenarioCycle
 from sim.errors import InputError
 from sim.files import atomic_write_json, load_scenarios, scenario_set_hash
 from sim.observation import observation_shape
-from sim.scenarios import Scenario, generate_scenarios
+from sim.scenarios import Scenario, ScenarioSampler, generate_scenarios
+from sim.world import World, get_world, world_with
 
 STRATEGIES: tuple[str, ...] = ("spec", "gen10k", "gen500")
 TRAIN_SEED_OFFSET = 1_000_000
@@ -68,6 +74,12 @@ class TrainConfig:
     test_scenarios: Path
     out_dir: Path
     queueing: Queueing = "fq-codel"
+    world: str = "paper"  # one preset, or several separated by commas (one drawn per episode)
+    world_set: tuple[str, ...] = ()
+    families: tuple[str, ...] = ("exponential",)
+    users: tuple[int, int] | None = None  # None: the test set's user count
+    action: str = "coordinates"  # DDPG: "coordinates" (the paper) or "residual"
+    envs: int = 1  # episodes stepping as one batch (sim.vector_env); 1: one environment
     checkpoint_every: int = 500
     curve_scenarios: int = 100
     final_eval: bool = True
@@ -84,11 +96,53 @@ class TrainConfig:
             raise InputError(f"--checkpoint-every: must be at least 1, got {self.checkpoint_every}")
         if self.seed < 0:
             raise InputError(f"--seed: must be >= 0, got {self.seed}")
+        if self.envs < 1:
+            raise InputError(f"--envs: must be at least 1, got {self.envs}")
+        if self.envs > 1 and (self.action == "residual" or "," in self.world):
+            raise InputError(
+                "--envs: more than 1 needs one world and coordinates or moves (not residual)"
+            )
+        if self.action not in ("coordinates", "residual") or (
+            self.action == "residual" and self.algorithm != "ddpg"
+        ):
+            raise InputError(
+                f"--action: 'coordinates' or, for ddpg, 'residual'; got {self.action!r} "
+                f"for {self.algorithm}"
+            )
+        self.train_worlds(AreaConfig())  # an unknown world or setting fails here, named
+        self.sampler(AreaConfig(), 3)  # and so do unknown families or user counts
+
+    def _worlds(self, area: AreaConfig) -> list[World]:
+        network = NetworkConfig().with_queueing(self.queueing)
+        names = [name.strip() for name in self.world.split(",")]
+        return [
+            world_with(replace(get_world(name), area=area, network=network), self.world_set)
+            for name in names
+        ]
+
+    def eval_world(self, area: AreaConfig) -> World:
+        """The run's (first) world over ``area``: where its evaluations run."""
+        return self._worlds(area)[0]
+
+    def train_worlds(self, area: AreaConfig) -> list[World]:
+        """The run's worlds with the preset's training episode (length, start)."""
+        return [
+            replace(w, episode_steps=self.preset.train_episode_steps, home=self.preset.train_start)
+            for w in self._worlds(area)
+        ]
+
+    def sampler(self, area: AreaConfig, test_users: int) -> ScenarioSampler:
+        """What generated training scenarios are drawn from."""
+        users = self.users or (test_users, test_users)
+        return ScenarioSampler(families=self.families, users=users, area=area)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["test_scenarios"] = str(self.test_scenarios)
         d["out_dir"] = str(self.out_dir)
+        d["world_set"] = list(self.world_set)
+        d["families"] = list(self.families)
+        d["users"] = list(self.users) if self.users else None
         return d
 
     @classmethod
@@ -100,6 +154,9 @@ class TrainConfig:
         )
         if "critic_hidden" in p:
             p["critic_hidden"] = tuple(p["critic_hidden"])
+        d["world_set"] = tuple(d.get("world_set", ()))
+        d["families"] = tuple(d.get("families", ("exponential",)))
+        d["users"] = tuple(d["users"]) if d.get("users") else None
         return cls(
             **{
                 **d,
@@ -111,27 +168,55 @@ class TrainConfig:
 
 
 def training_scenarios(
-    strategy: str, episodes: int, test: list[Scenario], area: AreaConfig, seed: int
+    strategy: str,
+    episodes: int,
+    test: list[Scenario],
+    area: AreaConfig,
+    seed: int,
+    sampler: ScenarioSampler | None = None,
 ) -> list[Scenario]:
-    """The scenarios a strategy trains on, in the order the episodes visit them (cycled)."""
+    """The scenarios a strategy trains on, in the order the episodes visit them (cycled).
+
+    Generated ones come from the paper's generator with the test set's user count, or, given a
+    ``sampler`` that draws families or user counts, from it."""
     if strategy == "spec":
         return list(test)
     n_users = test[0].n_users
     count = episodes if strategy == "gen10k" else min(GEN500_UNIQUE, episodes)
-    return generate_scenarios(count, n_users, seed=TRAIN_SEED_OFFSET + seed, area=area)
+    if sampler is None or (
+        sampler.families == ("exponential",) and sampler.users == (n_users,) * 2
+    ):
+        return generate_scenarios(count, n_users, seed=TRAIN_SEED_OFFSET + seed, area=area)
+    rng = np.random.default_rng(TRAIN_SEED_OFFSET + seed)
+    return [sampler.sample(rng) for _ in range(count)]
 
 
 def make_env(
-    algorithm: str, scenarios: list[Scenario], preset: Preset, area: AreaConfig, queueing: Queueing
+    algorithm: str,
+    scenarios: list[Scenario],
+    world: World | list[World],
+    action: str = "coordinates",
 ) -> gym.Env:
-    config = EnvConfig(
-        episode_steps=preset.train_episode_steps,
-        start=preset.train_start,
-        network=NetworkConfig().with_queueing(queueing),
-        area=area,
-    )
-    env_class = FapDiscreteEnv if algorithm == "ddqn" else FapContinuousEnv
-    return Monitor(env_class(ScenarioCycle(scenarios), config=config))
+    """The training environment: discrete moves for DDQN; absolute coordinates for DDPG, or a
+    correction to the load-weighted placement with ``action="residual"``
+    (:mod:`policies.residual`)."""
+    env: gym.Env
+    if algorithm == "ddqn":
+        env = FapDiscreteEnv(ScenarioCycle(scenarios), world=world)
+    else:
+        env = FapContinuousEnv(ScenarioCycle(scenarios), world=world)
+        if action == "residual":
+            env = ResidualActions(env)
+    return Monitor(env)
+
+
+def zero_actor_output(model: Any) -> None:
+    """Start a DDPG actor (and its target) at action 0: the residual policy's prior."""
+    for actor in (model.actor, model.actor_target):
+        last = [m for m in actor.mu if isinstance(m, th.nn.Linear)][-1]
+        with th.no_grad():
+            last.weight.zero_()
+            last.bias.zero_()
 
 
 def build_model(
@@ -184,6 +269,7 @@ def build_model(
         env,
         target_update_interval=preset.target_update_interval,
         loss=preset.loss,
+        action_l2=preset.action_l2,
         action_noise=NormalActionNoise(
             np.zeros(n_actions), preset.action_noise_sigma * np.ones(n_actions)
         ),
@@ -253,13 +339,19 @@ class _Run:
         self.config = config
         self.area, self.test = load_scenarios(config.test_scenarios)
         self.train_set = training_scenarios(
-            config.strategy, config.episodes, self.test, self.area, config.seed
+            config.strategy,
+            config.episodes,
+            self.test,
+            self.area,
+            config.seed,
+            config.sampler(self.area, self.test[0].n_users) if self.test else None,
         )
         self.episodes_done = episodes_done
         self.wall_time_before_s = wall_time_s
         self.started = time.monotonic()
         self.curve_path = config.out_dir / "learning_curve.json"
         self.curve_test = self.test[: config.curve_scenarios]
+        self.world = config.eval_world(self.area)
 
     @property
     def wall_time_s(self) -> float:
@@ -269,12 +361,18 @@ class _Run:
         c = self.config
         return {
             "algorithm": c.algorithm,
+            "action": c.action,
+            "residual_radius_m": RESIDUAL_RADIUS_M if c.action == "residual" else None,
             "strategy": c.strategy,
             "preset": c.preset.to_dict(),
             "episodes": self.episodes_done,
             "timesteps": int(model.num_timesteps),
             "seed": c.seed,
             "queueing": c.queueing,
+            "world": self.world.to_dict(),
+            "train_worlds": [w.name for w in c.train_worlds(self.area)],
+            "families": list(c.families),
+            "users": list(c.users) if c.users else None,
             "n_users": self.test[0].n_users,
             "observation_shape": list(observation_shape(self.area)),
             "area": self.area.to_dict(),
@@ -301,12 +399,17 @@ class _Run:
         )
 
     def evaluate(self, model: Any, scenarios: list[Scenario]) -> dict[str, Any]:
+        c = self.config
         agent = TrainedAgent(
-            model, {"algorithm": self.config.algorithm, "strategy": self.config.strategy}
+            model,
+            {
+                "algorithm": c.algorithm,
+                "strategy": c.strategy,
+                "action": c.action,
+                "residual_radius_m": RESIDUAL_RADIUS_M if c.action == "residual" else None,
+            },
         )
-        return evaluate_policy(
-            agent, scenarios, self.area, seed=0, queueing=self.config.queueing, progress=False
-        )
+        return evaluate_policy(agent, scenarios, self.world, seed=0, progress=False)
 
     def add_curve_point(self, model: Any, episodes: int) -> None:
         from policies.report import write_learning_curve
@@ -331,17 +434,11 @@ class _Run:
         )
 
     def reference_medians(self) -> dict[str, float]:
-        network = NetworkConfig().with_queueing(self.config.queueing)
         medians = {}
         for name in ("min-distance", "oracle"):
-            policy = make_policy(name, self.area, network)
+            policy = make_policy(name, world=self.world)
             medians[name] = evaluate_policy(
-                policy,
-                self.curve_test,
-                self.area,
-                seed=0,
-                queueing=self.config.queueing,
-                progress=False,
+                policy, self.curve_test, self.world, seed=0, progress=False
             )["median_utility"]
         return medians
 
@@ -352,7 +449,16 @@ def train(config: TrainConfig, resume: bool = False) -> dict[str, Any]:
     run = _Run(config, *(run_state or (0, 0.0)))
     if not run.test:
         raise InputError(f"{config.test_scenarios}: scenarios: empty")
-    env = make_env(config.algorithm, run.train_set, config.preset, run.area, config.queueing)
+    if config.envs > 1:
+        from policies.vec_env import make_vec_env
+
+        env: Any = make_vec_env(
+            config.algorithm, run.train_set, config.train_worlds(run.area), config.envs
+        )
+    else:
+        env = make_env(
+            config.algorithm, run.train_set, config.train_worlds(run.area), config.action
+        )
     latest = config.out_dir / "checkpoints" / "latest.zip"
     if resume:
         model = algorithm_class(config.algorithm).load(latest, env=env, device="auto")
@@ -366,6 +472,8 @@ def train(config: TrainConfig, resume: bool = False) -> dict[str, Any]:
         model = build_model(
             config.algorithm, env, config.preset, config.seed, config.out_dir / "tb"
         )
+        if config.action == "residual":
+            zero_actor_output(model)
     total_timesteps = config.episodes * config.preset.train_episode_steps
     callback = TrainingCallback(run)
     try:
@@ -387,17 +495,11 @@ def train(config: TrainConfig, resume: bool = False) -> dict[str, Any]:
 
 def final_evaluation(run: _Run, model: Any) -> dict[str, Any]:
     """The trained policy on the whole test set, beside min-distance and the oracle."""
-    network = NetworkConfig().with_queueing(run.config.queueing)
     summary: dict[str, Any] = {}
     per_policy = {}
     for name in ("min-distance", "oracle"):
         per_policy[name] = evaluate_policy(
-            make_policy(name, run.area, network),
-            run.test,
-            run.area,
-            seed=0,
-            queueing=run.config.queueing,
-            progress=False,
+            make_policy(name, world=run.world), run.test, run.world, seed=0, progress=False
         )
     per_policy["policy"] = run.evaluate(model, run.test)
     for name, result in per_policy.items():
@@ -438,7 +540,7 @@ def config_from_args(
     **kwargs: Any,
 ) -> TrainConfig:
     try:
-        chosen = get_preset(preset, algorithm)
+        chosen = get_preset(preset, algorithm, kwargs.get("action", "coordinates"))
     except ValueError as exc:
         raise InputError(f"--{exc}") from None
     return TrainConfig(

@@ -22,7 +22,9 @@ from service.frames import FrameConfig, ned_to_area
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
 from sim.network import NetworkModel, QueueState
 from sim.scenarios import Scenario
+from sim.users import UserDynamics
 from sim.utility import network_utility
+from sim.world import Demand, Mobility
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil
@@ -110,35 +112,47 @@ class SimulatedNetwork:
     area: AreaConfig = field(default_factory=AreaConfig)
     utility: UtilityConfig = field(default_factory=UtilityConfig)
     seed: int = 0
+    mobility: Mobility = field(default_factory=Mobility)
+    """How the users move (static by default); a world's ``mobility``."""
+    demand: Demand = field(default_factory=Demand)
+    users_seed: int = 0
+    """Seeds the users' motion and demand: the environment's ``options["users_seed"]``."""
 
     def __post_init__(self) -> None:
         self.model = NetworkModel(self.network, self.area)
         self.rng = np.random.default_rng(self.seed)
+        self._users_rng = np.random.default_rng(self.users_seed)
+        self.users = UserDynamics(
+            self.scenario.users_xy_m, self.scenario.load_bps, self.mobility, self.demand,
+            self.area, self._users_rng,
+        )  # fmt: skip
         self._queues: QueueState | None = None
+        self._steps = 0
 
     def measure(self, uav_xyz_m: np.ndarray, step_s: float = 1.0) -> dict[str, Any]:
-        """Simulate ``step_s`` with the UAV at ``uav_xyz_m``: per-user metrics and the utility."""
+        """Simulate ``step_s`` with the UAV at ``uav_xyz_m``: per-user metrics and the utility.
+        The users move (and change their demand) by one step first, except on the first call."""
+        if self._steps:
+            self.users.advance(step_s, self._users_rng)
+        self._steps += 1
+        load = self.users.load_bps
         result = self.model.step(
             np.asarray(uav_xyz_m, dtype=float)[None, :],
-            self.scenario.users_xy_m,
-            self.scenario.load_bps,
+            self.users.xy_m,
+            load,
             self._queues,
             self.rng,
             step_s,
         )
         self._queues = result.state
         throughput, delay, plr = result.throughput_bps[0], result.delay_s[0], result.plr[0]
-        utility = float(
-            network_utility(throughput, delay, plr, self.scenario.load_bps, self.utility)
-        )
+        utility = float(network_utility(throughput, delay, plr, load, self.utility))
         return {"throughput_bps": throughput, "delay_s": delay, "plr": plr, "utility": utility}
 
     def report(self, metrics: dict[str, Any], timestamp_s: float) -> dict[str, Any]:
         """The ``POST /v1/reports`` body for ``metrics``."""
         users = []
-        for i, (xy, load) in enumerate(
-            zip(self.scenario.users_xy_m, self.scenario.load_bps, strict=True)
-        ):
+        for i, (xy, load) in enumerate(zip(self.users.xy_m, self.users.load_bps, strict=True)):
             users.append(
                 {
                     "id": f"ue-{i + 1}",
@@ -159,6 +173,7 @@ class StepRecord:
     position_m: tuple[float, float, float]
     target_m: tuple[float, float, float] | None
     utility: float
+    users_xy_m: list[list[float]] = field(default_factory=list)
 
 
 def run_scenario(
@@ -183,7 +198,8 @@ def run_scenario(
         response.raise_for_status()
         target = response.json()["target"]
         target_m = (target["x_m"], target["y_m"], target["z_m"]) if target else None
-        record = StepRecord(step, position, target_m, metrics["utility"])
+        users = network.users.xy_m.tolist()
+        record = StepRecord(step, position, target_m, metrics["utility"], users)
         records.append(record)
         if on_step is not None:
             on_step(record)

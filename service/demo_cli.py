@@ -12,13 +12,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "demo",
         help="closed loop: sitl-mock + tupa serve + a simulated network controller",
         description="Start the autopilot simulator, the placement service and a network "
-        "controller played by the embedded simulator; fly a few scenarios of increasing "
-        "heterogeneity in real time; print the utility achieved against min-distance and the "
-        "oracle with the same flight limits; write demo.json and track.png.",
+        "controller played by the embedded simulator; fly a few heterogeneous scenarios in real "
+        "time (the last with walking users); print the utility achieved against min-distance, "
+        "load-weighted and the tracking oracle, all flown from the same start under the same "
+        "limits; write demo.json and track.png.",
     )
     demo.add_argument("--policy", help="checkpoint or baseline (default: the shipped DDQN)")
     demo.add_argument("--scenarios", type=int, default=3, help="how many (default 3)")
-    demo.add_argument("--steps", type=int, default=25, help="1-s steps per scenario (default 25)")
+    demo.add_argument("--steps", type=int, default=40, help="1-s steps per scenario (default 40)")
     demo.add_argument("--seed", type=int, default=7)
     demo.add_argument("--flavour", choices=("px4", "ardupilot"), default="px4")
     demo.add_argument("--out", type=Path, default=Path("runs/demo"), metavar="DIR")

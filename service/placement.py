@@ -8,15 +8,16 @@
     service.current_decision()         # GET /v1/setpoint
     service.stop()
 
-Decisions: with ``decision_mode="paced"`` a background thread decides once every ``step_s`` (the
-paper's time step) from the latest report; with ``"on-report"`` each accepted report triggers a
-decision at once. A decision needs a fresh report (received at most ``report_max_age_s`` ago;
-otherwise the target is held) and the vehicle's position (link up; a report that arrives while the
-link is down is kept, and the decision waits for the link: the paced thread retries every step,
-and in ``on-report`` mode a watcher thread decides as soon as the link is back, if the report is
-still fresh). Discrete-move policies take their next move once the vehicle has reached its current
-target (moves take flight time; the paper's agent acts from where it arrived). Targets go through
-the link, which clamps them to the geofence.
+Decisions: with ``decision_mode="paced"`` a background thread decides once every decision period
+(the ``world``'s step, the paper's S, unless ``step_s`` is set) from the latest report; with
+``"on-report"`` each accepted report triggers a decision at once. A decision needs a fresh report
+(received at most ``report_max_age_s`` ago; otherwise the target is held) and the vehicle's
+position (link up; a report that arrives while the link is down is kept, and the decision waits for
+the link: the paced thread retries every step, and in ``on-report`` mode a watcher thread decides
+as soon as the link is back, if the report is still fresh). Every kind of policy decides every
+period while the vehicle flies: a discrete move applies to the zone the vehicle is in and replaces
+the target (:func:`sim.world.move_target`, the environments' rule), so the service acts in the
+world the policy was trained in. Targets go through the link, which clamps them to the geofence.
 
 Reports are snapshots of all users; each replaces the previous one (users come and go). A report
 whose ``timestamp`` is older than the last accepted one is ignored and counted; one stamped more
@@ -304,7 +305,7 @@ class PlacementService:
     # ------------------------------------------------------------------ deciding
 
     def decide_once(self) -> Decision | None:
-        """One decision from the latest report (None when held: stale, no link, en route).
+        """One decision from the latest report (None when held: stale report, no link).
 
         Decisions are taken one at a time: in ``on-report`` mode concurrent reports and the link
         watcher may ask together, and the one that reads the latest report must set the target
@@ -328,14 +329,6 @@ class PlacementService:
             return None
         vehicle = np.asarray(state.position_m, dtype=float)
         current = np.asarray(previous.target_m, dtype=float) if previous else vehicle
-        if (
-            policy.kind == "moves"
-            and previous is not None
-            and previous.source == "policy"
-            and float(np.linalg.norm(vehicle - current)) > self.settings.arrival_tolerance_m
-        ):
-            self._count("decisions_held_en_route")
-            return None
         started = time.perf_counter()
         if self._takeoff_deferred:  # the first decision after a restart (see start())
             self._takeoff_deferred = False
@@ -378,7 +371,7 @@ class PlacementService:
                 self._stop.wait(LINK_POLL_S)
 
     def _run(self) -> None:
-        step_s = self.settings.step_s
+        step_s = self.settings.decision_period_s
         next_at = time.monotonic()
         while not self._stop.is_set():
             self._decide_guarded()

@@ -4,10 +4,14 @@ Every kind of policy answers the same question through :class:`ServingPolicy`:
 
 * a **DDQN** checkpoint (13 discrete moves): the observation is built by the same
   :func:`sim.observation.build_observation` the environments use, at the vehicle's telemetry
-  position; the move is chosen among the valid ones (:func:`sim.zones.move_mask`) and applied to
-  the *current target's* zone, exactly as the discrete environment applies it;
-* a **DDPG** checkpoint (absolute coordinates): the same observation; the action in [0, 1]³ maps
-  onto the volume with :func:`sim.envs.action_to_position`;
+  position; the move is chosen among the valid ones (:func:`sim.world.valid_moves`) and becomes
+  a target with :func:`sim.world.move_target`, from the zone the vehicle is in, exactly as the
+  discrete environment does it (one code path; ``tests/service/test_parity.py`` replays an
+  episode through both);
+* a **DDPG** checkpoint (absolute coordinates): the same observation; the action in [0, 1]³
+  becomes a target with :func:`sim.world.coordinates_target`, or, for a residual checkpoint,
+  with :func:`policies.residual.residual_target` (a correction to the load-weighted placement
+  of the reported users);
 * a **baseline** (``min-distance``, ``load-weighted``, ``oracle``): placed from the reported user
   positions and offered loads.
 
@@ -31,10 +35,9 @@ from typing import TYPE_CHECKING, Any, Literal, Protocol
 import numpy as np
 
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
-from sim.envs import action_to_position
 from sim.errors import InputError
 from sim.observation import UserReports, build_observation
-from sim.zones import MOVES, move_mask, zone_index, zone_position
+from sim.world import coordinates_target, move_target, valid_moves
 
 if TYPE_CHECKING:
     from policies.checkpoints import CheckpointError
@@ -68,14 +71,6 @@ class ServingPolicy(Protocol):
 
 
 @dataclass
-class _ReportedUsers:
-    """User reports seen as a scenario (``UsersLike``) for the placement baselines."""
-
-    users_xy_m: np.ndarray
-    load_bps: np.ndarray
-
-
-@dataclass
 class BaselinePolicy:
     """A static placement policy from :mod:`policies.baselines`, re-placed on every decision."""
 
@@ -87,11 +82,9 @@ class BaselinePolicy:
     def decide(
         self, reports: UserReports, vehicle_xyz_m: np.ndarray, current_target_m: np.ndarray
     ) -> np.ndarray:
-        users = _ReportedUsers(
-            np.column_stack([reports.x_m, reports.y_m]).astype(float),
-            np.asarray(reports.offered_bps, dtype=float),
-        )
-        return np.asarray(self.placement.place(users), dtype=float)
+        from policies.baselines import ReportedUsers
+
+        return np.asarray(self.placement.place(ReportedUsers.of(reports)), dtype=float)
 
     def describe(self) -> dict[str, Any]:
         return {"name": self.name, "kind": self.kind, "spec": self.spec, "metadata": None}
@@ -119,13 +112,16 @@ class CheckpointPolicy:
         observation = self.observe(reports, vehicle_xyz_m)
         with self._lock:  # torch modules are not meant for concurrent forward passes
             if self.kind == "moves":
-                index = zone_index(current_target_m, self.area)
-                mask = move_mask(index, self.area)
+                mask = valid_moves(vehicle_xyz_m, self.area)
                 move = int(self.model.masked_predict(observation[None], mask[None])[0])
-                return zone_position(index + MOVES[move], self.area)
+                return move_target(move, vehicle_xyz_m, self.area)[0]
             action, _ = self.model.predict(observation, deterministic=True)
-        action = np.clip(np.asarray(action, dtype=float).reshape(3), 0.0, 1.0)
-        return action_to_position(action, self.area)
+        radius_m = self.metadata.get("residual_radius_m")
+        if self.metadata.get("action") == "residual" and radius_m:
+            from policies.residual import residual_target
+
+            return residual_target(action, reports, self.area, float(radius_m))
+        return coordinates_target(np.asarray(action, dtype=float), self.area)
 
     def describe(self) -> dict[str, Any]:
         keep = ("algorithm", "strategy", "episodes", "seed", "git_commit", "wall_time_s")

@@ -45,12 +45,13 @@ class ServiceSettings(BaseSettings):
     """Allow serving without ``api_token`` (local experiments only)."""
     decision_mode: DecisionMode = "paced"
     """``paced``: one decision every ``step_s`` from the latest report; ``on-report``: at once."""
-    step_s: float = Field(default=1.0, gt=0, le=3600)
-    """The decision period (the paper's time step S)."""
+    world: str = "closed-loop"
+    """The world the policy was trained for (:mod:`sim.world`): its decision period is the
+    service's, unless ``step_s`` is given."""
+    step_s: float | None = Field(default=None, gt=0, le=3600)
+    """The decision period (the paper's time step S); default: the world's."""
     report_max_age_s: float = Field(default=5.0, gt=0)
     """A report older than this (since it arrived) is stale: the target is held."""
-    arrival_tolerance_m: float = Field(default=3.0, gt=0)
-    """Discrete policies take their next move once the vehicle is this close to its target."""
     setpoint_rate_hz: float = Field(default=10.0, gt=2.0, le=100.0)
     area_origin_north_m: float = 0.0
     area_origin_east_m: float = 0.0
@@ -92,6 +93,24 @@ class ServiceSettings(BaseSettings):
     """How long an idle keep-alive connection is kept open between requests."""
     http_max_connections: int = Field(default=512, ge=8)
     """Connections (and requests in progress) at once; beyond: 503 at once."""
+
+    @field_validator("world")
+    @classmethod
+    def _known_world(cls, value: str) -> str:
+        from sim.world import WORLDS
+
+        if value not in WORLDS:
+            raise ValueError(f"must be one of {', '.join(WORLDS)}, got {value!r}")
+        return value
+
+    @property
+    def decision_period_s(self) -> float:
+        """``step_s``, or the world's decision period."""
+        if self.step_s is not None:
+            return self.step_s
+        from sim.world import get_world
+
+        return get_world(self.world).step_s
 
     @field_validator("area_origin_north_m", "area_origin_east_m", "area_origin_down_m")
     @classmethod

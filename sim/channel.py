@@ -5,6 +5,7 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
+from numba import njit
 
 from sim.config import RadioConfig
 
@@ -31,13 +32,34 @@ def mean_rssi_dbm(distance_m: np.ndarray, radio: RadioConfig) -> np.ndarray:
 
 
 def rician_power_gain(rng: np.random.Generator, k_db: float, size: tuple[int, ...]) -> np.ndarray:
-    """Unit-mean power gains |h|² of a Rician channel with factor K (linear power ratio)."""
+    """Unit-mean power gains |h|² of a Rician channel with factor K (linear power ratio).
+
+    Draw order: ``size`` standard normals for the real parts (C order), then ``size`` for the
+    imaginary parts, from one ``standard_normal`` call of shape ``(2, *size)`` (the same numbers
+    two calls of ``size`` would give).
+    """
+    los, sigma = _rician_parameters(k_db)
+    if type(size) is not tuple:
+        size = () if size is None else tuple(np.atleast_1d(size))  # an int, a list, None
+    draws = rng.standard_normal((2, *size))
+    _combine_parts(draws.reshape(2, -1), los, sigma)
+    return draws[0]
+
+
+@njit(cache=True)
+def _combine_parts(draws: np.ndarray, los: float, sigma: float) -> None:
+    """``draws[0] = (los + sigma·draws[0])² + (sigma·draws[1])²`` in place, (2, N)."""
+    for i in range(draws.shape[1]):
+        re = los + sigma * draws[0, i]
+        im = sigma * draws[1, i]
+        draws[0, i] = re * re + im * im
+
+
+@lru_cache(maxsize=8)
+def _rician_parameters(k_db: float) -> tuple[float, float]:
+    """(line-of-sight amplitude, scatter standard deviation per component) for K in dB."""
     k = 10.0 ** (k_db / 10.0)
-    los = np.sqrt(k / (k + 1.0))
-    sigma = np.sqrt(1.0 / (2.0 * (k + 1.0)))
-    re = los + sigma * rng.standard_normal(size)
-    im = sigma * rng.standard_normal(size)
-    return re * re + im * im
+    return float(np.sqrt(k / (k + 1.0))), float(np.sqrt(1.0 / (2.0 * (k + 1.0))))
 
 
 @lru_cache(maxsize=8)

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from sim.config import QUEUEING_CHOICES
+from sim.scenarios import FAMILIES
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -16,7 +18,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="draw a seeded set of scenarios (users' positions and loads) and write it as JSON",
     )
     generate.add_argument("--n", type=int, default=500, help="number of scenarios (default 500)")
-    generate.add_argument("--users", type=int, default=3, help="users per scenario (default 3)")
+    generate.add_argument(
+        "--users", type=int, default=3, help="users per scenario, 1..300 (default 3)"
+    )
+    generate.add_argument(
+        "--family",
+        default="exponential",
+        metavar="{" + ",".join(FAMILIES) + "}",
+        help="users' layout family (default exponential, the paper's; mixture: each scenario "
+        "one of the others)",
+    )
     generate.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     generate.add_argument(
         "--total-load-mbps",
@@ -57,20 +68,39 @@ def _generate(args: argparse.Namespace) -> int:
     from sim.config import AreaConfig
     from sim.errors import InputError
     from sim.files import save_scenarios
-    from sim.scenarios import format_heterogeneity_histogram, generate_scenarios
+    from sim.scenarios import MAX_USERS, format_heterogeneity_histogram, generate_scenarios
 
     if args.n < 1:
         raise InputError(f"--n: must be at least 1, got {args.n}")
-    if args.users < 1:
-        raise InputError(f"--users: must be at least 1, got {args.users}")
-    if not args.total_load_mbps > 0:
+    if not 1 <= args.users <= MAX_USERS:
+        raise InputError(f"--users: must be in 1..{MAX_USERS}, got {args.users}")
+    if args.family not in FAMILIES:
+        raise InputError(
+            f"--family: unknown family {args.family!r} (choose from {', '.join(FAMILIES)})"
+        )
+    if not math.isfinite(args.total_load_mbps) or not args.total_load_mbps > 0:
         raise InputError(f"--total-load-mbps: must be positive, got {args.total_load_mbps}")
     area = AreaConfig()
+    total_load_bps = args.total_load_mbps * 1e6
     scenarios = generate_scenarios(
-        args.n, args.users, seed=args.seed, area=area, total_load_bps=args.total_load_mbps * 1e6
+        args.n,
+        args.users,
+        seed=args.seed,
+        area=area,
+        total_load_bps=total_load_bps,
+        family=args.family,
     )
-    save_scenarios(args.out, area, scenarios)
-    print(f"wrote {len(scenarios)} scenarios with {args.users} users each to {args.out}")
+    generator = {
+        "family": args.family,
+        "users": args.users,
+        "seed": args.seed,
+        "total_load_bps": total_load_bps,
+    }
+    save_scenarios(args.out, area, scenarios, extra={"generator": generator})
+    print(
+        f"wrote {len(scenarios)} scenarios with {args.users} users each "
+        f"(family {args.family}) to {args.out}"
+    )
     print(format_heterogeneity_histogram(scenarios, area))
     return 0
 

@@ -1,48 +1,69 @@
 """Gymnasium environments: a UAV carrying a Wi-Fi access point over one scenario per episode.
 
-``tupa/FapDiscrete-v0``   13 sequential moves on the zone grid (stay; ±1 or ±5 zones along x, y,
-                          z); moves that would leave the volume are masked (``action_masks()``,
-                          ``info["action_mask"]``); one taken anyway leaves the UAV where it is
-                          and sets ``info["refused_move"]``.
-``tupa/FapContinuous-v0`` ``Box(0, 1, (3,))``: absolute coordinates in the volume.
+``tupa/FapDiscrete-v0``   13 moves on the zone grid (stay; ±1 or ±5 zones along x, y, z), taken
+                          from the zone the vehicle is in (:func:`sim.world.move_target`); moves
+                          that would leave the volume are masked (``action_masks()``,
+                          ``info["action_mask"]``); one taken anyway targets the vehicle's own
+                          zone and sets ``info["refused_move"]``.
+``tupa/FapContinuous-v0`` ``Box(0, 1, (3,))``: absolute coordinates in the volume
+                          (:func:`sim.world.coordinates_target`).
 
-An episode is ``episode_steps`` (T = 100) steps of ``step_s`` (S = 1 s) on one scenario; the
-reward is the step's network utility. Scenarios come from a fixed list cycled in order (the
-paper's specialization strategy) or from a seeded generator (generalization). By default the UAV
-is at its target at the start of each step, as in the paper; ``max_speed_mps`` makes a move take
-flight time instead. Queues carry over between the steps of an episode.
+Everything about the episode but the scenario comes from a :class:`sim.world.World` (the
+``paper`` preset by default): ``episode_steps`` steps of ``step_s``, the vehicle's start
+(``home``), its flight toward each step's target (none under the paper's protocol: it is there at
+once), users that move and change their demand, and how old the report the decision sees is. A
+step: the action becomes the target, the vehicle flies toward it for ``step_s``, the users move,
+the network is simulated at the vehicle's new position (queues carried over from the previous
+step), the reward is that step's network utility, and the observation is built from the report
+the world lets the decision see (:func:`sim.observation.build_observation`, the service's
+builder) at the vehicle's position. ``info["reports"]`` is that report, what a placement policy
+re-placing from reports gets.
 
-``reset`` places the UAV at the start position and simulates one step there, so the first
-observation carries real network metrics, as the service's first report would.
+Scenarios come from a fixed list cycled in order (the paper's specialization strategy), or from
+a :class:`sim.scenarios.ScenarioSampler` (a fresh generated scenario per episode, its family and
+user count drawn too: generalization and domain randomisation). ``world`` may also be
+a sequence of worlds with one area, one drawn per episode.
+
+``reset`` places the vehicle at home (or ``options["uav_xyz_m"]``) and simulates one step there,
+so the first observation carries real network metrics, as the service's first report would.
+The users' motion and demand draw from their own generator, seeded from the reset's seed (or
+``options["users_seed"]``), so they are the same whatever the policy does.
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from sim.config import AreaConfig, NetworkConfig, UtilityConfig
+from sim.config import AreaConfig
 from sim.network import NetworkModel, QueueState, StepResult
 from sim.observation import UserReports, build_observation, observation_shape
-from sim.scenarios import Scenario, generate_scenarios
+from sim.scenarios import Scenario, ScenarioSampler
+from sim.users import UserDynamics
 from sim.utility import network_utility
-from sim.zones import MOVES, grid_shape, move_mask, zone_index, zone_position
+from sim.world import (
+    PAPER,
+    World,
+    coordinates_target,
+    move_target,
+    position_to_coordinates,
+)
+from sim.zones import MOVES, move_mask, zone_index, zone_position
 
 __all__ = [
     "CONTINUOUS_ENV_ID",
     "DISCRETE_ENV_ID",
     "MOVES",
-    "EnvConfig",
     "FapContinuousEnv",
     "FapDiscreteEnv",
     "ScenarioCycle",
-    "ScenarioStream",
+    "ScenarioSource",
     "action_to_position",
     "position_to_action",
     "register_envs",
@@ -50,6 +71,12 @@ __all__ = [
 
 DISCRETE_ENV_ID = "tupa/FapDiscrete-v0"
 CONTINUOUS_ENV_ID = "tupa/FapContinuous-v0"
+
+
+class ScenarioSource(Protocol):
+    """Where an environment gets each episode's scenario (a :class:`ScenarioSampler` too)."""
+
+    def sample(self, rng: np.random.Generator) -> Scenario: ...
 
 
 class ScenarioCycle:
@@ -61,81 +88,56 @@ class ScenarioCycle:
         self.scenarios = list(scenarios)
         self._next = 0
 
+    def sample(self, rng: np.random.Generator) -> Scenario:
+        """The next scenario of the list (``rng`` unused: the order is the list's)."""
+        return self.next(rng)
+
     def next(self, rng: np.random.Generator) -> Scenario:
         scenario = self.scenarios[self._next]
         self._next = (self._next + 1) % len(self.scenarios)
         return scenario
 
 
-@dataclass
-class ScenarioStream:
-    """Fresh generated scenarios, one per episode, drawn from the environment's RNG."""
-
-    n_users: int = 3
-    area: AreaConfig = field(default_factory=AreaConfig)
-    total_load_bps: float = 40e6
-
-    def next(self, rng: np.random.Generator) -> Scenario:
-        seed = int(rng.integers(2**63 - 1))
-        return generate_scenarios(
-            1, self.n_users, seed=seed, area=self.area, total_load_bps=self.total_load_bps
-        )[0]
-
-
-@dataclass(frozen=True)
-class EnvConfig:
-    """Episode settings; the defaults are the paper's."""
-
-    episode_steps: int = 100
-    step_s: float = 1.0
-    expected: bool = False  # deterministic network model (no fading draws)
-    max_speed_mps: float | None = None  # None: the UAV is at its target at each step's start
-    start: str = "centre"  # "centre" (zone at the middle, lowest level) or "random"
-    network: NetworkConfig = field(default_factory=NetworkConfig)
-    utility: UtilityConfig = field(default_factory=UtilityConfig)
-    area: AreaConfig = field(default_factory=AreaConfig)
-
-    def __post_init__(self) -> None:
-        if self.episode_steps < 1:
-            raise ValueError(f"episode_steps: must be >= 1, got {self.episode_steps}")
-        if not self.step_s > 0:
-            raise ValueError(f"step_s: must be > 0, got {self.step_s}")
-        if self.max_speed_mps is not None and not self.max_speed_mps > 0:
-            raise ValueError(f"max_speed_mps: must be > 0 or None, got {self.max_speed_mps}")
-        if self.start not in ("centre", "random"):
-            raise ValueError(f"start: must be 'centre' or 'random', got {self.start!r}")
-
-
 class _FapEnv(gym.Env, ABC):
-    """What both action spaces share: scenarios, the network model, the episode, observations."""
+    """What both action spaces share: scenarios, the world, the network model, observations."""
 
     metadata = {"render_modes": []}  # noqa: RUF012 (gymnasium's convention)
 
     def __init__(
         self,
-        scenarios: Sequence[Scenario] | ScenarioCycle | ScenarioStream | None = None,
-        config: EnvConfig | None = None,
+        scenarios: Sequence[Scenario] | ScenarioSource | None = None,
+        world: World | Sequence[World] | None = None,
         model: NetworkModel | None = None,
     ) -> None:
-        self.config = config or EnvConfig()
-        area = self.config.area
+        worlds = [PAPER] if world is None else [world] if isinstance(world, World) else list(world)
+        if not worlds:
+            raise ValueError("world: the list of worlds is empty")
+        area = worlds[0].area
+        if any(w.area != area or w.network != worlds[0].network for w in worlds):
+            raise ValueError("world: the worlds of one environment must share area and network")
+        self.worlds = worlds
+        self.world = worlds[0]
         if scenarios is None:
-            scenarios = ScenarioStream(area=area)
-        elif not isinstance(scenarios, ScenarioCycle | ScenarioStream):
-            scenarios = ScenarioCycle(scenarios)
-        self.scenarios = scenarios
-        self.model = model or NetworkModel(self.config.network, area)
+            scenarios = ScenarioSampler(area=area)
+        elif not hasattr(scenarios, "sample"):
+            scenarios = ScenarioCycle(scenarios)  # type: ignore[arg-type]
+        self.scenarios: ScenarioSource = scenarios  # type: ignore[assignment]
+        self.model = model or NetworkModel(self.world.network, area)
+        self.area = area
         self.observation_space = spaces.Box(0.0, 1.0, observation_shape(area), dtype=np.float32)
-        self._grid_shape = grid_shape(area)
         self.scenario: Scenario | None = None
+        self.users: UserDynamics | None = None
         self.uav_xyz_m = np.zeros(3)
         self.target_xyz_m = np.zeros(3)
         self._queues: QueueState | None = None
+        self._reports: deque[UserReports] = deque(maxlen=1)
+        self._users_rng = np.random.default_rng(0)
         self._steps = 0
+        self._refused = False
 
     @abstractmethod
     def _target_from_action(self, action: Any) -> np.ndarray:
-        """Validate an action and turn it into the UAV's next target position (m)."""
+        """Validate an action and turn it into the vehicle's next target position (m)."""
 
     def _extra_info(self) -> dict[str, Any]:
         return {}
@@ -146,100 +148,117 @@ class _FapEnv(gym.Env, ABC):
     ) -> tuple[np.ndarray, dict[str, Any]]:
         super().reset(seed=seed)
         options = options or {}
-        self.scenario = options.get("scenario") or self.scenarios.next(self.np_random)
+        rng = self.np_random
+        if len(self.worlds) > 1:
+            self.world = self.worlds[int(rng.integers(len(self.worlds)))]
+        world = self.world
+        self.scenario = options.get("scenario") or self.scenarios.sample(rng)
+        # The users draw from their own generator: every policy meets the same user motion and
+        # demand, and a controller outside the environment can replay it (users_seed).
+        # Static users draw nothing (the paper's episodes keep their random streams).
+        users_seed = options.get("users_seed")
+        if users_seed is None:
+            users_seed = int(rng.integers(2**63 - 1)) if world.users_change else 0
+        self._users_rng = np.random.default_rng(users_seed)
+        self.users = UserDynamics(
+            self.scenario.users_xy_m, self.scenario.load_bps, world.mobility, world.demand,
+            self.area, self._users_rng,
+        )  # fmt: skip
         self._queues = None
         self._steps = 0
+        self._refused = False
+        self._reports = deque(maxlen=world.reports.age_steps + 1)
         start = options.get("uav_xyz_m")
         self.uav_xyz_m = (
-            self._snap(np.asarray(start, dtype=float)) if start is not None else self._start()
+            self._place_start(np.asarray(start, dtype=float))
+            if start is not None
+            else self._place_start(world.home_position(rng))
         )
         self.target_xyz_m = self.uav_xyz_m.copy()
+        self._moved()
         result = self._simulate()
         return self._observe(result), self._info(result, self._utility(result))
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        if self.scenario is None:
+        if self.scenario is None or self.users is None:
             raise RuntimeError("step() called before reset()")
         self.target_xyz_m = self._target_from_action(action)
-        self.uav_xyz_m = self._fly(self.uav_xyz_m, self.target_xyz_m)
+        self.uav_xyz_m = self.world.fly(self.uav_xyz_m, self.target_xyz_m)
+        self._moved()
+        self.users.advance(self.world.step_s, self._users_rng)
         result = self._simulate()
         self._steps += 1
         reward = self._utility(result)
-        truncated = self._steps >= self.config.episode_steps
+        truncated = self._steps >= self.world.episode_steps
         return self._observe(result), reward, False, truncated, self._info(result, reward)
 
     # -- helpers -----------------------------------------------------------------------------
-    def _start(self) -> np.ndarray:
-        area = self.config.area
-        if self.config.start == "random":
-            index = self.np_random.integers(0, self._grid_shape)
-        else:
-            index = np.array([area.n_zones_x // 2, area.n_zones_y // 2, 0])
-        return self._position_of(index)
+    def _moved(self) -> None:
+        """The vehicle is somewhere new (the discrete env updates its move mask)."""
 
-    def _position_of(self, index: np.ndarray) -> np.ndarray:
-        return zone_position(index, self.config.area)
-
-    def _snap(self, xyz_m: np.ndarray) -> np.ndarray:
-        """A start position given in options: kept as is (continuous) or snapped (discrete)."""
-        return self._clip_to_volume(xyz_m)
-
-    def _clip_to_volume(self, xyz_m: np.ndarray) -> np.ndarray:
-        area = self.config.area
+    def _place_start(self, xyz_m: np.ndarray) -> np.ndarray:
+        """A start position: kept as is, inside the volume (the discrete env snaps it)."""
+        area = self.area
         return np.clip(
             xyz_m, [0.0, 0.0, area.z_min_m], [area.size_x_m, area.size_y_m, area.z_max_m]
         )
 
-    def _fly(self, position: np.ndarray, target: np.ndarray) -> np.ndarray:
-        speed = self.config.max_speed_mps
-        if speed is None:
-            return target.copy()
-        gap = target - position
-        distance = float(np.linalg.norm(gap))
-        reach = speed * self.config.step_s
-        return target.copy() if distance <= reach else position + gap * (reach / distance)
-
     def _simulate(self) -> StepResult:
-        scenario = self.scenario
-        assert scenario is not None
+        users = self.users
+        assert users is not None
         result = self.model.step(
             self.uav_xyz_m[None, :],
-            scenario.users_xy_m,
-            scenario.load_bps,
+            users.xy_m,
+            users.load_bps,
             self._queues,
-            None if self.config.expected else self.np_random,
-            self.config.step_s,
+            self.np_random if self.world.stochastic else None,
+            self.world.step_s,
         )
         self._queues = result.state
         return result
 
     def _utility(self, result: StepResult) -> float:
-        assert self.scenario is not None
+        assert self.users is not None
         return float(
             network_utility(
                 result.throughput_bps[0],
                 result.delay_s[0],
                 result.plr[0],
-                self.scenario.load_bps,
-                self.config.utility,
+                self.users.load_bps,
+                self.world.utility,
             )
         )
 
     def _observe(self, result: StepResult) -> np.ndarray:
-        assert self.scenario is not None
-        reports = UserReports.from_metrics(
-            self.scenario.users_xy_m,
-            self.scenario.load_bps,
-            result.throughput_bps[0],
-            result.delay_s[0],
-            result.plr[0],
+        """Record this step's report and build the observation from the one the world shows."""
+        users = self.users
+        assert users is not None
+        xy = users.xy_m  # read-only, replaced (never changed) as users move: no copy needed
+        noise_m = self.world.reports.position_noise_m
+        if noise_m > 0:
+            upper = [self.area.size_x_m, self.area.size_y_m]
+            xy = np.clip(xy + self.np_random.normal(0.0, noise_m, xy.shape), 0.0, upper)
+        self._reports.append(
+            UserReports(
+                xy[:, 0],
+                xy[:, 1],
+                users.load_bps,
+                result.throughput_bps[0],
+                result.delay_s[0],
+                result.plr[0],
+            )
         )
         return build_observation(
-            self.uav_xyz_m, reports, self.config.area, self.config.utility.delay_ref_s
+            self.uav_xyz_m, self.reports, self.area, self.world.utility.delay_ref_s
         )
 
+    @property
+    def reports(self) -> UserReports:
+        """The report the decision sees now (the oldest one the world's report age keeps)."""
+        return self._reports[0]
+
     def _info(self, result: StepResult, utility: float) -> dict[str, Any]:
-        assert self.scenario is not None
+        assert self.scenario is not None and self.users is not None
         info = {
             "scenario_id": self.scenario.id,
             "uav_xyz_m": self.uav_xyz_m.copy(),
@@ -248,59 +267,52 @@ class _FapEnv(gym.Env, ABC):
             "throughput_bps": result.throughput_bps[0],
             "delay_s": result.delay_s[0],
             "plr": result.plr[0],
+            # Copies: gymnasium wants no array shared between two calls' infos.
+            "users_xy_m": self.users.xy_m.copy(),
+            "load_bps": self.users.load_bps.copy(),
+            "reports": UserReports(*(np.array(field) for field in self.reports)),
         }
         info.update(self._extra_info())
         return info
 
 
 class FapDiscreteEnv(_FapEnv):
-    """Sequential moves on the zone grid; invalid moves are masked."""
+    """13 moves on the zone grid, from the zone the vehicle is in; invalid moves are masked."""
 
     def __init__(
         self,
-        scenarios: Sequence[Scenario] | ScenarioCycle | ScenarioStream | None = None,
-        config: EnvConfig | None = None,
+        scenarios: Sequence[Scenario] | ScenarioSource | None = None,
+        world: World | Sequence[World] | None = None,
         model: NetworkModel | None = None,
     ) -> None:
-        super().__init__(scenarios, config, model)
+        super().__init__(scenarios, world, model)
         self.action_space = spaces.Discrete(len(MOVES))
-        self._set_target_index(np.zeros(3, dtype=np.int64))
-        self._refused = False
 
     def action_masks(self) -> np.ndarray:
-        """Boolean mask of the moves that keep the UAV inside the volume (``stay`` always)."""
+        """Boolean mask of the moves that keep the target inside the volume (``stay`` always)."""
         return self._mask.copy()
 
-    def _set_target_index(self, index: np.ndarray) -> None:
-        self._target_index = index
-        self._mask = move_mask(index, self.config.area)
+    def _moved(self) -> None:
+        self._index = zone_index(self.uav_xyz_m, self.area)
+        self._mask = move_mask(self._index, self.area)
 
-    def _snap(self, xyz_m: np.ndarray) -> np.ndarray:
-        self._set_target_index(self._index_of(xyz_m))
-        return self._position_of(self._target_index)
-
-    def _start(self) -> np.ndarray:
-        position = super()._start()
-        self._set_target_index(self._index_of(position))
-        return position
-
-    def _index_of(self, xyz_m: np.ndarray) -> np.ndarray:
-        return zone_index(xyz_m, self.config.area)
+    def _place_start(self, xyz_m: np.ndarray) -> np.ndarray:
+        """Starts are zone points: the centre of the zone (and level) holding ``xyz_m``."""
+        return zone_position(zone_index(super()._place_start(xyz_m), self.area), self.area)
 
     def _target_from_action(self, action: Any) -> np.ndarray:
-        if not self.action_space.contains(action) and not (
-            isinstance(action, np.ndarray | np.integer) and self.action_space.contains(int(action))
-        ):
+        if isinstance(action, np.ndarray) and action.shape in ((), (1,)):
+            action = action.reshape(()).item()
+        if isinstance(action, bool | np.bool_) or not isinstance(action, int | np.integer):
             raise ValueError(f"action: must be an integer in [0, {len(MOVES) - 1}], got {action!r}")
-        a = int(action)
-        self._refused = not self._mask[a]
-        if not self._refused:
-            self._set_target_index(self._target_index + MOVES[a])
-        return self._position_of(self._target_index)
+        if not 0 <= action < len(MOVES):
+            raise ValueError(f"action: must be an integer in [0, {len(MOVES) - 1}], got {action!r}")
+        target, self._refused = move_target(int(action), self.uav_xyz_m, self.area, self._index)
+        return target
 
     def _extra_info(self) -> dict[str, Any]:
         refused, self._refused = self._refused, False
-        return {"action_mask": self.action_masks(), "refused_move": refused}
+        return {"action_mask": self._mask.copy(), "refused_move": refused}
 
 
 class FapContinuousEnv(_FapEnv):
@@ -308,11 +320,11 @@ class FapContinuousEnv(_FapEnv):
 
     def __init__(
         self,
-        scenarios: Sequence[Scenario] | ScenarioCycle | ScenarioStream | None = None,
-        config: EnvConfig | None = None,
+        scenarios: Sequence[Scenario] | ScenarioSource | None = None,
+        world: World | Sequence[World] | None = None,
         model: NetworkModel | None = None,
     ) -> None:
-        super().__init__(scenarios, config, model)
+        super().__init__(scenarios, world, model)
         self.action_space = spaces.Box(0.0, 1.0, (3,), dtype=np.float32)
 
     def _target_from_action(self, action: Any) -> np.ndarray:
@@ -321,30 +333,17 @@ class FapContinuousEnv(_FapEnv):
             raise ValueError(f"action: must be 3 finite numbers in [0, 1], got {action!r}")
         if np.any(a < -1e-6) or np.any(a > 1.0 + 1e-6):
             raise ValueError(f"action: coordinates must lie in [0, 1], got {a.tolist()}")
-        return action_to_position(np.clip(a, 0.0, 1.0), self.config.area)
+        return coordinates_target(a, self.area)
 
 
 def action_to_position(action: np.ndarray, area: AreaConfig) -> np.ndarray:
     """Map a normalised (x, y, z) in [0, 1]³ to the volume, in metres."""
-    return np.array(
-        [
-            action[0] * area.size_x_m,
-            action[1] * area.size_y_m,
-            area.z_min_m + action[2] * (area.z_max_m - area.z_min_m),
-        ]
-    )
+    return coordinates_target(action, area)
 
 
 def position_to_action(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
-    """Inverse of :func:`action_to_position`."""
-    return np.array(
-        [
-            xyz_m[0] / area.size_x_m,
-            xyz_m[1] / area.size_y_m,
-            (xyz_m[2] - area.z_min_m) / (area.z_max_m - area.z_min_m),
-        ],
-        dtype=np.float32,
-    )
+    """Inverse of :func:`action_to_position`, as the continuous action space's float32."""
+    return position_to_coordinates(xyz_m, area).astype(np.float32)
 
 
 def register_envs() -> None:

@@ -14,7 +14,8 @@ Coordinates are in the area frame (origin at the south-west corner, x east, y no
 metres); loads are uplink offered loads in bit/s. Users must lie in the closed area
 [0, size_x_m] × [0, size_y_m], a UAV in [0, size_x_m] × [0, size_y_m] × [z_min_m, z_max_m].
 Unknown keys are rejected inside ``area``, scenarios, cases, users and ``uav`` (they are most
-likely typos); extra top-level keys are ignored, free for a description.
+likely typos); extra top-level keys are ignored, free for a description (``tupa scenarios
+generate`` records how it drew the set under ``generator``: family, users, seed, total load).
 
 Loading never returns half-valid data: the first problem raises :class:`sim.errors.InputError`
 with one line naming the file, the scenario or case id and the field, e.g.
@@ -30,7 +31,7 @@ import json
 import math
 import os
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -426,10 +427,26 @@ def _save(path: Path, doc: dict[str, Any]) -> None:
         raise InputError(f"{path}: cannot write: {exc.strerror or exc}") from None
 
 
-def save_scenarios(path: Path, area: AreaConfig, scenarios: Sequence[Scenario]) -> None:
+def save_scenarios(
+    path: Path,
+    area: AreaConfig,
+    scenarios: Sequence[Scenario],
+    *,
+    extra: Mapping[str, Any] | None = None,
+) -> None:
     """Validate and atomically write a ``tupa-scenarios/1`` file (InputError if invalid or the
-    file cannot be written; nothing is written then)."""
+    file cannot be written; nothing is written then).
+
+    ``extra``: further top-level keys, e.g. how the set was generated; readers ignore them and
+    they are not part of :func:`scenario_set_hash`. They may not replace ``format``, ``area`` or
+    ``scenarios``.
+    """
     doc = scenarios_document(area, scenarios)
+    if extra:
+        clash = sorted(set(extra) & set(doc))
+        if clash:
+            raise ValueError(f"extra: {', '.join(clash)} is a reserved top-level key")
+        doc.update(extra)
     _scenarios_from_document(doc, _Where(str(path)))
     _save(Path(path), doc)
 

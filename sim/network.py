@@ -17,6 +17,9 @@ The per-position work is one compiled (numba) kernel: a step of 3 users costs mi
 training needs no lookup tables or approximations beyond the model itself. Expected mode
 (``rng=None``) is deterministic; with a ``numpy.random.Generator`` the rate manager's fading draws
 are sampled each step. Queue state carries over between steps: pass the previous ``state`` back.
+
+``NetworkModel.step_many`` runs E independent cells (each its own users and loads, one UAV
+position each) through the same kernel in one call: the model side of a vectorised environment.
 """
 
 from __future__ import annotations
@@ -147,6 +150,8 @@ class NetworkModel:
             codel_interval_s=c.queue.codel_interval_s,
             unserved_delay_s=c.queue.unserved_delay_s,
         )
+        # The kernel takes a plain tuple: numba types it much faster than a named tuple.
+        self._kt = tuple(self._k)
 
     def initial_state(self, batch: int, n_users: int) -> QueueState:
         return QueueState.empty(batch, n_users)
@@ -163,58 +168,133 @@ class NetworkModel:
         """Simulate ``step_s`` seconds for each of the B positions in ``uav_xyz_m`` (B, 3).
 
         ``users_xy_m`` is (U, 2), ``load_bps`` (U,), ``state`` (if given) holds (B, U) arrays.
-        Shapes and values are checked here, once per call, never in the compiled kernel: a
-        mismatch, a non-finite position or load, a negative load or a non-positive ``step_s``
-        raises :class:`~sim.errors.InputError` naming the argument.
+        Shapes and values are checked here, once per call, before anything is drawn from
+        ``rng``: a mismatch, a non-finite position or load, a negative load or a non-positive
+        ``step_s`` raises :class:`~sim.errors.InputError` naming the argument. With ``rng``, the
+        step draws :func:`~sim.channel.rician_power_gain` of shape (B, U,
+        :data:`RATE_DRAWS_PER_STEP`): every position sees the same scenario, its own draws.
         """
-        uav = np.atleast_2d(np.asarray(uav_xyz_m, dtype=float))
+        uav = np.asarray(uav_xyz_m, dtype=float)
+        if uav.ndim < 2:
+            uav = uav.reshape(1, -1)  # np.atleast_2d, without its overhead
         users = np.asarray(users_xy_m, dtype=float)
         load = np.asarray(load_bps, dtype=float)
-        batch, n_users = _check_step_inputs(uav, users, load, step_s)
-        users = users.reshape(n_users, 2)
-        arrival_pps = load.reshape(n_users) / self._packet_bits
-        if state is None:
-            state = self.initial_state(batch, n_users)
-        elif state.backlog_pkts.shape != (batch, n_users) or state.codel_count.shape != (
+        batch, n_users = _check_step_shapes(uav, users, load)
+        return self._run(
+            uav,
+            users.reshape(1, n_users, 2),
+            load.reshape(1, n_users),
+            state,
+            rng,
+            step_s,
             batch,
             n_users,
-        ):
-            raise InputError(
-                f"state: queue arrays must be ({batch}, {n_users}) for {batch} positions and "
-                f"{n_users} users, got {state.backlog_pkts.shape} and {state.codel_count.shape}"
-            )
-        if rng is None:
-            gains_db = np.empty((batch, n_users, 0))
+            "positions",
+        )
+
+    def step_many(
+        self,
+        uav_xyz_m: np.ndarray,
+        users_xy_m: np.ndarray,
+        load_bps: np.ndarray,
+        state: QueueState | None = None,
+        rng: np.random.Generator | None = None,
+        step_s: float = 1.0,
+    ) -> StepResult:
+        """Simulate ``step_s`` seconds of E independent cells at once (a vectorised environment).
+
+        ``uav_xyz_m`` is (E, 3), ``users_xy_m`` (E, U, 2), ``load_bps`` (E, U), ``state`` (if
+        given) holds (E, U) arrays; every cell has its own users and loads (unlike :meth:`step`,
+        whose B positions share one scenario), and the same number of users U. The result's
+        arrays are (E, U). Row e is exactly what ``step(uav_xyz_m[e], users_xy_m[e],
+        load_bps[e], state_e, ...)`` gives with the same fading draws; in expected mode
+        (``rng=None``) that is the whole contract.
+
+        Draw order (stochastic mode): one call ``rician_power_gain(rng, K, (E, U,
+        RATE_DRAWS_PER_STEP))``, the draws :meth:`step` takes for E positions: the real parts
+        of every (cell, user, draw) in C order, then all the imaginary parts. Cell e gets
+        ``[:, e]`` of those two blocks, so E separate :meth:`step` calls on one generator draw
+        the same numbers in a different order (real, imaginary, per cell).
+        """
+        uav = np.asarray(uav_xyz_m, dtype=float)
+        users = np.asarray(users_xy_m, dtype=float)
+        load = np.asarray(load_bps, dtype=float)
+        n_envs, n_users = _check_many_shapes(uav, users, load)
+        return self._run(uav, users, load, state, rng, step_s, n_envs, n_users, "environments")
+
+    def _run(
+        self,
+        uav: np.ndarray,
+        users: np.ndarray,
+        load: np.ndarray,
+        state: QueueState | None,
+        rng: np.random.Generator | None,
+        step_s: float,
+        batch: int,
+        n_users: int,
+        rows: str,
+    ) -> StepResult:
+        """Check values, draw the fading, run the kernel: ``users`` (1 or N, U, 2), ``load`` (1
+        or N, U) with the shapes already checked."""
+        bad_state = state is not None and (
+            state.backlog_pkts.shape != (batch, n_users)
+            or state.codel_count.shape != (batch, n_users)
+        )
+        values_ok = _values_ok(uav, users, load)
+        if bad_state or not values_ok or not (math.isfinite(step_s) and step_s > 0):
+            # The slow path names the first bad argument, in the order it always has.
+            _check_step_values(uav, users, load, step_s)
+            if bad_state:
+                assert state is not None
+                raise InputError(
+                    f"state: queue arrays must be ({batch}, {n_users}) for {batch} {rows} and "
+                    f"{n_users} users, got {state.backlog_pkts.shape} and "
+                    f"{state.codel_count.shape}"
+                )
+        if state is None:
+            backlog = codel = np.zeros((batch, n_users))
         else:
-            gains = rician_power_gain(
+            backlog = np.ascontiguousarray(state.backlog_pkts, dtype=float)
+            codel = np.ascontiguousarray(state.codel_count, dtype=float)
+        if rng is None:
+            log_gains = _NO_DRAWS
+        else:
+            log_gains = rician_power_gain(
                 rng, self.config.radio.rician_k_db, (batch, n_users, RATE_DRAWS_PER_STEP)
             )
-            gains_db = 10.0 * np.log10(gains)
-        out = _simulate(
-            self._k,
+            np.log10(log_gains, out=log_gains)  # the kernel scales by 10: gains in dB
+        out = np.empty((6, batch, n_users))
+        connected = np.empty((batch, n_users), dtype=np.bool_)
+        _simulate(
+            self._kt,
+            self._packet_bits,
             uav,
             users,
-            arrival_pps,
-            np.ascontiguousarray(state.backlog_pkts, dtype=float),
-            np.ascontiguousarray(state.codel_count, dtype=float),
-            gains_db,
+            load,
+            backlog,
+            codel,
+            log_gains,
             float(step_s),
+            out,
+            connected,
         )
-        delivered_pps, delay_s, plr, backlog, codel, snr_db, connected = out
+        throughput, delay, plr, backlog_out, codel_out, snr = out
         return StepResult(
-            throughput_bps=delivered_pps * self._packet_bits,
-            delay_s=delay_s,
+            throughput_bps=throughput,
+            delay_s=delay,
             plr=plr,
-            state=QueueState(backlog, codel),
-            snr_db=snr_db,
+            state=QueueState(backlog_out, codel_out),
+            snr_db=snr,
             connected=connected,
         )
 
 
-def _check_step_inputs(
-    uav: np.ndarray, users: np.ndarray, load: np.ndarray, step_s: float
-) -> tuple[int, int]:
-    """(B, U) for :meth:`NetworkModel.step`'s arguments, or InputError naming the bad one."""
+# No fading draws: expected mode (the kernel tells the modes apart by the last axis).
+_NO_DRAWS = np.empty((0, 0, 0))
+
+
+def _check_step_shapes(uav: np.ndarray, users: np.ndarray, load: np.ndarray) -> tuple[int, int]:
+    """(B, U) for :meth:`NetworkModel.step`'s arrays, or InputError naming the bad one."""
     if uav.ndim != 2 or uav.shape[1] != 3:
         raise InputError(f"uav_xyz_m: must be (B, 3) positions, got shape {uav.shape}")
     flat_pairs = users.ndim == 1 and users.size % 2 == 0
@@ -225,8 +305,42 @@ def _check_step_inputs(
         raise InputError(
             f"load_bps: must hold one load per user ({n_users}), got shape {load.shape}"
         )
-    # One sum is finite exactly when every value is (or an absurd 1e308 overflowed it): the
-    # common case costs one pass; the slow path names the argument.
+    return uav.shape[0], n_users
+
+
+def _check_many_shapes(uav: np.ndarray, users: np.ndarray, load: np.ndarray) -> tuple[int, int]:
+    """(E, U) for :meth:`NetworkModel.step_many`'s arrays, or InputError naming the bad one."""
+    if uav.ndim != 2 or uav.shape[1] != 3:
+        raise InputError(f"uav_xyz_m: must be (E, 3) positions, got shape {uav.shape}")
+    n_envs = uav.shape[0]
+    if users.ndim != 3 or users.shape[0] != n_envs or users.shape[2] != 2:
+        raise InputError(
+            f"users_xy_m: must be ({n_envs}, U, 2) positions for {n_envs} environments, "
+            f"got shape {users.shape}"
+        )
+    n_users = users.shape[1]
+    if load.shape != (n_envs, n_users):
+        raise InputError(
+            f"load_bps: must be ({n_envs}, {n_users}), one load per user, got shape {load.shape}"
+        )
+    return n_envs, n_users
+
+
+def _check_step_inputs(
+    uav: np.ndarray, users: np.ndarray, load: np.ndarray, step_s: float
+) -> tuple[int, int]:
+    """(B, U) for :meth:`NetworkModel.step`'s arguments, or InputError naming the bad one."""
+    shape = _check_step_shapes(uav, users, load)
+    _check_step_values(uav, users, load, step_s)
+    return shape
+
+
+def _check_step_values(uav: np.ndarray, users: np.ndarray, load: np.ndarray, step_s: float) -> None:
+    """InputError naming the first non-finite or negative argument, or a bad ``step_s``.
+
+    The reference check; :func:`_values_ok` spares the common case its numpy calls.
+    """
+    # One sum is finite exactly when every value is (or an absurd 1e308 overflowed it).
     if not math.isfinite(float(uav.sum()) + float(users.sum()) + float(load.sum())):
         for name, values in (("uav_xyz_m", uav), ("users_xy_m", users), ("load_bps", load)):
             if not np.isfinite(values).all():
@@ -236,28 +350,51 @@ def _check_step_inputs(
         raise InputError("load_bps: loads must be non-negative")
     if not (math.isfinite(step_s) and step_s > 0):
         raise InputError(f"step_s: must be a positive number, got {step_s!r}")
-    return uav.shape[0], n_users
+
+
+@njit(cache=True)
+def _values_ok(uav: np.ndarray, users: np.ndarray, load: np.ndarray) -> bool:
+    """True when :func:`_check_step_values` surely passes these arrays: every value finite and
+    far from overflowing a sum, every load non-negative. False sends the caller to it."""
+    total = 0.0
+    for value in uav.flat:
+        total += abs(value)
+    for value in users.flat:
+        total += abs(value)
+    for value in load.flat:
+        if value < 0.0:
+            return False
+        total += value
+    return total < 1e300  # False for any NaN or infinity too
 
 
 @njit(cache=True)
 def _simulate(
-    k: _Constants,
+    kt: tuple,
+    packet_bits: float,
     uav: np.ndarray,
     users: np.ndarray,
-    arrival_pps: np.ndarray,
+    load_bps: np.ndarray,
     backlog_in: np.ndarray,
     codel_in: np.ndarray,
-    gains_db: np.ndarray,
+    log_gains: np.ndarray,
     step_s: float,
-):
-    batch, n_users = uav.shape[0], users.shape[0]
-    delivered = np.zeros((batch, n_users))
-    delay = np.zeros((batch, n_users))
-    plr = np.zeros((batch, n_users))
-    backlog_out = np.zeros((batch, n_users))
-    codel_out = np.zeros((batch, n_users))
-    snr_out = np.zeros((batch, n_users))
-    connected_out = np.zeros((batch, n_users), dtype=np.bool_)
+    out: np.ndarray,
+    connected_out: np.ndarray,
+) -> None:
+    """One step for each row b of ``uav`` (N, 3), into ``out`` (6, N, U) and ``connected_out``.
+
+    ``users`` (S, U, 2) and ``load_bps`` (S, U) hold one scenario shared by every row (S = 1,
+    :meth:`NetworkModel.step`) or one per row (S = N, :meth:`NetworkModel.step_many`).
+    ``log_gains`` (N, U, draws) are log10 of the fading power gains, or (0, 0, 0) in expected
+    mode. ``out`` rows: throughput (bit/s), delay (s), loss ratio, backlog, CoDel count, SNR.
+    """
+    k = _Constants(*kt)
+    batch, n_users = uav.shape[0], users.shape[1]
+    shared = users.shape[0] == 1
+    n_draws = log_gains.shape[2]
+    gains_db = np.empty(n_draws)
+    arrival_pps = np.empty(n_users)
     phy_overhead = np.empty(n_users)
     mpdu = np.empty(n_users)
     max_mpdus = np.empty(n_users)
@@ -273,22 +410,26 @@ def _simulate(
     stall_next = np.zeros(n_users)
     stall_wait = np.zeros(n_users)
     for b in range(batch):
+        s = 0 if shared else b
         # Channel and link of every user.
         for u in range(n_users):
-            dx = uav[b, 0] - users[u, 0]
-            dy = uav[b, 1] - users[u, 1]
+            arrival_pps[u] = load_bps[s, u] / packet_bits
+            dx = uav[b, 0] - users[s, u, 0]
+            dy = uav[b, 1] - users[s, u, 1]
             dz = uav[b, 2] - k.user_height_m
             distance = max(np.sqrt(dx * dx + dy * dy + dz * dz), 1.0)
             rssi = k.tx_power_dbm - k.path_loss_1m_db - 20.0 * np.log10(distance)
             snr = rssi - k.noise_dbm
-            snr_out[b, u] = snr
+            out[5, b, u] = snr
             connected = rssi >= k.min_rssi_dbm
             connected_out[b, u] = connected
-            if gains_db.shape[2] == 0:
+            if n_draws == 0:
                 link = expected_link(k.expected, snr)
             else:
+                for d in range(n_draws):
+                    gains_db[d] = 10.0 * log_gains[b, u, d]
                 link = sampled_link(
-                    k.expected, k.per_mid_db, k.per_slope, k.threshold_db, snr, gains_db[b, u]
+                    k.expected, k.per_mid_db, k.per_slope, k.threshold_db, snr, gains_db
                 )
             phy_overhead[u], mpdu[u], max_mpdus[u], success[u] = link
             residual[u] = (1.0 - success[u]) ** k.transmissions
@@ -354,17 +495,19 @@ def _simulate(
                 k.codel_target_s,
                 k.codel_interval_s,
             )
-            backlog_out[b, u] = backlog
-            codel_out[b, u] = count
-            delivered[b, u] = service * (1.0 - residual[u])
+            out[3, b, u] = backlog
+            out[4, b, u] = count
+            delivered = service * (1.0 - residual[u])
+            out[0, b, u] = delivered * packet_bits
             arrived = arrival_pps[u] * step_s
+            out[2, b, u] = 0.0
             if arrived > 0.0:
                 lost = dropped + service * residual[u] * step_s + arrived * stalled[u]
-                plr[b, u] = min(max(lost / arrived, 0.0), 1.0)
+                out[2, b, u] = min(max(lost / arrived, 0.0), 1.0)
             if arrival_pps[u] <= 0.0:
-                delay[b, u] = 0.0
-            elif delivered[b, u] <= 0.0:
-                delay[b, u] = k.unserved_delay_s
+                out[1, b, u] = 0.0
+            elif delivered <= 0.0:
+                out[1, b, u] = k.unserved_delay_s
             else:
                 # Waiting in the queue (Little's law), for the next TXOP while the A-MPDU
                 # fills, the TXOP itself, and one TXOP interval per retransmission.
@@ -373,13 +516,12 @@ def _simulate(
                 waiting = (mpdus_per_txop - 1.0) / (2.0 * service) + (
                     attempts_per_packet[u] - 1.0
                 ) / txop_rate
-                delay[b, u] = (
+                out[1, b, u] = (
                     mean_backlog / service
                     + max(waiting, stall_wait[u])  # the last stall pass's: not damped
                     + overhead[u]
                     + mpdus_per_txop * mpdu_air[u]
                 )
-    return delivered, delay, plr, backlog_out, codel_out, snr_out, connected_out
 
 
 @njit(cache=True)

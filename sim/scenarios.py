@@ -12,13 +12,35 @@ its users and loads are (see :class:`GeneratorConfig`): the set then spans the h
 index range the paper bins in steps of 0.05, including the upper bins where traffic-aware
 placement pays off. With U users the load half of H is at most (1 − 1/U)/2, so with the paper's
 3 users H tops out near 0.7, never 1.
+
+Beyond the paper, the generator has named *families* of layouts (:data:`FAMILIES`, knobs in
+:class:`FamilyConfig`), for any user count 1..300 (:data:`MAX_USERS`):
+
+* ``exponential`` (the default): the paper's generator above, bit-for-bit what it always drew.
+* ``uniform``: every user uniform over the area.
+* ``hotspots``: 1-4 hot spots at uniform random centres; each user joins one at random and lies
+  at a Gaussian offset from its centre, with a per-scenario spread (σ log-uniform in 10-60 m),
+  clipped into the area.
+* ``corners``: 1-4 of the four corners picked at random (any of them, not only the corner the
+  paper's single exponential measures from); each user joins one and lies at Exp(scale)
+  distances from it along x and y, with a per-scenario scale (log-uniform in 10-80 m),
+  reflected back into the area like the exponential family.
+* ``mixture``: each scenario first draws one of the families above (equally likely), then is
+  drawn from it.
+
+Every family uses the same load model: per-scenario skew, loads Exp(1)**skew with a floor,
+scaled to sum to Λ (see :class:`GeneratorConfig`), so each family spans a range of load
+heterogeneity. Every user lies strictly inside the area.
+
+:class:`ScenarioSampler` draws one scenario at a time from a set of families and a range of user
+counts: what training uses for domain randomisation (a fresh scenario per episode).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -27,6 +49,12 @@ from sim.errors import InputError
 from sim.utility import heterogeneity_index
 
 _DEFAULT_AREA = AreaConfig()
+
+FAMILIES: tuple[str, ...] = ("exponential", "uniform", "hotspots", "corners", "mixture")
+"""The scenario families :func:`generate_scenarios` and :class:`ScenarioSampler` know."""
+
+MAX_USERS = 300
+"""The most users a generated scenario may have."""
 
 
 def _frozen_array(value: object, shape_tail: tuple[int, ...], name: str) -> np.ndarray:
@@ -173,23 +201,77 @@ class GeneratorConfig:
             raise ValueError(f"edge_margin_m: must be >= 0, got {self.edge_margin_m}")
 
 
+@dataclass(frozen=True)
+class FamilyConfig:
+    """Knobs of the families other than ``exponential`` (see the module docstring).
+
+    Per scenario, ``hotspots`` draws a number of hot spots uniform in [``hotspots_min``,
+    ``hotspots_max``] and a spread σ log-uniform in [``hotspot_spread_min_m``,
+    ``hotspot_spread_max_m``]; ``corners`` draws a number of corners uniform in [1,
+    ``corners_max``] and a distance scale log-uniform in [``corner_scale_min_m``,
+    ``corner_scale_max_m``]; ``mixture`` draws one of ``mixture_families``, equally likely (list
+    a family twice to weight it double). Loads and the edge margin follow
+    :class:`GeneratorConfig`.
+    """
+
+    hotspots_min: int = 1
+    hotspots_max: int = 4
+    hotspot_spread_min_m: float = 10.0
+    hotspot_spread_max_m: float = 60.0
+    corners_max: int = 4
+    corner_scale_min_m: float = 10.0
+    corner_scale_max_m: float = 80.0
+    mixture_families: tuple[str, ...] = ("exponential", "uniform", "hotspots", "corners")
+
+    def __post_init__(self) -> None:
+        def positive_range(lo_name: str, hi_name: str) -> None:
+            lo, hi = getattr(self, lo_name), getattr(self, hi_name)
+            if not (math.isfinite(lo) and lo > 0):
+                raise ValueError(f"{lo_name}: must be a positive number, got {lo}")
+            if not (math.isfinite(hi) and hi >= lo):
+                raise ValueError(f"{hi_name}: must be a number >= {lo_name} ({lo}), got {hi}")
+
+        if not 1 <= self.hotspots_min <= self.hotspots_max:
+            raise ValueError(
+                f"hotspots_min/hotspots_max: need 1 <= hotspots_min <= hotspots_max, "
+                f"got {self.hotspots_min} and {self.hotspots_max}"
+            )
+        positive_range("hotspot_spread_min_m", "hotspot_spread_max_m")
+        if not 1 <= self.corners_max <= 4:
+            raise ValueError(f"corners_max: must be in 1..4, got {self.corners_max}")
+        positive_range("corner_scale_min_m", "corner_scale_max_m")
+        mixture = self.mixture_families
+        if isinstance(mixture, str):
+            mixture = (mixture,)
+        mixture = tuple(mixture)
+        allowed = tuple(f for f in FAMILIES if f != "mixture")
+        if not mixture or any(f not in allowed for f in mixture):
+            raise ValueError(
+                f"mixture_families: need one or more of {', '.join(allowed)}, got {mixture!r}"
+            )
+        object.__setattr__(self, "mixture_families", mixture)
+
+
 def _reflect_into(distance_m: np.ndarray, size_m: np.ndarray) -> np.ndarray:
     """Fold non-negative distances into [0, size] by reflecting at both edges."""
     folded = np.mod(distance_m, 2.0 * size_m)
     return np.where(folded > size_m, 2.0 * size_m - folded, folded)
 
 
-def _draw_scenario(
+def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
+    return math.exp(rng.uniform(math.log(lo), math.log(hi)))
+
+
+def _exponential_xy(
     rng: np.random.Generator,
-    scenario_id: str,
     n_users: int,
-    area: AreaConfig,
-    total_load_bps: float,
+    size_m: np.ndarray,
+    margin_m: np.ndarray,
     config: GeneratorConfig,
-) -> Scenario:
-    size_m = np.array([area.size_x_m, area.size_y_m])
+) -> tuple[np.ndarray, float]:
+    """The paper's layout and the load skew, in the draw order the generator always used."""
     scale_max_m = config.position_scale_max_m or float(size_m.max())
-    scale_m = math.exp(rng.uniform(math.log(config.position_scale_min_m), math.log(scale_max_m)))
+    scale_m = _log_uniform(rng, config.position_scale_min_m, scale_max_m)
     if rng.random() < config.scatter_probability:
         corner = rng.integers(0, 2, size=(n_users, 2))
     else:
@@ -198,9 +280,54 @@ def _draw_scenario(
 
     distance_m = _reflect_into(rng.exponential(scale_m, size=(n_users, 2)), size_m)
     xy_m = np.where(corner == 1, size_m - distance_m, distance_m)
-    margin_m = np.minimum(config.edge_margin_m, size_m / 4.0)
-    xy_m = np.clip(xy_m, margin_m, size_m - margin_m)
+    return np.clip(xy_m, margin_m, size_m - margin_m), skew
 
+
+def _uniform_xy(
+    rng: np.random.Generator, n_users: int, size_m: np.ndarray, margin_m: np.ndarray
+) -> np.ndarray:
+    return rng.uniform(margin_m, size_m - margin_m, size=(n_users, 2))
+
+
+def _hotspots_xy(
+    rng: np.random.Generator,
+    n_users: int,
+    size_m: np.ndarray,
+    margin_m: np.ndarray,
+    families: FamilyConfig,
+) -> np.ndarray:
+    n_spots = int(rng.integers(families.hotspots_min, families.hotspots_max + 1))
+    centres_m = rng.uniform(margin_m, size_m - margin_m, size=(n_spots, 2))
+    spread_m = _log_uniform(rng, families.hotspot_spread_min_m, families.hotspot_spread_max_m)
+    spot = rng.integers(0, n_spots, size=n_users)
+    xy_m = centres_m[spot] + rng.normal(0.0, spread_m, size=(n_users, 2))
+    return np.clip(xy_m, margin_m, size_m - margin_m)
+
+
+def _corners_xy(
+    rng: np.random.Generator,
+    n_users: int,
+    size_m: np.ndarray,
+    margin_m: np.ndarray,
+    families: FamilyConfig,
+) -> np.ndarray:
+    n_corners = int(rng.integers(1, families.corners_max + 1))
+    corners = rng.permutation(4)[:n_corners]  # corner c: x at the far edge if c & 1, y if c & 2
+    scale_m = _log_uniform(rng, families.corner_scale_min_m, families.corner_scale_max_m)
+    corner = corners[rng.integers(0, n_corners, size=n_users)]
+    far = np.stack([corner & 1, corner >> 1], axis=1)
+    distance_m = _reflect_into(rng.exponential(scale_m, size=(n_users, 2)), size_m)
+    xy_m = np.where(far == 1, size_m - distance_m, distance_m)
+    return np.clip(xy_m, margin_m, size_m - margin_m)
+
+
+def _loads(
+    rng: np.random.Generator,
+    n_users: int,
+    skew: float,
+    total_load_bps: float,
+    config: GeneratorConfig,
+) -> np.ndarray:
     weights = rng.exponential(1.0, size=n_users) ** skew
     weight_sum = float(weights.sum())
     shares = weights / weight_sum if weight_sum > 0 else np.full(n_users, 1.0 / n_users)
@@ -208,7 +335,69 @@ def _draw_scenario(
     shares = floor_share + (1.0 - n_users * floor_share) * shares
     load_bps = total_load_bps * shares
     load_bps *= total_load_bps / load_bps.sum()  # remove rounding drift in the sum
-    return Scenario(scenario_id, xy_m, load_bps)
+    return load_bps
+
+
+def _draw(
+    rng: np.random.Generator,
+    family: str,
+    n_users: int,
+    area: AreaConfig,
+    total_load_bps: float,
+    config: GeneratorConfig,
+    families: FamilyConfig,
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """Users' positions, loads, and the family drawn (for ``mixture``, the one it picked)."""
+    if family == "mixture":
+        mixture = families.mixture_families
+        family = mixture[int(rng.integers(0, len(mixture)))]
+    size_m = np.array([area.size_x_m, area.size_y_m])
+    margin_m = np.minimum(config.edge_margin_m, size_m / 4.0)
+    if family == "exponential":
+        xy_m, skew = _exponential_xy(rng, n_users, size_m, margin_m, config)
+    else:
+        if family == "uniform":
+            xy_m = _uniform_xy(rng, n_users, size_m, margin_m)
+        elif family == "hotspots":
+            xy_m = _hotspots_xy(rng, n_users, size_m, margin_m, families)
+        else:
+            xy_m = _corners_xy(rng, n_users, size_m, margin_m, families)
+        skew = rng.uniform(0.0, config.load_skew_max)
+    return xy_m, _loads(rng, n_users, skew, total_load_bps, config), family
+
+
+def _label(family: str, drawn: str) -> str:
+    return family if family != "mixture" else f"mixture-{drawn}"
+
+
+def _check_family(family: object, name: str = "family") -> str:
+    if not isinstance(family, str) or family not in FAMILIES:
+        raise InputError(f"{name}: unknown family {family!r} (choose from {', '.join(FAMILIES)})")
+    return family
+
+
+def _check_users(n_users: object, name: str = "n_users") -> int:
+    if (
+        isinstance(n_users, bool)
+        or not isinstance(n_users, int | np.integer)
+        or not 1 <= n_users <= MAX_USERS
+    ):
+        raise InputError(f"{name}: must be a whole number in 1..{MAX_USERS}, got {n_users!r}")
+    return int(n_users)
+
+
+def _check_total_load(total_load_bps: object) -> float:
+    if (
+        isinstance(total_load_bps, bool)
+        or not isinstance(total_load_bps, int | float | np.integer | np.floating)
+        or not (math.isfinite(total_load_bps) and total_load_bps > 0)
+    ):
+        raise InputError(f"total_load_bps: must be a positive number, got {total_load_bps!r}")
+    return float(total_load_bps)
+
+
+def _stream(seed: int, index: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(index,)))
 
 
 def generate_scenarios(
@@ -218,32 +407,123 @@ def generate_scenarios(
     area: AreaConfig = _DEFAULT_AREA,
     total_load_bps: float = TrafficConfig.total_load_bps,
     config: GeneratorConfig = GeneratorConfig(),
+    family: str = "exponential",
+    family_config: FamilyConfig | None = None,
 ) -> list[Scenario]:
-    """Draw ``n`` scenarios of ``n_users`` users each, ids ``s0000``, ``s0001``, ...
+    """Draw ``n`` scenarios of ``n_users`` users (1..300) each from ``family`` (see
+    :data:`FAMILIES`).
+
+    Ids are ``s0000``, ``s0001``, ... for the ``exponential`` family (as they always were),
+    ``s0000-<family>`` for the others, and ``s0000-mixture-<family drawn>`` for ``mixture``.
 
     Deterministic given the arguments. Scenario i is drawn from its own stream
     ``default_rng(SeedSequence(seed, spawn_key=(i,)))``, so a set is a prefix of any larger set
-    drawn with the same seed, users, area and config. Every user lies strictly inside the area,
-    every load is positive and the loads sum to ``total_load_bps`` (to rounding).
+    drawn with the same seed, users, area, configs and family. Every user lies strictly inside
+    the area, every load is positive and the loads sum to ``total_load_bps`` (to rounding).
+    Bad arguments raise :class:`InputError` naming the argument.
     """
     if n < 0:
         raise InputError(f"n: must be >= 0, got {n}")
-    if n_users < 1:
-        raise InputError(f"n_users: must be >= 1, got {n_users}")
-    if not (math.isfinite(total_load_bps) and total_load_bps > 0):
-        raise InputError(f"total_load_bps: must be a positive number, got {total_load_bps}")
+    n_users = _check_users(n_users)
+    total_load_bps = _check_total_load(total_load_bps)
+    family = _check_family(family)
+    families = FamilyConfig() if family_config is None else family_config
     width = max(4, len(str(n - 1)))
-    return [
-        _draw_scenario(
-            np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(i,))),
-            f"s{i:0{width}d}",
-            n_users,
-            area,
-            float(total_load_bps),
-            config,
+    scenarios = []
+    for i in range(n):
+        xy_m, load_bps, drawn = _draw(
+            _stream(seed, i), family, n_users, area, total_load_bps, config, families
         )
-        for i in range(n)
-    ]
+        suffix = "" if family == "exponential" else f"-{_label(family, drawn)}"
+        scenarios.append(Scenario(f"s{i:0{width}d}{suffix}", xy_m, load_bps))
+    return scenarios
+
+
+# A spawn key no scenario stream uses (a set never has 2**32 scenarios): the sampler's picks.
+_PICK_KEY = 2**32
+
+
+@dataclass(frozen=True)
+class ScenarioSampler:
+    """Draws one scenario at a time, for domain randomisation in training.
+
+    :meth:`sample` takes one seed from the caller's generator, then from that seed alone picks a
+    family from ``families`` and a user count in ``users`` (an inclusive range), both uniformly,
+    and draws the scenario: the same seed always gives the same scenario, and the caller's
+    generator advances by exactly one draw whatever the sampler's settings. With one family and
+    one user count nothing is picked, and the users equal
+    ``generate_scenarios(1, n_users, seed, ..., family=family)[0]``. The id,
+    ``<family>-<U>u-<seed>`` (``mixture-<drawn>-...`` for a mixture), says how to draw it again.
+
+    A family may be listed more than once to weight it. Bad fields raise :class:`InputError`
+    naming the field.
+    """
+
+    families: tuple[str, ...] = ("exponential",)
+    users: tuple[int, int] = (3, 3)
+    area: AreaConfig = field(default_factory=AreaConfig)
+    total_load_bps: float = TrafficConfig.total_load_bps
+    config: GeneratorConfig = field(default_factory=GeneratorConfig)
+    family_config: FamilyConfig = field(default_factory=FamilyConfig)
+
+    def __post_init__(self) -> None:
+        families = self.families
+        if isinstance(families, str):
+            families = (families,)
+        try:
+            families = tuple(families)
+        except TypeError:
+            raise InputError(
+                f"families: must be a sequence of family names, got {self.families!r}"
+            ) from None
+        if not families:
+            raise InputError(f"families: need at least one of {', '.join(FAMILIES)}")
+        for family in families:
+            _check_family(family, "families")
+        users = self.users
+        try:
+            lo, hi = users
+        except (TypeError, ValueError):
+            raise InputError(f"users: must be a (min, max) pair, got {users!r}") from None
+        lo = _check_users(lo, "users")
+        hi = _check_users(hi, "users")
+        if lo > hi:
+            raise InputError(f"users: min {lo} is above max {hi}")
+        if not isinstance(self.area, AreaConfig):
+            raise InputError(f"area: must be an AreaConfig, got {type(self.area).__name__}")
+        if not isinstance(self.config, GeneratorConfig):
+            raise InputError(f"config: must be a GeneratorConfig, got {type(self.config).__name__}")
+        if not isinstance(self.family_config, FamilyConfig):
+            raise InputError(
+                f"family_config: must be a FamilyConfig, got {type(self.family_config).__name__}"
+            )
+        object.__setattr__(self, "families", families)
+        object.__setattr__(self, "users", (lo, hi))
+        object.__setattr__(self, "total_load_bps", _check_total_load(self.total_load_bps))
+
+    def pick(self, seed: int) -> tuple[str, int]:
+        """The family and user count :meth:`sample` uses for ``seed``."""
+        (lo, hi), families = self.users, self.families
+        if lo == hi and len(set(families)) == 1:
+            return families[0], lo
+        pick_rng = _stream(seed, _PICK_KEY)
+        family = families[int(pick_rng.integers(0, len(families)))]
+        return family, int(pick_rng.integers(lo, hi + 1))
+
+    def sample(self, rng: np.random.Generator) -> Scenario:
+        """One scenario; deterministic given the state of ``rng`` (advanced by one draw)."""
+        seed = int(rng.integers(2**63 - 1))
+        family, n_users = self.pick(seed)
+        xy_m, load_bps, drawn = _draw(
+            _stream(seed, 0),
+            family,
+            n_users,
+            self.area,
+            self.total_load_bps,
+            self.config,
+            self.family_config,
+        )
+        return Scenario(f"{_label(family, drawn)}-{n_users}u-{seed}", xy_m, load_bps)
 
 
 def heterogeneity_indices(scenarios: Sequence[Scenario], area: AreaConfig) -> np.ndarray:

@@ -22,7 +22,27 @@ def network_utility(
     ``config.delay_ref_s``, P the users' mean packet loss ratio. T and D are clipped to [0, 1]
     so the utility stays in [0, 1]: T can pass 1 for a step that drains an old backlog, and D
     passes 1 only where the UAV is so badly placed that the exact delay no longer matters.
+
+    Inputs (..., U) give utilities (...): one per position or environment of a batch.
     """
+    if (
+        _float_vector(throughput_bps)
+        and _float_vector(delay_s)
+        and _float_vector(plr)
+        and _float_vector(offered_bps)
+        and config.delay_ref_s != 0.0  # numpy's inf, not Python's ZeroDivisionError
+    ):
+        # One step of one cell, the training loop's case: the same operations on Python
+        # floats (numpy's own sums), without numpy's per-call overhead on 0-d results.
+        total = max(float(_sum(offered_bps)), 1e-12)
+        t = min(float(_sum(throughput_bps)) / total, 1.0)
+        d = min(float(_sum(delay_s)) / delay_s.size / config.delay_ref_s, 1.0)
+        p = min(float(_sum(plr)) / plr.size, 1.0)
+        return np.float64(
+            config.weight_throughput * max(t, 0.0)
+            + config.weight_delay * (1.0 - max(d, 0.0))
+            + config.weight_loss * (1.0 - max(p, 0.0))
+        )
     offered = np.maximum(np.sum(offered_bps, axis=-1), 1e-12)
     t_norm = np.minimum(np.sum(throughput_bps, axis=-1) / offered, 1.0)
     d_norm = np.minimum(np.mean(delay_s, axis=-1) / config.delay_ref_s, 1.0)
@@ -31,6 +51,19 @@ def network_utility(
         config.weight_throughput * np.maximum(t_norm, 0.0)
         + config.weight_delay * (1.0 - np.maximum(d_norm, 0.0))
         + config.weight_loss * (1.0 - np.maximum(p_norm, 0.0))
+    )
+
+
+_sum = np.add.reduce
+
+
+def _float_vector(values: object) -> bool:
+    """A non-empty 1-D float64 array (what the fast path of :func:`network_utility` takes)."""
+    return (
+        type(values) is np.ndarray
+        and values.ndim == 1
+        and values.size > 0
+        and values.dtype == np.float64
     )
 
 

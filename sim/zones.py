@@ -8,6 +8,9 @@ The 13 discrete moves (:data:`MOVES`) step the index by ±1 or ±5 along one axi
 
 from __future__ import annotations
 
+import math
+from functools import lru_cache
+
 import numpy as np
 
 from sim.config import AreaConfig
@@ -55,6 +58,16 @@ def grid_shape(area: AreaConfig) -> np.ndarray:
 
 def zone_index(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
     """The grid index of the zone holding ``xyz_m`` (nearest level in z), clipped to the grid."""
+    if type(xyz_m) is np.ndarray and xyz_m.dtype == np.float64 and xyz_m.shape == (3,):
+        x, y, z = xyz_m.tolist()  # Python floats: the same arithmetic, less overhead
+        qx, qy, qz = x / area.zone_m, y / area.zone_m, (z - area.z_min_m) / area.zone_m
+        if abs(qx) + abs(qy) + abs(qz) < _EXACT:  # finite, and int64 holds the index
+            n_x, n_y, n_z = _grid_dims(area)
+            ix, iy, iz = math.floor(qx), math.floor(qy), round(qz)  # round: half to even
+            return np.array(
+                [min(max(ix, 0), n_x - 1), min(max(iy, 0), n_y - 1), min(max(iz, 0), n_z - 1)],
+                dtype=np.int64,
+            )
     raw = np.array(
         [
             np.floor(xyz_m[0] / area.zone_m),
@@ -67,6 +80,8 @@ def zone_index(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
 
 def zone_position(index: np.ndarray, area: AreaConfig) -> np.ndarray:
     """The point a grid index stands for (zone centre, level altitude), metres."""
+    if type(index) is np.ndarray and index.ndim == 1 and index.dtype.kind in "iu":
+        index = index.tolist()  # Python ints: the same arithmetic, less overhead
     return np.array(
         [
             (index[0] + 0.5) * area.zone_m,
@@ -78,5 +93,25 @@ def zone_position(index: np.ndarray, area: AreaConfig) -> np.ndarray:
 
 def move_mask(index: np.ndarray, area: AreaConfig) -> np.ndarray:
     """Boolean (13,): the moves from ``index`` that stay on the grid (``stay`` always)."""
+    if type(index) is np.ndarray and index.shape == (3,) and index.dtype.kind == "i":
+        ix, iy, iz = index.tolist()
+        return _move_mask_at(area, ix, iy, iz).copy()
     landing = np.asarray(index) + MOVES
     return np.all((landing >= 0) & (landing < grid_shape(area)), axis=1)
+
+
+# Grid coordinates below this (sum of magnitudes) floor and round the same in Python and numpy.
+_EXACT = 2.0**52
+
+
+@lru_cache(maxsize=16)
+def _grid_dims(area: AreaConfig) -> tuple[int, int, int]:
+    return area.n_zones_x, area.n_zones_y, area.n_levels_z
+
+
+@lru_cache(maxsize=65536)
+def _move_mask_at(area: AreaConfig, ix: int, iy: int, iz: int) -> np.ndarray:
+    landing = np.array([ix, iy, iz], dtype=np.int64) + MOVES
+    mask = np.all((landing >= 0) & (landing < grid_shape(area)), axis=1)
+    mask.setflags(write=False)  # cached: callers get copies
+    return mask

@@ -167,10 +167,11 @@ def _untrained_ddpg() -> ServingPolicy:
     from service.policy_runtime import CheckpointPolicy
     from sim.config import UtilityConfig
     from sim.scenarios import generate_scenarios
+    from sim.world import PAPER
 
     tiny = NetworkPreset(channels=(8,), hidden=32, features_dim=32, dropout=0.0)
     preset = replace(get_preset("fast", "ddpg"), network=tiny, buffer_size=1_000)
-    env = make_env("ddpg", generate_scenarios(2, 3, seed=7), preset, AREA, "fq-codel")
+    env = make_env("ddpg", generate_scenarios(2, 3, seed=7), replace(PAPER, area=AREA))
     model = build_model("ddpg", env, preset, seed=0, tensorboard_log=None)
     metadata = {"algorithm": "ddpg", "strategy": "untrained"}
     return CheckpointPolicy(

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -18,8 +18,10 @@ from policies.evaluation import (
     position_to_action_f64,
 )
 from sim.config import AreaConfig
+from sim.errors import InputError
 from sim.scenarios import Scenario, generate_scenarios
 from sim.utility import heterogeneity_index
+from sim.world import PAPER, World
 
 AREA = AreaConfig()
 STEPS = 20
@@ -31,19 +33,24 @@ def scenarios() -> list[Scenario]:
     return generate_scenarios(6, 3, seed=4, area=AREA)
 
 
+WORLD = replace(PAPER, episode_steps=STEPS)
+
+
 def run(policy: Any, scenarios: list[Scenario], **kwargs: Any) -> dict[str, Any]:
-    kwargs = {"episode_steps": STEPS, "progress": False, **kwargs}
-    return evaluate_policy(policy, scenarios, AREA, **kwargs)
+    kwargs = {"progress": False, **kwargs}
+    return evaluate_policy(policy, scenarios, kwargs.pop("world", WORLD), **kwargs)
 
 
 def test_result_shape(scenarios: list[Scenario]) -> None:
     result = run(make_policy("min-distance", AREA), scenarios)
     assert list(result) == [
         "policy",
+        "world",
         "n_scenarios",
         "mean_utility",
         "median_utility",
         "p25_utility",
+        "mean_time_to_final_s",
         "seed",
         "queueing",
         "episode_steps",
@@ -62,9 +69,13 @@ def test_result_shape(scenarios: list[Scenario]) -> None:
             "throughput_bps",
             "delay_s",
             "plr",
+            "time_to_final_s",
             "uav_xyz_m",
+            "trace",
         ]
-        assert all(type(row[k]) is float for k in list(row)[1:-1])
+        assert all(type(row[k]) is float for k in list(row)[1:-2])
+        assert len(row["trace"]) == STEPS
+        assert 0 < row["time_to_final_s"] <= STEPS * WORLD.step_s
         np.testing.assert_allclose(
             row["uav_xyz_m"], make_policy("min-distance", AREA).place(scenario)
         )
@@ -105,7 +116,7 @@ class HoverAtStart:
     env_kind: str
     name: str = "hover"
 
-    def begin_episode(self, scenario: Any, area: AreaConfig) -> None:
+    def begin_episode(self, scenario: Any, world: World) -> None:
         return None
 
     def act(self, observation: np.ndarray, info: dict[str, Any]) -> Any:
@@ -135,9 +146,11 @@ def test_every_policy_sees_the_same_random_numbers(scenarios: list[Scenario]) ->
 def test_bad_arguments(scenarios: list[Scenario]) -> None:
     policy = make_policy("min-distance", AREA)
     with pytest.raises(ValueError, match="empty"):
-        evaluate_policy(policy, [], AREA, progress=False)
-    with pytest.raises(ValueError, match="episode_steps"):
-        evaluate_policy(policy, scenarios, AREA, episode_steps=0, progress=False)
+        evaluate_policy(policy, [], WORLD, progress=False)
+    with pytest.raises(ValueError, match="seed"):
+        evaluate_policy(policy, scenarios, WORLD, seed=-1, progress=False)
+    with pytest.raises(InputError, match="episode_steps"):
+        replace(WORLD, episode_steps=0)
 
 
 def test_heterogeneity_bins() -> None:

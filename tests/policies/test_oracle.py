@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -12,6 +14,7 @@ from policies.evaluation import evaluate_policy
 from policies.oracle import OracleConfig, OraclePolicy, episode_utility
 from sim.config import AreaConfig, NetworkConfig
 from sim.scenarios import Scenario, generate_scenarios
+from sim.world import PAPER
 
 AREA = AreaConfig()
 STEPS = 30  # a shorter episode than the paper's keeps these tests fast; the logic is the same
@@ -36,17 +39,14 @@ def test_oracle_is_never_beaten_by_the_baselines_on_the_expected_model(
     seed, n_users, queueing
 ) -> None:
     scenarios = generate_scenarios(2, n_users, seed=seed, area=AREA)
-    network = NetworkConfig().with_queueing(queueing)
+    world = replace(
+        PAPER,
+        episode_steps=STEPS,
+        stochastic=False,
+        network=NetworkConfig().with_queueing(queueing),
+    )
     results = {
-        name: evaluate_policy(
-            make_policy(name, AREA, network, episode_steps=STEPS),
-            scenarios,
-            AREA,
-            queueing=queueing,
-            episode_steps=STEPS,
-            progress=False,
-            expected=True,
-        )
+        name: evaluate_policy(make_policy(name, world=world), scenarios, world, progress=False)
         for name in ("min-distance", "load-weighted", "oracle")
     }
     oracle = [s["utility"] for s in results["oracle"]["scenarios"]]
@@ -60,9 +60,8 @@ def test_oracle_score_is_the_environment_episode() -> None:
     scenarios = generate_scenarios(3, 3, seed=11, area=AREA)
     oracle = OraclePolicy(AREA, config=OracleConfig(episode_steps=STEPS))
     searched = [oracle.search(s).utility for s in scenarios]
-    result = evaluate_policy(
-        oracle, scenarios, AREA, episode_steps=STEPS, progress=False, expected=True
-    )
+    world = replace(PAPER, episode_steps=STEPS, stochastic=False)
+    result = evaluate_policy(oracle, scenarios, world, progress=False)
     assert np.allclose(searched, [s["utility"] for s in result["scenarios"]], atol=1e-12)
 
 

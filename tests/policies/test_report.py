@@ -8,6 +8,7 @@ import math
 import shutil
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +31,7 @@ from sim.config import AreaConfig, NetworkConfig
 from sim.errors import InputError
 from sim.files import atomic_write_json
 from sim.scenarios import generate_scenarios
+from sim.world import PAPER
 
 AREA = AreaConfig()
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -58,8 +60,8 @@ CURVE = {
 
 
 def _evaluate(name: str, scenarios: list) -> dict:
-    policy = make_policy(name, AREA, NetworkConfig(), episode_steps=5)
-    return evaluate_policy(policy, scenarios, AREA, seed=1, episode_steps=5, progress=False)
+    world = replace(PAPER, area=AREA, network=NetworkConfig(), episode_steps=5)
+    return evaluate_policy(make_policy(name, world=world), scenarios, world, seed=1, progress=False)
 
 
 @pytest.fixture(scope="module")

@@ -14,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from policies.agents import TrainedAgent
+from policies.baselines import ReportedUsers, make_policy
 from policies.checkpoints import load_checkpoint, save_checkpoint
 from policies.ddqn import double_dqn_targets
 from policies.evaluation import evaluate_policy
@@ -24,6 +25,7 @@ from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.files import save_scenarios
 from sim.scenarios import Scenario, generate_scenarios
+from sim.world import PAPER
 
 AREA = AreaConfig()
 TINY_NET = NetworkPreset(channels=(8,), hidden=32, features_dim=32, dropout=0.0)
@@ -64,7 +66,7 @@ def random_ddqn(test_file):
     from sim.files import load_scenarios
 
     _, scenarios = load_scenarios(test_file)
-    env = make_env("ddqn", scenarios, tiny_preset("ddqn"), AREA, "fq-codel")
+    env = make_env("ddqn", scenarios, replace(PAPER, area=AREA))
     return build_model("ddqn", env, tiny_preset("ddqn"), seed=0, tensorboard_log=None)
 
 
@@ -133,13 +135,13 @@ def test_short_ddqn_training_beats_a_random_walk(tmp_path):
         def __init__(self):
             self.rng = np.random.default_rng(0)
 
-        def begin_episode(self, scenario, area):
+        def begin_episode(self, scenario, world):
             return None
 
         def act(self, observation, info):
             return int(self.rng.choice(np.flatnonzero(info["action_mask"])))
 
-    kwargs = {"area": AREA, "seed": 0, "episode_steps": 20, "progress": False}
+    kwargs = {"world": replace(PAPER, episode_steps=20), "seed": 0, "progress": False}
     trained = evaluate_policy(agent, [scenario], **kwargs)["mean_utility"]
     random = evaluate_policy(RandomWalk(), [scenario], **kwargs)["mean_utility"]
     assert trained > random + 0.05
@@ -174,7 +176,7 @@ def test_ddpg_trains_and_acts_inside_the_volume(tmp_path, test_file):
     assert meta["algorithm"] == "ddpg"
     agent = TrainedAgent.load(out)
     result = evaluate_policy(
-        agent, generate_scenarios(2, 3, seed=5), AREA, episode_steps=5, progress=False
+        agent, generate_scenarios(2, 3, seed=5), replace(PAPER, episode_steps=5), progress=False
     )
     for row in result["scenarios"]:
         x, y, z = row["uav_xyz_m"]
@@ -189,7 +191,7 @@ def test_ddpg_critic_is_not_linear_in_the_action(test_file):
     _, scenarios = load_scenarios(test_file)
     for name in ("paper", "fast"):
         preset = replace(get_preset(name, "ddpg"), network=TINY_NET, buffer_size=1_000)
-        env = make_env("ddpg", scenarios, preset, AREA, "fq-codel")
+        env = make_env("ddpg", scenarios, replace(PAPER, area=AREA))
         model = build_model("ddpg", env, preset, seed=0, tensorboard_log=None)
         q_net = model.critic.q_networks[0]
         assert sum(isinstance(m, th.nn.ReLU) for m in q_net) == len(preset.critic_hidden) >= 1
@@ -325,3 +327,42 @@ def test_ctrl_c_saves_latest_with_its_replay_buffer_and_resume_continues_the_cyc
     assert loaded_buffer_sizes and loaded_buffer_sizes[0] >= 4 * 30 - 1
     # SB3 resets the env once when learn() starts: that first episode is the 5th scenario.
     assert visited[:4] == [4, 5, 0, 1]
+
+
+@pytest.mark.slow
+def test_vectorised_training_runs_and_counts_episodes(tmp_path, test_file):
+    config = replace(small_config(test_file, tmp_path / "vec", "ddqn", 8), envs=4)
+    meta = train(config)
+    assert meta["episodes"] >= 8 and (tmp_path / "vec" / "model.zip").is_file()
+
+
+def test_an_untrained_residual_ddpg_is_the_load_weighted_baseline(test_file):
+    """The residual actor starts at 0: its targets are the load-weighted placements."""
+    from policies.residual import residual_target
+    from policies.training import zero_actor_output
+    from sim.files import load_scenarios
+
+    _, scenarios = load_scenarios(test_file)
+    env = make_env("ddpg", scenarios, replace(PAPER, area=AREA), action="residual")
+    model = build_model("ddpg", env, tiny_preset("ddpg"), seed=0, tensorboard_log=None)
+    zero_actor_output(model)
+    weighted = make_policy("load-weighted", AREA)
+    for seed in range(3):
+        observation, info = env.reset(seed=seed)
+        delta, _ = model.predict(observation, deterministic=True)
+        np.testing.assert_array_equal(delta, np.zeros(3, dtype=np.float32))
+        target = residual_target(delta, info["reports"], AREA)
+        users = env.unwrapped.users
+        expected = weighted.place(ReportedUsers(users.xy_m, users.load_bps))
+        np.testing.assert_allclose(target, expected, atol=1e-9)
+
+
+def test_bad_training_options_are_named(test_file, tmp_path):
+    for changes, message in (
+        ({"envs": 0}, "--envs"),
+        ({"action": "residual"}, "--action"),  # a DDQN cannot take residual actions
+        ({"world": "paper,mars"}, "world"),
+        ({"families": ("volcano",)}, "famil"),
+    ):
+        with pytest.raises(InputError, match=message):
+            replace(small_config(test_file, tmp_path / "x", "ddqn", 2), **changes)

@@ -14,7 +14,6 @@ from sim.envs import (
     CONTINUOUS_ENV_ID,
     DISCRETE_ENV_ID,
     MOVES,
-    EnvConfig,
     FapContinuousEnv,
     FapDiscreteEnv,
     action_to_position,
@@ -22,6 +21,7 @@ from sim.envs import (
 )
 from sim.observation import UserReports, build_observation
 from sim.scenarios import Scenario, generate_scenarios
+from sim.world import Flight, World
 
 AREA = AreaConfig()
 SCENARIOS = generate_scenarios(5, 3, seed=11)
@@ -75,7 +75,7 @@ def test_specialization_cycles_scenarios_in_order():
 
 
 def test_generated_scenarios_differ_per_episode():
-    env = FapDiscreteEnv(config=EnvConfig(expected=True))
+    env = FapDiscreteEnv(world=World(stochastic=False))
     env.reset(seed=3)
     users_a = env.scenario.users_xy_m.copy()
     env.reset()
@@ -85,7 +85,7 @@ def test_generated_scenarios_differ_per_episode():
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 10_000), picks=st.lists(st.integers(0, 1000), min_size=30, max_size=30))
 def test_masks_never_allow_leaving_the_volume(seed, picks):
-    env = FapDiscreteEnv(SCENARIOS, EnvConfig(expected=True, start="random"))
+    env = FapDiscreteEnv(SCENARIOS, World(stochastic=False, home="random"))
     _, info = env.reset(seed=seed)
     for pick in picks:
         mask = info["action_mask"]
@@ -104,7 +104,7 @@ def test_masks_never_allow_leaving_the_volume(seed, picks):
 
 
 def test_discrete_moves_go_where_they_say():
-    env = FapDiscreteEnv(SCENARIOS, EnvConfig(expected=True))
+    env = FapDiscreteEnv(SCENARIOS, World(stochastic=False))
     _, info = env.reset(seed=0)
     start = info["uav_xyz_m"]
     _, _, _, _, info = env.step(7)  # east 5 zones
@@ -132,7 +132,7 @@ def test_continuous_actions_map_onto_the_volume():
 
 
 def test_speed_limit_makes_moves_take_time():
-    env = FapContinuousEnv(SCENARIOS, EnvConfig(expected=True, max_speed_mps=10.0))
+    env = FapContinuousEnv(SCENARIOS, World(stochastic=False, flight=Flight(10.0, None)))
     _, info = env.reset(seed=0, options={"uav_xyz_m": [0.0, 0.0, 25.0]})
     _, _, _, _, info = env.step(np.array([1.0, 0.0, 0.0], dtype=np.float32))
     np.testing.assert_allclose(info["uav_xyz_m"], [10.0, 0.0, 25.0])
@@ -142,7 +142,7 @@ def test_speed_limit_makes_moves_take_time():
 def test_moving_towards_a_far_heavy_user_pays():
     """The environment rewards traffic-aware placement: near the heavy user beats the centre."""
     scenario = Scenario("s", np.array([[20.0, 20.0], [480.0, 480.0]]), np.array([38e6, 2e6]))
-    env = FapContinuousEnv([scenario], EnvConfig(expected=True))
+    env = FapContinuousEnv([scenario], World(stochastic=False))
     env.reset(seed=0)
     _, centre, *_ = env.step(position_to_action(np.array([250.0, 250.0, 25.0]), AREA))
     env.reset(seed=0)
@@ -175,7 +175,7 @@ def test_observation_maps():
 
 
 def test_env_observation_is_the_shared_builder():
-    env = FapDiscreteEnv(SCENARIOS, EnvConfig(expected=True))
+    env = FapDiscreteEnv(SCENARIOS, World(stochastic=False))
     obs, info = env.reset(seed=0)
     s = env.scenario
     reports = UserReports(

@@ -1,0 +1,83 @@
+"""DDPG's *residual* action: a correction to the load-weighted placement.
+
+The paper's DDPG outputs absolute coordinates. Learned from scratch in a few minutes on a laptop
+CPU, such an actor lands below the one-line ``load-weighted`` baseline (the placement that
+minimises the load-weighted distance to the users) on most scenario families: that baseline
+already captures most of what traffic-aware placement gains, and the actor must first rediscover
+it. With ``action = "residual"`` the actor outputs ``delta`` in [-1, 1]³ instead, and the target
+is the load-weighted placement of the reported users moved by ``delta``:
+
+* x, y: the placement plus ``delta_xy · radius_m`` (clipped to the area);
+* z: the minimum altitude plus ``max(delta_z, 0)`` of the altitude band (the load-weighted
+  placement flies lowest, where every distance is shortest).
+
+The actor starts at ``delta = 0`` (its last layer zeroed), so an untrained policy *is* the
+load-weighted baseline, and training learns what the baseline misses: the MAC (airtime, queues,
+the 802.11 performance anomaly), which the users' positions and loads alone do not show. It is
+still the paper's DDPG (actor-critic, the same observation, the same critic); only the action's
+frame moves. :func:`residual_target` is the one function both the training environment's wrapper
+and the service use, so they agree to the bit (``tests/service/test_parity.py``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from policies.baselines import MinDistancePolicy, ReportedUsers, clip_to_volume
+from sim.config import AreaConfig
+from sim.observation import UserReports
+from sim.world import position_to_coordinates
+
+RESIDUAL_RADIUS_M = 125.0
+"""How far (m) the actor may move the target from the load-weighted placement, per axis."""
+
+
+def residual_target(
+    delta: np.ndarray,
+    reports: UserReports,
+    area: AreaConfig,
+    radius_m: float = RESIDUAL_RADIUS_M,
+) -> np.ndarray:
+    """The target (3,), metres, for the residual action ``delta`` given the users' reports."""
+    d = np.clip(np.asarray(delta, dtype=float).reshape(3), -1.0, 1.0)
+    prior = MinDistancePolicy(area, load_weighted=True).place(ReportedUsers.of(reports))
+    target = np.array(
+        [
+            prior[0] + d[0] * radius_m,
+            prior[1] + d[1] * radius_m,
+            area.z_min_m + max(d[2], 0.0) * (area.z_max_m - area.z_min_m),
+        ]
+    )
+    return clip_to_volume(target, area)
+
+
+class ResidualActions(gym.Wrapper):
+    """``FapContinuous`` with residual actions in [-1, 1]³ (see the module doc): each action
+    becomes a target through :func:`residual_target`, from the report the decision sees."""
+
+    def __init__(self, env: gym.Env, radius_m: float = RESIDUAL_RADIUS_M) -> None:
+        super().__init__(env)
+        self.radius_m = radius_m
+        self.action_space = spaces.Box(-1.0, 1.0, (3,), dtype=np.float32)
+        self._reports: UserReports | None = None
+
+    def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
+        observation, info = self.env.reset(**kwargs)
+        self._reports = info["reports"]
+        return observation, info
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        if self._reports is None:
+            raise RuntimeError("step() called before reset()")
+        a = np.asarray(action, dtype=float)
+        if a.shape != (3,) or not np.all(np.isfinite(a)):
+            raise ValueError(f"action: must be 3 finite numbers in [-1, 1], got {action!r}")
+        area = self.env.unwrapped.area
+        target = residual_target(a, self._reports, area, self.radius_m)
+        result = self.env.step(position_to_coordinates(target, area))
+        self._reports = result[4]["reports"]
+        return result

@@ -1,0 +1,135 @@
+"""Users within an episode: where they are and what they offer, step by step.
+
+:class:`UserDynamics` starts from a scenario (positions and loads at time 0) and advances by one
+decision period at a time under the world's :class:`~sim.world.Mobility` and
+:class:`~sim.world.Demand`. With both static (the paper) it never draws a random number and its
+arrays never change. All draws come from the generator passed in, so an episode is reproducible
+from the environment's seed.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from sim.config import AreaConfig
+from sim.world import Demand, Mobility
+
+
+class UserDynamics:
+    """Positions (U, 2) and offered loads (U,) of a scenario's users as time passes.
+
+    ``xy_m`` and ``load_bps`` are read-only arrays that :meth:`advance` replaces rather than
+    changes, so a caller may keep them (in a report, an ``info``) without copying.
+    """
+
+    def __init__(
+        self,
+        users_xy_m: np.ndarray,
+        load_bps: np.ndarray,
+        mobility: Mobility,
+        demand: Demand,
+        area: AreaConfig,
+        rng: np.random.Generator,
+    ) -> None:
+        self.area = area
+        self.mobility = mobility
+        self.demand = demand
+        self.xy_m = _frozen(np.array(users_xy_m, dtype=float))
+        self.base_load_bps = _frozen(np.array(load_bps, dtype=float))
+        self.load_bps = self.base_load_bps
+        n = len(self.load_bps)
+        self._factor = np.ones(n)
+        self._quiet_left_s = np.zeros(n)
+        self._moving = np.zeros(n, dtype=bool)
+        if not mobility.static:
+            count = max(1, round(mobility.moving_fraction * n))
+            self._moving[rng.choice(n, size=count, replace=False)] = True
+        walkers = 1 if mobility.model == "group" else n
+        self._waypoint = np.zeros((walkers, 2))
+        self._speed = np.zeros(walkers)
+        self._pause_left_s = np.zeros(walkers)
+        if mobility.model == "group":
+            self._leader = self.xy_m[self._moving].mean(axis=0)
+            self._offsets = self.xy_m - self._leader
+        for w in range(walkers if not mobility.static else 0):
+            self._new_leg(w, rng)
+
+    def advance(self, dt_s: float, rng: np.random.Generator) -> None:
+        """Move the users and change their demand by ``dt_s`` seconds."""
+        if not self.mobility.static:
+            self._walk(dt_s, rng)
+        if not self.demand.static:
+            self._change_demand(dt_s, rng)
+
+    # -- mobility -------------------------------------------------------------------------------
+    def _new_leg(self, walker: int, rng: np.random.Generator) -> None:
+        area = self.area
+        self._waypoint[walker] = rng.uniform([0.0, 0.0], [area.size_x_m, area.size_y_m])
+        self._speed[walker] = rng.uniform(*self.mobility.speed_mps)
+
+    def _walk(self, dt_s: float, rng: np.random.Generator) -> None:
+        if self.mobility.model == "group":
+            self._leader = self._step_walker(0, self._leader, dt_s, rng)
+            upper = [self.area.size_x_m, self.area.size_y_m]
+            moved = np.clip(self._leader + self._offsets, 0.0, upper)
+            self.xy_m = _frozen(np.where(self._moving[:, None], moved, self.xy_m))
+            return
+        xy = self.xy_m.copy()
+        for u in np.flatnonzero(self._moving):
+            xy[u] = self._step_walker(u, xy[u], dt_s, rng)
+        self.xy_m = _frozen(xy)
+
+    def _step_walker(
+        self, w: int, xy: np.ndarray, dt_s: float, rng: np.random.Generator
+    ) -> np.ndarray:
+        """One walker's random-waypoint motion for ``dt_s``: walk, arrive, pause, draw again."""
+        left_s = dt_s
+        xy = xy.copy()
+        for _ in range(8):  # bounded: legs and pauses that fit within one step
+            if left_s <= 0:
+                break
+            if self._pause_left_s[w] > 0:
+                waited = min(self._pause_left_s[w], left_s)
+                self._pause_left_s[w] -= waited
+                left_s -= waited
+                if self._pause_left_s[w] <= 0:
+                    self._new_leg(w, rng)
+                continue
+            gap = self._waypoint[w] - xy
+            distance = math.hypot(gap[0], gap[1])
+            reach = self._speed[w] * left_s
+            if distance > reach:
+                return xy + gap * (reach / distance)
+            xy = self._waypoint[w].copy()
+            left_s -= distance / self._speed[w]
+            self._pause_left_s[w] = rng.uniform(*self.mobility.pause_s)
+            if self._pause_left_s[w] <= 0:
+                self._new_leg(w, rng)
+        return xy
+
+    # -- demand ---------------------------------------------------------------------------------
+    def _change_demand(self, dt_s: float, rng: np.random.Generator) -> None:
+        d = self.demand
+        n = len(self.load_bps)
+        steps = rng.random(n) < -math.expm1(-d.step_rate_per_s * dt_s)
+        if steps.any():
+            low, high = (math.log(v) for v in d.step_factor)
+            jump = np.exp(rng.uniform(low, high, n))
+            self._factor[steps] = np.clip(self._factor[steps] * jump[steps], *d.step_factor)
+        quiet = self._quiet_left_s > 0
+        self._quiet_left_s[quiet] = np.maximum(self._quiet_left_s[quiet] - dt_s, 0.0)
+        going = (~quiet) & (rng.random(n) < -math.expm1(-d.quiet_rate_per_s * dt_s))
+        for u in np.flatnonzero(going):
+            active = (self._quiet_left_s <= 0).sum()
+            if active > 1:  # at least one user keeps offering traffic
+                self._quiet_left_s[u] = rng.uniform(*d.quiet_s)
+        self.load_bps = _frozen(
+            np.where(self._quiet_left_s > 0, 0.0, self.base_load_bps * self._factor)
+        )
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array.setflags(write=False)
+    return array

@@ -1,0 +1,431 @@
+"""The world a policy lives in, as one frozen value: flight, decisions, users, reports.
+
+Training, ``tupa eval``, ``tupa demo``, the benchmarks and the service's decision cadence all
+take a :class:`World`, so a policy is trained in the world it serves in. Two presets matter:
+
+``paper``        the paper's protocol (§IV): the UAV is at its target at the start of every
+                 step (no flight), users and loads fixed for the episode, the decision sees the
+                 report of the step that just ended, a static policy starts at its placement.
+                 It reproduces the paper's figures and stays as it is.
+``closed-loop``  what the service meets: the vehicle flies at most 10 m/s horizontally and
+                 3 m/s vertically (a small multirotor in GUIDED / OFFBOARD), every policy starts
+                 at home (the area's centre, lowest level) and the decision sees the report of
+                 the previous step (the network controller reports what it measured; the
+                 vehicle has moved on since).
+``closed-loop-moving`` the same with users walking (random waypoint, 0.5–1.5 m/s) and their
+                 demand changing (a user's load stepping up or down, users going quiet and
+                 coming back).
+
+Every knob can be changed from the command line with ``--world-set key=value`` (dotted keys,
+e.g. ``flight.horizontal_mps=5`` or ``mobility.model=group``): :func:`world_with` parses and
+checks them, one-line errors naming the field.
+
+**Actions become targets here** (:func:`move_target`, :func:`coordinates_target`), one code path
+for the environments and the service. A discrete move applies to the zone the vehicle is *in
+now*, not to the previous target: the policy sees the vehicle where it is (the observation is
+built at the vehicle's position), so "east 1" must mean one zone east of *that*. Each decision
+replaces the target while the vehicle chases it; a policy that keeps choosing "east" flies east
+at full speed, "stay" stops it at the centre of its zone. Under the paper's protocol the vehicle
+is always at its target zone's centre, so this is exactly the paper's move.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field, fields, replace
+from typing import Any, Literal
+
+import numpy as np
+
+from sim.config import AreaConfig, NetworkConfig, UtilityConfig
+from sim.errors import InputError
+from sim.zones import MOVES, move_mask, zone_index, zone_position
+
+__all__ = [
+    "WORLDS",
+    "Demand",
+    "Flight",
+    "Mobility",
+    "ReportModel",
+    "World",
+    "coordinates_target",
+    "fly",
+    "get_world",
+    "move_target",
+    "position_to_coordinates",
+    "world_with",
+]
+
+MobilityModel = Literal["static", "random-waypoint", "group"]
+MOBILITY_MODELS: tuple[str, ...] = ("static", "random-waypoint", "group")
+HOMES: tuple[str, ...] = ("centre", "random")
+
+
+@dataclass(frozen=True)
+class Flight:
+    """How fast the vehicle reaches a target: ``None`` speeds mean it is there at once."""
+
+    horizontal_mps: float | None = 10.0
+    vertical_mps: float | None = 3.0
+
+    def __post_init__(self) -> None:
+        for name in ("horizontal_mps", "vertical_mps"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise InputError(f"flight.{name}: must be > 0 (or none: no flight), got {value}")
+
+    @property
+    def teleports(self) -> bool:
+        return self.horizontal_mps is None and self.vertical_mps is None
+
+
+@dataclass(frozen=True)
+class Mobility:
+    """How users move within an episode (``static``: they do not).
+
+    ``random-waypoint``: each moving user walks in a straight line to a uniformly drawn point of
+    the area at a speed drawn from ``speed_mps``, pauses for a time drawn from ``pause_s``, and
+    draws again. ``group``: the moving users keep their offsets from one leader that does the
+    same (a group walking together). ``moving_fraction`` of the users move (at least one when
+    the fraction is above 0). Pedestrians: 0.5–1.5 m/s; vehicles: about 5–15 m/s.
+    """
+
+    model: str = "static"
+    speed_mps: tuple[float, float] = (0.5, 1.5)
+    pause_s: tuple[float, float] = (0.0, 10.0)
+    moving_fraction: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.model not in MOBILITY_MODELS:
+            raise InputError(
+                f"mobility.model: must be one of {', '.join(MOBILITY_MODELS)}, got {self.model!r}"
+            )
+        _check_range("mobility.speed_mps", self.speed_mps, positive=True)
+        _check_range("mobility.pause_s", self.pause_s, positive=False)
+        if not 0.0 <= self.moving_fraction <= 1.0:
+            raise InputError(
+                f"mobility.moving_fraction: must lie in [0, 1], got {self.moving_fraction}"
+            )
+
+    @property
+    def static(self) -> bool:
+        return self.model == "static" or self.moving_fraction == 0.0
+
+
+@dataclass(frozen=True)
+class Demand:
+    """How users' offered loads change within an episode (rates 0: they do not).
+
+    Each user independently, at ``step_rate_per_s``, has its load multiplied by a factor drawn
+    log-uniformly from ``step_factor`` (kept within ``step_factor`` of its initial load); at
+    ``quiet_rate_per_s`` it goes quiet (offers nothing) for a time drawn from ``quiet_s``, then
+    comes back with its load. At least one user always offers traffic.
+    """
+
+    step_rate_per_s: float = 0.0
+    step_factor: tuple[float, float] = (0.25, 4.0)
+    quiet_rate_per_s: float = 0.0
+    quiet_s: tuple[float, float] = (5.0, 30.0)
+
+    def __post_init__(self) -> None:
+        for name in ("step_rate_per_s", "quiet_rate_per_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise InputError(f"demand.{name}: must be >= 0, got {value}")
+        _check_range("demand.step_factor", self.step_factor, positive=True)
+        _check_range("demand.quiet_s", self.quiet_s, positive=True)
+
+    @property
+    def static(self) -> bool:
+        return self.step_rate_per_s == 0.0 and self.quiet_rate_per_s == 0.0
+
+
+@dataclass(frozen=True)
+class ReportModel:
+    """What the decision knows about the network: the users' reports.
+
+    ``age_steps``: the decision sees the report of that many steps before the one that just
+    ended (0: the paper; 1: the closed loop, where the network controller reports what it
+    measured over the last period while the vehicle has flown on). ``position_noise_m``: the
+    standard deviation of Gaussian noise on each reported user coordinate.
+    """
+
+    age_steps: int = 0
+    position_noise_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.age_steps, int) and 0 <= self.age_steps <= 10):
+            raise InputError(
+                f"reports.age_steps: must be an integer in 0..10, got {self.age_steps}"
+            )
+        if not (math.isfinite(self.position_noise_m) and self.position_noise_m >= 0):
+            raise InputError(f"reports.position_noise_m: must be >= 0, got {self.position_noise_m}")
+
+
+@dataclass(frozen=True)
+class World:
+    """Everything about an episode except the scenario and the policy; see the module doc."""
+
+    name: str = "paper"
+    step_s: float = 1.0  # decision period S
+    episode_steps: int = 100  # T
+    home: str | tuple[float, float, float] = "centre"  # "centre", "random" or (x, y, z) metres
+    static_start: str = "placement"  # a static policy starts at its placement, or at "home"
+    flight: Flight = field(default_factory=lambda: Flight(None, None))
+    mobility: Mobility = field(default_factory=Mobility)
+    demand: Demand = field(default_factory=Demand)
+    reports: ReportModel = field(default_factory=ReportModel)
+    stochastic: bool = True  # sampled fading; False: the model's expected mode
+    area: AreaConfig = field(default_factory=AreaConfig)
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+    utility: UtilityConfig = field(default_factory=UtilityConfig)
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.step_s) and self.step_s > 0):
+            raise InputError(f"step_s: must be > 0, got {self.step_s}")
+        if not (isinstance(self.episode_steps, int) and self.episode_steps >= 1):
+            raise InputError(f"episode_steps: must be an integer >= 1, got {self.episode_steps}")
+        if isinstance(self.home, str):
+            if self.home not in HOMES:
+                raise InputError(
+                    f"home: must be one of {', '.join(HOMES)} or x,y,z in metres, got {self.home!r}"
+                )
+        else:
+            home = tuple(float(v) for v in self.home)
+            area = self.area
+            inside = (
+                len(home) == 3
+                and 0 <= home[0] <= area.size_x_m
+                and 0 <= home[1] <= area.size_y_m
+                and area.z_min_m <= home[2] <= area.z_max_m
+            )
+            if not inside:
+                raise InputError(f"home: {self.home} is not a point of the UAV's volume")
+            object.__setattr__(self, "home", home)
+        if self.static_start not in ("placement", "home"):
+            raise InputError(
+                f"static_start: must be 'placement' or 'home', got {self.static_start!r}"
+            )
+
+    @property
+    def users_change(self) -> bool:
+        """Whether users move or change their demand within an episode."""
+        return not (self.mobility.static and self.demand.static)
+
+    def home_position(self, rng: np.random.Generator | None = None) -> np.ndarray:
+        """Where the vehicle starts (3,), metres: ``centre`` is the zone at the area's middle at
+        the lowest level (the paper's start), ``random`` a uniformly drawn zone and level."""
+        area = self.area
+        if isinstance(self.home, tuple):
+            return np.array(self.home, dtype=float)
+        if self.home == "random":
+            if rng is None:
+                raise ValueError("home: 'random' needs a random generator")
+            shape = [area.n_zones_x, area.n_zones_y, area.n_levels_z]
+            return zone_position(rng.integers(0, shape), area)
+        return zone_position(np.array([area.n_zones_x // 2, area.n_zones_y // 2, 0]), area)
+
+    def fly(self, position_m: np.ndarray, target_m: np.ndarray) -> np.ndarray:
+        """Where the vehicle is one decision period after heading for ``target_m``."""
+        return fly(position_m, target_m, self.flight, self.step_s)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def _check_range(name: str, value: tuple[float, float], positive: bool) -> None:
+    try:
+        low, high = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: must be two numbers low,high, got {value!r}") from None
+    ok = math.isfinite(low) and math.isfinite(high) and low <= high
+    ok = ok and (low > 0 if positive else low >= 0)
+    if not ok:
+        bound = "> 0" if positive else ">= 0"
+        raise InputError(f"{name}: need {bound} and low <= high, got {value!r}")
+
+
+# --------------------------------------------------------------------------------------------
+# Flight and actions: one code path for the environments and the service
+
+
+def fly(
+    position_m: np.ndarray, target_m: np.ndarray, flight: Flight, duration_s: float
+) -> np.ndarray:
+    """Straight toward ``target_m`` for ``duration_s``, horizontal and vertical speeds capped
+    separately (as a multirotor's position controller does); at the target when in reach."""
+    px, py, pz = (float(v) for v in position_m)
+    x, y, z = (float(v) for v in target_m)
+    if flight.horizontal_mps is not None:
+        gap_x, gap_y = x - px, y - py
+        distance = math.hypot(gap_x, gap_y)
+        reach = flight.horizontal_mps * duration_s
+        if distance > reach:
+            x, y = px + gap_x * (reach / distance), py + gap_y * (reach / distance)
+    if flight.vertical_mps is not None:
+        reach_z = flight.vertical_mps * duration_s
+        if abs(z - pz) > reach_z:
+            z = pz + math.copysign(reach_z, z - pz)
+    return np.array([x, y, z])
+
+
+def move_target(
+    move: int, vehicle_xyz_m: np.ndarray, area: AreaConfig, index: np.ndarray | None = None
+) -> tuple[np.ndarray, bool]:
+    """The target of discrete ``move`` taken where the vehicle is: ``(target, refused)``.
+
+    The move steps the index of the zone holding the vehicle (:func:`sim.zones.zone_index`;
+    ``index`` when the caller has it already); a move that would leave the volume is refused
+    and the target is that zone's centre (as "stay"). See the module doc for why moves apply to
+    the vehicle's zone.
+    """
+    if index is None:
+        index = zone_index(np.asarray(vehicle_xyz_m, dtype=float), area)
+    refused = not bool(move_mask(index, area)[move])
+    if refused:
+        return zone_position(index, area), True
+    return zone_position(index + MOVES[move], area), False
+
+
+def valid_moves(vehicle_xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
+    """Boolean (13,): the moves :func:`move_target` accepts from where the vehicle is."""
+    return move_mask(zone_index(np.asarray(vehicle_xyz_m, dtype=float), area), area)
+
+
+def coordinates_target(action: np.ndarray, area: AreaConfig) -> np.ndarray:
+    """The target of an absolute-coordinates action (x, y, z) in [0, 1]³, metres."""
+    a = np.clip(np.asarray(action, dtype=float).reshape(3), 0.0, 1.0)
+    return np.array(
+        [
+            a[0] * area.size_x_m,
+            a[1] * area.size_y_m,
+            area.z_min_m + a[2] * (area.z_max_m - area.z_min_m),
+        ]
+    )
+
+
+def position_to_coordinates(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
+    """Inverse of :func:`coordinates_target` (float64, clipped to [0, 1])."""
+    span_z = area.z_max_m - area.z_min_m
+    action = np.array(
+        [
+            xyz_m[0] / area.size_x_m,
+            xyz_m[1] / area.size_y_m,
+            (xyz_m[2] - area.z_min_m) / span_z if span_z > 0 else 0.0,
+        ]
+    )
+    return np.clip(action, 0.0, 1.0)
+
+
+# --------------------------------------------------------------------------------------------
+# Presets and overrides
+
+PAPER = World()
+CLOSED_LOOP = World(
+    name="closed-loop",
+    static_start="home",
+    flight=Flight(10.0, 3.0),
+    reports=ReportModel(age_steps=1),
+)
+CLOSED_LOOP_MOVING = replace(
+    CLOSED_LOOP,
+    name="closed-loop-moving",
+    mobility=Mobility(model="random-waypoint", speed_mps=(0.5, 1.5), pause_s=(0.0, 10.0)),
+    demand=Demand(step_rate_per_s=0.005, quiet_rate_per_s=0.002),
+)
+WORLDS: dict[str, World] = {w.name: w for w in (PAPER, CLOSED_LOOP, CLOSED_LOOP_MOVING)}
+
+
+def get_world(name: str) -> World:
+    """The preset called ``name``; ``InputError`` naming the choices otherwise."""
+    try:
+        return WORLDS[name]
+    except KeyError:
+        raise InputError(f"world: must be one of {', '.join(WORLDS)}, got {name!r}") from None
+
+
+def world_with(world: World, settings: Iterable[str] | Mapping[str, Any]) -> World:
+    """``world`` with ``key=value`` settings applied (dotted keys reach nested parts).
+
+    Values are parsed by the field's type: numbers, ``none`` for an optional speed, ``a,b`` for
+    ranges, ``true``/``false``; ``home`` takes ``centre``, ``random`` or ``x,y,z``. Unknown keys
+    and bad values raise ``InputError`` naming the key. The result's name gets a ``*`` so a
+    changed world is never mistaken for its preset.
+    """
+    items = settings.items() if isinstance(settings, Mapping) else (_split(s) for s in settings)
+    changed = False
+    for key, raw in items:
+        world = _set(world, key, raw)
+        changed = True
+    if changed and not world.name.endswith("*"):
+        world = replace(world, name=world.name + "*")
+    return world
+
+
+def _split(setting: str) -> tuple[str, str]:
+    key, sep, value = setting.partition("=")
+    if not sep or not key.strip():
+        raise InputError(f"--world-set: expected key=value, got {setting!r}")
+    return key.strip(), value.strip()
+
+
+_NESTED = ("flight", "mobility", "demand", "reports")
+_SETTABLE_TOP = ("step_s", "episode_steps", "home", "static_start", "stochastic")
+
+
+def _set(world: World, key: str, raw: Any) -> World:
+    head, _, rest = key.partition(".")
+    if head in _NESTED and rest:
+        part = getattr(world, head)
+        names = {f.name: f for f in fields(part)}
+        if rest not in names:
+            raise InputError(
+                f"world.{key}: unknown setting (choices: {', '.join(f'{head}.{n}' for n in names)})"
+            )
+        value = _parse(f"world.{key}", raw, getattr(part, rest))
+        return replace(world, **{head: _replace(part, key, rest, value)})
+    if key in _SETTABLE_TOP and not rest:
+        value = raw
+        if key == "home" and isinstance(raw, str) and raw not in HOMES:
+            value = _parse(f"world.{key}", raw, (0.0, 0.0, 0.0))
+        elif key != "home":
+            value = _parse(f"world.{key}", raw, getattr(world, key))
+        return replace(world, **{key: value})
+    choices = [*_SETTABLE_TOP] + [f"{n}.*" for n in _NESTED]
+    raise InputError(f"world.{key}: unknown setting (choices: {', '.join(choices)})")
+
+
+def _replace(part: Any, key: str, name: str, value: Any) -> Any:
+    try:
+        return replace(part, **{name: value})
+    except InputError:
+        raise
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"world.{key}: {exc}") from None
+
+
+def _parse(key: str, raw: Any, current: Any) -> Any:
+    if not isinstance(raw, str):
+        return raw
+    text = raw.strip().lower()
+    try:
+        if isinstance(current, bool):
+            if text not in ("true", "false", "1", "0", "yes", "no"):
+                raise ValueError
+            return text in ("true", "1", "yes")
+        if isinstance(current, tuple):
+            parts = tuple(float(p) for p in text.split(","))
+            if len(parts) != len(current):
+                raise ValueError
+            return parts
+        if isinstance(current, int):
+            return int(text)
+        if isinstance(current, float) or current is None:
+            if text == "none":
+                return None
+            return float(text)
+        return raw.strip()
+    except ValueError:
+        raise InputError(f"{key}: cannot read {raw!r} as a value of this setting") from None
