@@ -16,7 +16,7 @@ $(STAMP): $(BIN)/python pyproject.toml
 	$(BIN)/pip install -e '.[dev]'
 	touch $(STAMP)
 
-# The closed loop: sitl-mock + tupa serve (shipped DDQN) + the simulated network controller.
+# The closed loop: sitl-mock + tupa serve (default policy) + the simulated network controller.
 run: $(STAMP)
 	$(BIN)/tupa demo --out runs/demo
 

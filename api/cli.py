@@ -33,7 +33,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--policy",
         metavar="PATH|NAME",
-        help="checkpoint, or min-distance, load-weighted, oracle (default: the shipped DDQN)",
+        help="checkpoint, or min-distance, load-weighted, oracle (default: oracle, the tracking "
+        "oracle; see service/policy_runtime.py)",
     )
     parser.add_argument(
         "--arm-and-takeoff",

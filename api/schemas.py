@@ -109,7 +109,7 @@ class DecisionOut(BaseModel):
                 {
                     "target": {"x_m": 187.5, "y_m": 162.5, "z_m": 25.0},
                     "source": "policy",
-                    "policy": "ddqn-gen10k",
+                    "policy": "oracle",
                     "decided_at": 1_764_000_001.2,
                 }
             ]
@@ -177,10 +177,10 @@ class PolicyOut(BaseModel):
         json_schema_extra={
             "examples": [
                 {
-                    "name": "ddqn-gen10k",
-                    "kind": "moves",
-                    "spec": "policies/checkpoints/ddqn-gen10k.zip",
-                    "metadata": {"algorithm": "ddqn", "strategy": "gen10k", "episodes": 2000},
+                    "name": "ddpg-residual-dr",
+                    "kind": "coordinates",
+                    "spec": "policies/checkpoints/ddpg-residual-dr.zip",
+                    "metadata": {"algorithm": "ddpg", "strategy": "gen10k", "episodes": 2000},
                 }
             ]
         }

@@ -1,8 +1,8 @@
 """``tupa demo``: the closed loop for real: autopilot, service and network controller as processes.
 
 1. ``tupa sitl-mock`` (PX4 flavour) on a free loopback port;
-2. ``tupa serve`` against it with ``--arm-and-takeoff`` and the chosen policy (the shipped DDQN
-   checkpoint by default), on a free port, with a one-time random API token;
+2. ``tupa serve`` against it with ``--arm-and-takeoff`` and the chosen policy (the service's
+   default by default), on a free port, with a one-time random API token;
 3. the network controller, played here by the embedded simulator
    (:mod:`service.controller_sim`): every second it reads the vehicle's true position from the
    autopilot, computes every user's metrics there and POSTs them as a report.
@@ -23,6 +23,7 @@ import sys
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +41,7 @@ from sim.world import World, get_world
 
 @dataclass(frozen=True)
 class DemoConfig:
-    policy: str | None = None  # None: the service's default (shipped DDQN checkpoint)
+    policy: str | None = None  # None: the service's default (the tracking oracle)
     scenarios: int = 3
     steps: int = 40
     step_s: float = 1.0
@@ -82,18 +83,28 @@ def demo_world(index: int, cfg: DemoConfig) -> World:
 def compare(
     scenario: Scenario, start_m: np.ndarray, world: World, seed: int, users_seed: int
 ) -> dict[str, Any]:
-    """The baselines and the tracking oracle flown in ``world`` from ``start_m``, with the
-    users the loop had (same motion and demand): mean utility, and each one's first target."""
+    """The baselines, the tracking oracle and the shipped checkpoints, each flown in ``world``
+    from ``start_m`` by the simulator, with the users the loop had (same motion and demand):
+    mean utility, and each one's last target."""
+    from policies.agents import TrainedAgent
     from policies.baselines import make_policy
     from policies.evaluation import StaticAgent
-    from sim.envs import FapContinuousEnv
+    from service.policy_runtime import SHIPPED_CHECKPOINTS
+    from sim.envs import FapContinuousEnv, FapDiscreteEnv
 
-    out: dict[str, Any] = {}
-    for name in COMPARED:
-        agent = StaticAgent(make_policy(name, world=world))
-        area = world.area
-        home = np.clip(start_m, [0, 0, area.z_min_m], [area.size_x_m, area.size_y_m, area.z_max_m])
-        env = FapContinuousEnv([scenario], world=replace(world, home=tuple(map(float, home))))
+    area = world.area
+    home = np.clip(start_m, [0, 0, area.z_min_m], [area.size_x_m, area.size_y_m, area.z_max_m])
+    flown = replace(world, home=tuple(map(float, home)))
+    agents: dict[str, Any] = {
+        name: StaticAgent(make_policy(name, world=world)) for name in COMPARED
+    }
+    for path in sorted(SHIPPED_CHECKPOINTS.glob("*.zip")):
+        agent = TrainedAgent.load(path, area, device="cpu")
+        agents[agent.name] = agent
+    out: dict[str, Any] = {"checkpoints": [n for n in agents if n not in COMPARED]}
+    for name, agent in agents.items():
+        env_class = FapDiscreteEnv if agent.env_kind == "discrete" else FapContinuousEnv
+        env = env_class([scenario], world=flown)
         agent.begin_episode(scenario, env.world)
         observation, info = env.reset(
             seed=seed, options={"scenario": scenario, "users_seed": users_seed}
@@ -107,91 +118,181 @@ def compare(
     return out
 
 
-def run_demo(cfg: DemoConfig) -> dict[str, Any]:
-    area = AreaConfig()
-    scenarios = pick_scenarios(cfg.scenarios, cfg.seed, area)
+LOOP_BASELINES = ("min-distance", "load-weighted")
+"""Flown through loops of their own beside the served policy's, for a like-for-like table."""
+START_TOLERANCE_M = 3.0
+TIE_TOLERANCE = 0.005
+"""Loops side by side differ by milliseconds of timing: within this, the table calls it a tie
+(``benchmarks/closed_loop.py``'s tolerance for "at least min-distance")."""
+
+
+@dataclass
+class _Loop:
+    """One closed loop: an autopilot simulator, a placement service, its vehicle's position."""
+
+    policy: str
+    mock: Any
+    service: Any
+    vehicle: TruePosition
+    client: httpx.Client
+    name: str = ""
+
+    def close(self) -> None:
+        self.client.close()
+        self.vehicle.close()
+        self.service.stop()
+        self.mock.stop()
+
+
+def _start_loop(policy: str | None, cfg: DemoConfig, area: AreaConfig) -> _Loop:
     token = secrets.token_urlsafe(24)
     mock, mock_port = start_sitl_mock(
-        [
-            "--listen",
-            "tcp:127.0.0.1:0",
-            "--flavour",
-            cfg.flavour,
-            "--ready-delay-s",
-            "2",
-            "--speed-mps",
-            str(cfg.speed_mps),
-        ]
-    )
-    service = vehicle = None
+        ["--listen", "tcp:127.0.0.1:0", "--flavour", cfg.flavour, "--ready-delay-s", "2",
+         "--speed-mps", str(cfg.speed_mps)]
+    )  # fmt: skip
     try:
         serve_args = [
-            "--mavlink",
-            f"tcp:127.0.0.1:{mock_port}",
-            "--port",
-            "0",
-            "--arm-and-takeoff",
-            "--step-s",
-            str(cfg.step_s),
-            "--log-level",
-            "warning",
+            *("--mavlink", f"tcp:127.0.0.1:{mock_port}", "--port", "0", "--arm-and-takeoff"),
+            *("--step-s", str(cfg.step_s), "--log-level", "warning"),
         ]
-        if cfg.policy:
-            serve_args += ["--policy", cfg.policy]
-        _say(f"autopilot (sitl-mock, {cfg.flavour}) on tcp:127.0.0.1:{mock_port}")
-        # Home (where the vehicle boots and takes off) at the area's centre, as the paper's
+        if policy:
+            serve_args += ["--policy", policy]
+        # Home (where the vehicle boots and takes off) at the area's centre, as the worlds'
         # episodes start there: the area's south-west corner lies 250 m south and west of it.
         origin = {
             "TUPA_AREA_ORIGIN_NORTH_M": str(-area.size_y_m / 2),
             "TUPA_AREA_ORIGIN_EAST_M": str(-area.size_x_m / 2),
         }
         service, api_port = start_service(serve_args, env={"TUPA_API_TOKEN": token, **origin})
-        base = f"http://127.0.0.1:{api_port}"
-        _say(f"placement service on {base}")
-        frames = FrameConfig(-area.size_y_m / 2, -area.size_x_m / 2)
-        vehicle = TruePosition(f"tcp:127.0.0.1:{mock_port}", frames).start()
-        with httpx.Client(
-            base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=10.0
-        ) as client:
-            policy_name = client.get("/v1/policy").json()["name"]
-            _say(f"policy: {policy_name}; waiting for take-off ...")
-            _wait_airborne(vehicle, area.z_min_m - 2.0, timeout_s=90.0)
-            results = []
-            for i, scenario in enumerate(scenarios):
-                h = heterogeneity_index(scenario.users_xy_m, scenario.load_bps, area)
-                loads = ", ".join(f"{v / 1e6:.1f}" for v in scenario.load_bps)
-                _say(f"\nscenario {i + 1}/{len(scenarios)}: H = {h:.2f}, loads [{loads}] Mbit/s")
-                start = np.asarray(vehicle.wait(5.0))
-                world = demo_world(i, cfg)
-                users_seed = cfg.seed * 1000 + i
-                _say(f"world: {world.name}")
-                sim_net = SimulatedNetwork(
-                    scenario, world.network, area, seed=cfg.seed + i,
-                    mobility=world.mobility, demand=world.demand, users_seed=users_seed,
-                )  # fmt: skip
-                records = run_scenario(
-                    sim_net, vehicle, client, cfg.steps, cfg.step_s, on_step=_print_step
-                )
-                achieved = float(np.mean([r.utility for r in records]))
-                others = compare(scenario, start, world, cfg.seed + i, users_seed)
-                results.append(
-                    {
-                        "scenario": scenario.id,
-                        "world": world.name,
-                        "heterogeneity": h,
-                        "users_xy_m": scenario.users_xy_m.tolist(),
-                        "load_bps": scenario.load_bps.tolist(),
-                        "achieved": achieved,
-                        **others,
-                        "track": [asdict(r) for r in records],
-                    }
-                )
-    finally:
-        if vehicle is not None:
-            vehicle.close()
-        if service is not None:
-            service.stop()
+    except BaseException:
         mock.stop()
+        raise
+    frames = FrameConfig(-area.size_y_m / 2, -area.size_x_m / 2)
+    vehicle = TruePosition(f"tcp:127.0.0.1:{mock_port}", frames).start()
+    client = httpx.Client(
+        base_url=f"http://127.0.0.1:{api_port}",
+        headers={"Authorization": f"Bearer {token}"},
+        timeout=10.0,
+    )
+    loop = _Loop(policy or "", mock, service, vehicle, client)
+    loop.name = client.get("/v1/policy").json()["name"]
+    loop.policy = loop.policy or client.get("/v1/policy").json()["spec"]
+    return loop
+
+
+def _fly_to(loop: _Loop, xy_m: tuple[float, float], area: AreaConfig, timeout_s: float) -> None:
+    """Bring the vehicle to ``xy_m`` at the lowest altitude through the service itself: serve
+    ``min-distance`` and report one user there until the vehicle arrives, then serve the loop's
+    policy again."""
+    loop.client.put("/v1/policy", json={"policy": "min-distance"}).raise_for_status()
+    user = {"id": "home", "x_m": xy_m[0], "y_m": xy_m[1], "offered_bps": 1e6,
+            "throughput_bps": 1e6, "delay_s": 0.01, "plr": 0.0}  # fmt: skip
+    goal = np.array([xy_m[0], xy_m[1], area.z_min_m])
+    deadline = time.monotonic() + timeout_s
+    try:
+        while True:
+            report = {"timestamp": time.time(), "users": [user]}
+            loop.client.post("/v1/reports", json=report).raise_for_status()
+            position = np.asarray(loop.vehicle.wait(5.0))
+            if float(np.linalg.norm(position - goal)) <= START_TOLERANCE_M:
+                return
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"{loop.name}: the vehicle did not reach the start {goal}")
+            time.sleep(0.5)  # the next report: the service decides once per report here
+    finally:
+        loop.client.put("/v1/policy", json={"policy": loop.policy}).raise_for_status()
+
+
+def _fly_scenario(
+    loop: _Loop, scenario: Scenario, world: World, cfg: DemoConfig, index: int, printing: bool
+) -> list[StepRecord]:
+    """One loop plays scenario ``index`` in real time (the same users in every loop)."""
+    network = SimulatedNetwork(
+        scenario, world.network, world.area, seed=cfg.seed + index,
+        mobility=world.mobility, demand=world.demand, users_seed=cfg.seed * 1000 + index,
+    )  # fmt: skip
+    return run_scenario(
+        network, loop.vehicle, loop.client, cfg.steps, cfg.step_s,
+        on_step=_print_step if printing else None,
+    )  # fmt: skip
+
+
+def _in_parallel(jobs: dict[str, Any]) -> dict[str, Any]:
+    """Run each callable in its own thread; their results by key (the first error raised)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=len(jobs)) as pool:
+        futures = {key: pool.submit(job) for key, job in jobs.items()}
+        return {key: future.result() for key, future in futures.items()}
+
+
+def run_demo(cfg: DemoConfig) -> dict[str, Any]:
+    """Fly the served policy and the loop baselines side by side (one autopilot simulator and
+    one service each), every scenario from home, and compare them with the simulator-flown
+    tracking oracle and shipped checkpoints."""
+    area = AreaConfig()
+    scenarios = pick_scenarios(cfg.scenarios, cfg.seed, area)
+    home_xy = (area.size_x_m / 2, area.size_y_m / 2)
+    specs = {"served": cfg.policy, **{name: name for name in LOOP_BASELINES}}
+    loops: dict[str, _Loop] = {}
+    try:
+        # One after the other, from this thread: the processes die with the thread that started
+        # them (PR_SET_PDEATHSIG, service/processes.py), so not from a worker thread.
+        for key, spec in specs.items():
+            loops[key] = _start_loop(spec, cfg, area)
+        served = loops["served"]
+        policy_name = served.name
+        for key in LOOP_BASELINES:
+            if loops[key].name == policy_name:  # the served policy is one of the baselines
+                loops.pop(key).close()
+        beside = ", ".join(k for k in loops if k != "served")
+        _say(
+            f"policy: {policy_name}, with {beside} flown beside it (a vehicle and a service "
+            "each); waiting for take-off ..."
+        )
+        _in_parallel(
+            {k: (lambda lp=lp: _wait_airborne(lp.vehicle, area.z_min_m - 2.0, 90.0))
+             for k, lp in loops.items()}
+        )  # fmt: skip
+        results = []
+        for i, scenario in enumerate(scenarios):
+            h = heterogeneity_index(scenario.users_xy_m, scenario.load_bps, area)
+            loads = ", ".join(f"{v / 1e6:.1f}" for v in scenario.load_bps)
+            _in_parallel({k: (lambda lp=lp: _fly_to(lp, home_xy, area, 120.0))
+                          for k, lp in loops.items()})  # fmt: skip
+            world = demo_world(i, cfg)
+            users_seed = cfg.seed * 1000 + i
+            _say(
+                f"\nscenario {i + 1}/{len(scenarios)} ({world.name}): H = {h:.2f}, loads "
+                f"[{loads}] Mbit/s; every vehicle starts at home"
+            )
+            start = np.asarray(served.vehicle.wait(5.0))
+            records = _in_parallel(
+                {
+                    k: partial(_fly_scenario, lp, scenario, world, cfg, i, k == "served")
+                    for k, lp in loops.items()
+                }
+            )
+            achieved = {k: float(np.mean([r.utility for r in rs])) for k, rs in records.items()}
+            others = compare(scenario, start, world, cfg.seed + i, users_seed)
+            for key in LOOP_BASELINES:  # flown for real where it had a loop of its own
+                others[f"{key} (sim)"] = others[key]
+                others[key] = achieved.get(key, achieved["served"])
+            results.append(
+                {
+                    "scenario": scenario.id,
+                    "world": world.name,
+                    "heterogeneity": h,
+                    "users_xy_m": scenario.users_xy_m.tolist(),
+                    "load_bps": scenario.load_bps.tolist(),
+                    "achieved": achieved["served"],
+                    **others,
+                    "track": [asdict(r) for r in records["served"]],
+                }
+            )
+    finally:
+        for lp in loops.values():
+            lp.close()
     summary = {"policy": policy_name, "config": _jsonable(asdict(cfg)), "scenarios": results}
     cfg.out_dir.mkdir(parents=True, exist_ok=True)
     from sim.files import atomic_write_json
@@ -205,9 +306,15 @@ def run_demo(cfg: DemoConfig) -> dict[str, Any]:
 
 def format_table(results: Sequence[dict[str, Any]], policy_name: str) -> str:
     mine = f"{policy_name} (loop)"
-    header = (
-        f"{'scenario':>8} {'world':>18} {'H':>5} | {mine:>20} {'min-distance':>12} "
-        f"{'load-weighted':>13} {'tracking oracle':>15}"
+    checkpoints = list(results[0].get("checkpoints", [])) if results else []
+    columns = [
+        ("min-distance", "min-distance (loop)"),
+        ("load-weighted", "load-weighted (loop)"),
+        ("oracle", "tracking oracle (sim)"),
+        *((c, f"{c} (sim)") for c in checkpoints),
+    ]
+    header = f"{'scenario':>8} {'world':>18} {'H':>5} | {mine:>22} " + " ".join(
+        f"{title:>{max(len(title), 7)}}" for _, title in columns
     )
     lines = [
         "Mean utility per step, all flown from the same start under the same limits:",
@@ -215,15 +322,18 @@ def format_table(results: Sequence[dict[str, Any]], policy_name: str) -> str:
         "-" * len(header),
     ]
     for i, r in enumerate(results):
-        verdict = "" if r["achieved"] >= r["min-distance"] else "  (below min-distance)"
+        below = r["achieved"] < r["min-distance"] - TIE_TOLERANCE
+        verdict = "  (below min-distance)" if below else ""
+        cells = " ".join(f"{r[key]:>{max(len(title), 7)}.3f}" for key, title in columns)
         lines.append(
-            f"{i + 1:>8} {r['world']:>18} {r['heterogeneity']:>5.2f} | {r['achieved']:>20.3f} "
-            f"{r['min-distance']:>12.3f} {r['load-weighted']:>13.3f} {r['oracle']:>15.3f}"
-            f"{verdict}"
+            f"{i + 1:>8} {r['world']:>18} {r['heterogeneity']:>5.2f} | {r['achieved']:>22.3f} "
+            f"{cells}{verdict}"
         )
     lines.append(
-        "min-distance, load-weighted and the tracking oracle are re-placed every step from the "
-        "latest report (tupa eval --world closed-loop's protocol)"
+        "(loop): served by tupa serve and flown by an autopilot simulator of its own, side by "
+        "side, from the same start, with the same users; (sim): flown by the embedded simulator "
+        "(tupa eval --world closed-loop's protocol), with no decision latency or acceleration; "
+        f"'below min-distance': by more than {TIE_TOLERANCE}"
     )
     return "\n".join(lines)
 

@@ -17,7 +17,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "load-weighted and the tracking oracle, all flown from the same start under the same "
         "limits; write demo.json and track.png.",
     )
-    demo.add_argument("--policy", help="checkpoint or baseline (default: the shipped DDQN)")
+    demo.add_argument(
+        "--policy", help="checkpoint or baseline (default: the service's, the tracking oracle)"
+    )
     demo.add_argument("--scenarios", type=int, default=3, help="how many (default 3)")
     demo.add_argument("--steps", type=int, default=40, help="1-s steps per scenario (default 40)")
     demo.add_argument("--seed", type=int, default=7)

@@ -19,7 +19,7 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app
 from api.auth import token_matches
-from service.policy_runtime import DEFAULT_CHECKPOINT, SHIPPED_CHECKPOINTS
+from service.policy_runtime import SHIPPED_CHECKPOINTS, SHIPPED_DDQN
 from service.settings import ServiceSettings
 from sitl_mock.config import VehicleConfig
 from sitl_mock.server import MockAutopilot
@@ -301,13 +301,13 @@ def test_bad_policies_are_refused_and_the_old_one_stays(
     assert post(client, clock, [user(1)], headers=AUTH).status_code == 200
 
 
-@pytest.mark.skipif(not DEFAULT_CHECKPOINT.is_file(), reason="no shipped DDQN checkpoint")
+@pytest.mark.skipif(not SHIPPED_DDQN.is_file(), reason="no shipped DDQN checkpoint")
 def test_checkpoints_load_only_from_the_allowed_directories(
     client: TestClient, tmp_path: Path, checkpoint_dir: Path
 ) -> None:
     outside = tmp_path / "ddqn.zip"  # a perfectly good checkpoint, in the wrong place
-    shutil.copyfile(DEFAULT_CHECKPOINT, outside)
-    shutil.copyfile(DEFAULT_CHECKPOINT.with_suffix(".json"), outside.with_suffix(".json"))
+    shutil.copyfile(SHIPPED_DDQN, outside)
+    shutil.copyfile(SHIPPED_DDQN.with_suffix(".json"), outside.with_suffix(".json"))
     escape = str(checkpoint_dir / ".." / tmp_path.name / "ddqn.zip")
     link = checkpoint_dir / "link.zip"
     link.symlink_to(outside)
@@ -316,7 +316,7 @@ def test_checkpoints_load_only_from_the_allowed_directories(
         assert response.status_code == 422, spec
         assert "outside the checkpoint directories" in response.json()["detail"][0]["msg"]
         assert client.get("/v1/policy", headers=AUTH).json()["name"] == "load-weighted"
-    shipped = client.put("/v1/policy", json={"policy": str(DEFAULT_CHECKPOINT)}, headers=AUTH)
+    shipped = client.put("/v1/policy", json={"policy": str(SHIPPED_DDQN)}, headers=AUTH)
     assert shipped.status_code == 200 and shipped.json()["kind"] == "moves"
 
 

@@ -1,5 +1,5 @@
-"""The closed loop with real processes: ``tupa sitl-mock`` + ``tupa serve`` (its default policy:
-the shipped DDQN, or load-weighted when no checkpoint is shipped) + the simulated network
+"""The closed loop with real processes: ``tupa sitl-mock`` + ``tupa serve`` (its default policy,
+the tracking oracle) + the simulated network
 controller, on free loopback ports; every process is stopped at the end.
 
 In a heterogeneous scenario (one heavy user, two light ones) the vehicle must end nearer to the

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.policy_runtime import DEFAULT_CHECKPOINT
+from service.policy_runtime import SHIPPED_DDQN
 from tests.faults.harness import PX4_FAST, USERS_EAST, USERS_NORTH, Api, Harness
 from tests.sitl_mock.helpers import wait_for
 
@@ -61,33 +61,33 @@ def bad_checkpoints(directory: Path) -> dict[str, str]:
     corrupt.write_bytes(b"PK\x03\x04 truncated, not really a zip")
     corrupt.with_suffix(".json").write_text('{"format": "tupa-checkpoint/1", "algorithm": "ddqn"}')
     specs = {"corrupt": str(corrupt), "missing": str(directory / "missing.zip")}
-    if DEFAULT_CHECKPOINT.is_file():
+    if SHIPPED_DDQN.is_file():
         mismatched = directory / "mismatched.zip"
-        shutil.copyfile(DEFAULT_CHECKPOINT, mismatched)
+        shutil.copyfile(SHIPPED_DDQN, mismatched)
         meta = meta_of_shipped()
         meta["observation_shape"] = [6, 10, 10]  # trained for another area grid
         mismatched.with_suffix(".json").write_text(json.dumps(meta))
         specs["mismatched"] = str(mismatched)
         # These two get as far as torch: the load itself runs while the reports flow.
         relabelled = directory / "relabelled.zip"
-        shutil.copyfile(DEFAULT_CHECKPOINT, relabelled)
+        shutil.copyfile(SHIPPED_DDQN, relabelled)
         relabelled_meta = {**meta_of_shipped(), "algorithm": "ddpg"}
         relabelled.with_suffix(".json").write_text(json.dumps(relabelled_meta))
         truncated = directory / "truncated.zip"
-        with zipfile.ZipFile(DEFAULT_CHECKPOINT) as src, zipfile.ZipFile(truncated, "w") as dst:
+        with zipfile.ZipFile(SHIPPED_DDQN) as src, zipfile.ZipFile(truncated, "w") as dst:
             for info in src.infolist():
                 data = src.read(info.filename)
                 if info.filename == "policy.pth":
                     data = data[: len(data) // 2]  # the weights cut in half
                 dst.writestr(info, data)
-        shutil.copyfile(DEFAULT_CHECKPOINT.with_suffix(".json"), truncated.with_suffix(".json"))
+        shutil.copyfile(SHIPPED_DDQN.with_suffix(".json"), truncated.with_suffix(".json"))
         specs["ddqn-weights-labelled-ddpg"] = str(relabelled)
         specs["truncated-weights"] = str(truncated)
     return specs
 
 
 def meta_of_shipped() -> dict:
-    return json.loads(DEFAULT_CHECKPOINT.with_suffix(".json").read_text())
+    return json.loads(SHIPPED_DDQN.with_suffix(".json").read_text())
 
 
 def test_unusable_checkpoints_are_refused_while_reports_keep_flowing(

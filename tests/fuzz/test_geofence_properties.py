@@ -29,7 +29,7 @@ from hypothesis import strategies as st
 
 from service.geofence import clamp_to_area
 from service.mavlink_link import LinkConfig, MavlinkLink
-from service.policy_runtime import DEFAULT_CHECKPOINT, ServingPolicy, load_policy
+from service.policy_runtime import SHIPPED_DDQN, ServingPolicy, load_policy
 from sim.config import AreaConfig
 from sim.observation import UserReports
 
@@ -142,12 +142,12 @@ def _policy_specs() -> list[Any]:
     ]
     # The "coordinates" kind: a real SB3 DDPG network, untrained (arbitrary actions).
     specs.append(pytest.param(DDPG_UNTRAINED, id="ddpg-untrained"))
-    reason = f"the shipped DDQN checkpoint {DEFAULT_CHECKPOINT} is not in this checkout"
+    reason = f"the shipped DDQN checkpoint {SHIPPED_DDQN} is not in this checkout"
     specs.append(
         pytest.param(
-            str(DEFAULT_CHECKPOINT),
-            id="ddqn-gen10k",
-            marks=pytest.mark.skipif(not DEFAULT_CHECKPOINT.is_file(), reason=reason),
+            str(SHIPPED_DDQN),
+            id="ddqn-dr",
+            marks=pytest.mark.skipif(not SHIPPED_DDQN.is_file(), reason=reason),
         )
     )
     return specs

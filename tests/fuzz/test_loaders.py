@@ -21,7 +21,7 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from policies.checkpoints import CHECKPOINT_FORMAT, load_checkpoint, metadata_path
-from service.policy_runtime import DEFAULT_CHECKPOINT
+from service.policy_runtime import SHIPPED_DDQN
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.files import cases_document, load_cases, load_scenarios, scenarios_document
@@ -247,9 +247,9 @@ def test_checkpoint_metadata_fuzz_raises_only_input_error(workdir: Path) -> None
 
 @pytest.fixture(scope="module")
 def shipped() -> tuple[bytes, bytes]:
-    if not DEFAULT_CHECKPOINT.is_file():
-        pytest.skip(f"the shipped DDQN checkpoint {DEFAULT_CHECKPOINT} is not in this checkout")
-    return DEFAULT_CHECKPOINT.read_bytes(), metadata_path(DEFAULT_CHECKPOINT).read_bytes()
+    if not SHIPPED_DDQN.is_file():
+        pytest.skip(f"the shipped DDQN checkpoint {SHIPPED_DDQN} is not in this checkout")
+    return SHIPPED_DDQN.read_bytes(), metadata_path(SHIPPED_DDQN).read_bytes()
 
 
 def test_damaged_copies_of_the_shipped_checkpoint_raise_only_input_error(

@@ -16,15 +16,17 @@ SHIPPED = Path(__file__).resolve().parents[2] / "policies" / "checkpoints"
 AREA = AreaConfig()
 
 
-@pytest.mark.parametrize("name", ["ddqn-gen10k", "ddpg-gen10k"])
-def test_shipped_checkpoint_has_its_metadata(name: str) -> None:
+@pytest.mark.parametrize(("name", "algorithm"), [("ddqn-dr", "ddqn"), ("ddpg-residual-dr", "ddpg")])
+def test_shipped_checkpoint_has_its_metadata(name: str, algorithm: str) -> None:
     assert (SHIPPED / f"{name}.zip").is_file()
     agent = TrainedAgent.load(SHIPPED / f"{name}.zip", AREA, device="cpu")
     assert agent.name == name
-    assert agent.metadata["algorithm"] == name.split("-")[0]
+    assert agent.metadata["algorithm"] == algorithm
     assert agent.metadata["strategy"] == "gen10k"
-    assert agent.metadata["n_users"] == 3
-    assert agent.metadata["wall_time_s"] > 0
+    assert agent.metadata["families"] == ["exponential", "uniform", "hotspots", "corners"]
+    assert agent.metadata["users"] == [1, 15]
+    assert 0 < agent.metadata["wall_time_s"] <= 900  # issue 13: at most 15 min on 2 cores
+    assert agent.metadata["training_command"].startswith("OMP_NUM_THREADS=1 tupa train")
 
 
 def test_shipped_checkpoints_are_small_and_hold_no_replay_buffer() -> None:
@@ -34,7 +36,7 @@ def test_shipped_checkpoints_are_small_and_hold_no_replay_buffer() -> None:
 
 
 def test_shipped_ddqn_picks_only_valid_moves() -> None:
-    agent = TrainedAgent.load(SHIPPED / "ddqn-gen10k.zip", AREA, device="cpu")
+    agent = TrainedAgent.load(SHIPPED / "ddqn-dr.zip", AREA, device="cpu")
     env = FapDiscreteEnv(generate_scenarios(3, 3, seed=7, area=AREA))
     for episode in range(3):
         obs, info = env.reset(seed=episode)
@@ -46,9 +48,15 @@ def test_shipped_ddqn_picks_only_valid_moves() -> None:
             assert not info["refused_move"]
 
 
-def test_shipped_ddpg_acts_inside_the_unit_cube() -> None:
-    agent = TrainedAgent.load(SHIPPED / "ddpg-gen10k.zip", AREA, device="cpu")
-    env = FapContinuousEnv(generate_scenarios(3, 3, seed=7, area=AREA))
+def test_shipped_ddpg_acts_inside_the_unit_cube_near_the_load_weighted_placement() -> None:
+    """Residual actions: every target lies within the residual radius of the load-weighted
+    placement of the reported users, inside the volume."""
+    from policies.baselines import ReportedUsers, make_policy
+
+    agent = TrainedAgent.load(SHIPPED / "ddpg-residual-dr.zip", AREA, device="cpu")
+    radius_m = agent.metadata["residual_radius_m"]
+    weighted = make_policy("load-weighted", AREA)
+    env = FapContinuousEnv(generate_scenarios(3, 8, seed=7, area=AREA, family="hotspots"))
     for episode in range(3):
         obs, info = env.reset(seed=episode)
         for _ in range(5):
@@ -56,4 +64,7 @@ def test_shipped_ddpg_acts_inside_the_unit_cube() -> None:
             assert action.shape == (3,)
             assert np.all(np.isfinite(action))
             assert np.all((action >= 0.0) & (action <= 1.0))
-            obs, *_ = env.step(action)
+            prior = weighted.place(ReportedUsers.of(info["reports"]))
+            obs, _, _, _, info = env.step(action)
+            gap = np.abs(info["target_xyz_m"][:2] - prior[:2])
+            assert np.all(gap <= radius_m + 1e-6)

@@ -19,7 +19,7 @@ from typing import Any
 
 import pytest
 
-from service.policy_runtime import DEFAULT_CHECKPOINT
+from service.policy_runtime import SHIPPED_DDQN
 
 PAYLOAD_KEY = "tupa_test_payload"
 
@@ -36,9 +36,9 @@ class Call:
 
 
 def shipped_or_skip() -> Path:
-    if not DEFAULT_CHECKPOINT.is_file():
-        pytest.skip(f"the shipped DDQN checkpoint {DEFAULT_CHECKPOINT} is not in this checkout")
-    return DEFAULT_CHECKPOINT
+    if not SHIPPED_DDQN.is_file():
+        pytest.skip(f"the shipped DDQN checkpoint {SHIPPED_DDQN} is not in this checkout")
+    return SHIPPED_DDQN
 
 
 def crafted_checkpoint(
@@ -78,5 +78,6 @@ def crafted_checkpoint(
             out.writestr(name, data, compress_type=zipfile.ZIP_DEFLATED, compresslevel=1)
     metadata = json.loads(source.with_suffix(".json").read_text())
     metadata["strategy"] = strategy
+    metadata.pop("name", None)  # the shipped one's name; a copy is named ddqn-STRATEGY
     dest.with_suffix(".json").write_text(json.dumps(metadata))
     return dest

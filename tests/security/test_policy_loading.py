@@ -106,7 +106,7 @@ def test_a_symlink_flipped_during_put_never_loads_the_outside_checkpoint(
                 codes[response.status_code] += 1
                 assert response.status_code in (200, 422), response.text
                 if response.status_code == 200:
-                    assert response.json()["name"] == "ddqn-gen10k"
+                    assert response.json()["name"] == "ddqn-gen10k"  # a crafted copy: ddqn-STRATEGY
                 assert not marker.exists(), f"the implant was loaded (attempt {attempt})"
                 assert _served(client) != "ddqn-implant"
         finally:

@@ -117,7 +117,7 @@ def test_service_decides_the_environments_targets_for_a_checkpoint(checkpoint: P
     assert len({tuple(np.round(t, 3)) for _, _, t in steps}) > 1
 
 
-@pytest.mark.parametrize("name", ["min-distance", "load-weighted"])
+@pytest.mark.parametrize("name", ["min-distance", "load-weighted", "oracle"])
 def test_service_decides_the_environments_targets_for_a_baseline(name: str) -> None:
     agent = as_episode_policy(make_policy(name, world=WORLD))
     steps = record(agent, FapContinuousEnv(world=WORLD), seed=5)

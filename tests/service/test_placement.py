@@ -13,7 +13,7 @@ import pytest
 
 from service.mavlink_link import LinkConfig, MavlinkLink
 from service.placement import OutOfOrderReportError, PlacementService, Report
-from service.policy_runtime import DEFAULT_CHECKPOINT, load_policy
+from service.policy_runtime import SHIPPED_DDQN, load_policy
 from service.settings import ServiceSettings
 from sim.config import AreaConfig
 from sim.envs import FapDiscreteEnv
@@ -105,13 +105,13 @@ def test_users_come_and_go_each_report_replaces_the_last(
     assert east.target_m[0] > west.target_m[0] + 100
 
 
-@pytest.mark.skipif(not DEFAULT_CHECKPOINT.is_file(), reason="no shipped DDQN checkpoint")
+@pytest.mark.skipif(not SHIPPED_DDQN.is_file(), reason="no shipped DDQN checkpoint")
 def test_ddqn_decides_every_report_from_the_vehicles_zone(
     make_service: Callable[..., PlacementService],
 ) -> None:
     """Moves apply to the zone the vehicle is in, and the next report is decided at once,
     whether or not the vehicle has reached the last target (it flies while the policy acts)."""
-    service = make_service(policy=str(DEFAULT_CHECKPOINT))
+    service = make_service(policy=str(SHIPPED_DDQN))
     for timestamp in (1.0, 2.0):
         decision = service.submit_report(Report(timestamp, ("a", "b", "c"), reports()))
         assert decision is not None and decision.decided_at > 0
@@ -121,11 +121,11 @@ def test_ddqn_decides_every_report_from_the_vehicles_zone(
     assert service.snapshot_counters()["decisions"] == 2
 
 
-@pytest.mark.skipif(not DEFAULT_CHECKPOINT.is_file(), reason="no shipped DDQN checkpoint")
+@pytest.mark.skipif(not SHIPPED_DDQN.is_file(), reason="no shipped DDQN checkpoint")
 def test_serving_sees_the_environments_observation_and_only_valid_moves() -> None:
     """One code path: the observation the service builds equals the environment's, and the
     chosen move is valid under the environment's own mask."""
-    policy = load_policy(str(DEFAULT_CHECKPOINT))
+    policy = load_policy(str(SHIPPED_DDQN))
     env = FapDiscreteEnv()
     rng = np.random.default_rng(0)
     for seed in range(5):
