@@ -10,7 +10,7 @@ import numpy as np
 
 from policies.baselines import UsersLike
 from policies.checkpoints import load_checkpoint
-from policies.residual import residual_target
+from policies.residual import residual_radius, residual_target
 from sim.config import AreaConfig
 from sim.world import World, position_to_coordinates
 
@@ -27,9 +27,7 @@ class TrainedAgent:
         self.model = model
         self.metadata = metadata
         self.algorithm: str = metadata["algorithm"]
-        self.residual_radius_m: float | None = (
-            metadata.get("residual_radius_m") if metadata.get("action") == "residual" else None
-        )
+        self.residual_radius_m = residual_radius(metadata)
         self.env_kind = "discrete" if self.algorithm == "ddqn" else "continuous"
         self.name = name or default_name(metadata, None)
         self.area = AreaConfig()

@@ -116,13 +116,6 @@ class StaticAgent:
         return position_to_coordinates(target_m, self._world.area)
 
 
-def position_to_action_f64(xyz_m: np.ndarray, area: Any) -> np.ndarray:
-    """The continuous environment's action for ``xyz_m`` in float64 (``sim.envs``'s
-    ``position_to_action`` rounds to float32, which moves the UAV by up to ~30 µm: harmless,
-    but then the evaluated position would not be exactly the policy's)."""
-    return position_to_coordinates(xyz_m, area)
-
-
 def as_episode_policy(policy: PlacementPolicy | EpisodePolicy) -> EpisodePolicy:
     """``policy`` itself if it acts every step, else wrapped in :class:`StaticAgent`."""
     if isinstance(policy, EpisodePolicy):

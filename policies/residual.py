@@ -55,6 +55,22 @@ def residual_target(
     return clip_to_volume(target, area)
 
 
+def residual_radius(metadata: dict[str, Any]) -> float | None:
+    """A checkpoint's residual radius (m) from its metadata; ``None`` for absolute actions."""
+    radius_m = metadata.get("residual_radius_m")
+    if metadata.get("action") != "residual" or not radius_m:
+        return None
+    return float(radius_m)
+
+
+def residual_metadata(action: str) -> dict[str, Any]:
+    """What a training run records about its action, read back by :func:`residual_radius`."""
+    return {
+        "action": action,
+        "residual_radius_m": RESIDUAL_RADIUS_M if action == "residual" else None,
+    }
+
+
 class ResidualActions(gym.Wrapper):
     """``FapContinuous`` with residual actions in [-1, 1]³ (see the module doc): each action
     becomes a target through :func:`residual_target`, from the report the decision sees."""

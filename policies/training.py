@@ -46,7 +46,7 @@ from policies.checkpoints import algorithm_class, git_commit, save_checkpoint
 from policies.evaluation import evaluate_policy
 from policies.networks import ZoneMapsCNN
 from policies.presets import NetworkPreset, Preset, get_preset
-from policies.residual import RESIDUAL_RADIUS_M, ResidualActions
+from policies.residual import ResidualActions, residual_metadata
 from sim.config import AreaConfig, NetworkConfig, Queueing
 from sim.envs import FapContinuousEnv, FapDiscreteEnv, ScenarioCycle
 from sim.errors import InputError
@@ -361,8 +361,7 @@ class _Run:
         c = self.config
         return {
             "algorithm": c.algorithm,
-            "action": c.action,
-            "residual_radius_m": RESIDUAL_RADIUS_M if c.action == "residual" else None,
+            **residual_metadata(c.action),
             "strategy": c.strategy,
             "preset": c.preset.to_dict(),
             "episodes": self.episodes_done,
@@ -405,8 +404,7 @@ class _Run:
             {
                 "algorithm": c.algorithm,
                 "strategy": c.strategy,
-                "action": c.action,
-                "residual_radius_m": RESIDUAL_RADIUS_M if c.action == "residual" else None,
+                **residual_metadata(c.action),
             },
         )
         return evaluate_policy(agent, scenarios, self.world, seed=0, progress=False)

@@ -132,11 +132,11 @@ class CheckpointPolicy:
                 move = int(self.model.masked_predict(observation[None], mask[None])[0])
                 return move_target(move, vehicle_xyz_m, self.area)[0]
             action, _ = self.model.predict(observation, deterministic=True)
-        radius_m = self.metadata.get("residual_radius_m")
-        if self.metadata.get("action") == "residual" and radius_m:
-            from policies.residual import residual_target
+        from policies.residual import residual_radius, residual_target
 
-            return residual_target(action, reports, self.area, float(radius_m))
+        radius_m = residual_radius(self.metadata)
+        if radius_m is not None:
+            return residual_target(action, reports, self.area, radius_m)
         return coordinates_target(np.asarray(action, dtype=float), self.area)
 
     def describe(self) -> dict[str, Any]:

@@ -64,7 +64,6 @@ __all__ = [
     "FapDiscreteEnv",
     "ScenarioCycle",
     "ScenarioSource",
-    "action_to_position",
     "position_to_action",
     "register_envs",
 ]
@@ -336,13 +335,9 @@ class FapContinuousEnv(_FapEnv):
         return coordinates_target(a, self.area)
 
 
-def action_to_position(action: np.ndarray, area: AreaConfig) -> np.ndarray:
-    """Map a normalised (x, y, z) in [0, 1]³ to the volume, in metres."""
-    return coordinates_target(action, area)
-
-
 def position_to_action(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
-    """Inverse of :func:`action_to_position`, as the continuous action space's float32."""
+    """The continuous action for ``xyz_m``, as the action space's float32
+    (:func:`sim.world.position_to_coordinates` keeps float64)."""
     return position_to_coordinates(xyz_m, area).astype(np.float32)
 
 

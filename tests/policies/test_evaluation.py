@@ -15,13 +15,12 @@ from policies.evaluation import (
     evaluate_policy,
     format_results,
     heterogeneity_bin,
-    position_to_action_f64,
 )
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.scenarios import Scenario, generate_scenarios
 from sim.utility import heterogeneity_index
-from sim.world import PAPER, World
+from sim.world import PAPER, World, position_to_coordinates
 
 AREA = AreaConfig()
 STEPS = 20
@@ -124,7 +123,7 @@ class HoverAtStart:
         if self.env_kind == "discrete":
             assert info["action_mask"][0]
             return 0  # stay
-        return position_to_action_f64(CENTRE_M, AREA)
+        return position_to_coordinates(CENTRE_M, AREA)
 
 
 @pytest.mark.parametrize("env_kind", ["continuous", "discrete"])
