@@ -170,8 +170,9 @@ def main() -> int:
                 note(f"target {target}")
             time.sleep(1.0)
         result["targets"] = targets
-        # The policy (DDQN) moves on once the vehicle is within the arrival tolerance (3 m):
-        # a target counts as reached when the vehicle was that close as the next one came.
+        # A target counts as reached when the vehicle was within 3 m of it as the next one came
+        # (policies decide every period while the vehicle flies, so a target can be replaced
+        # before it is reached).
         gaps = [
             t["vehicle_from_it_when_next_decided_m"]
             for t in targets[:-1]
