@@ -11,6 +11,7 @@ COPY sim ./sim
 COPY policies ./policies
 COPY service ./service
 COPY api ./api
+COPY closed_loop ./closed_loop
 COPY sitl_mock ./sitl_mock
 RUN pip install --no-cache-dir .
 

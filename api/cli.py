@@ -109,8 +109,8 @@ def settings_from_args(args: argparse.Namespace):  # -> ServiceSettings (lazy im
     field for a bad value."""
     from pydantic import ValidationError
 
+    from service.errors import InputError
     from service.settings import ServiceSettings
-    from sim.errors import InputError
 
     overrides = {name: getattr(args, name) for name in _SETTING_ARGS}
     overrides = {k: v for k, v in overrides.items() if v is not None}
@@ -132,8 +132,8 @@ def _serve(args: argparse.Namespace) -> int:
 
     from api.app import create_app
     from api.server import server_config
+    from service.errors import InputError
     from service.placement import PlacementService
-    from sim.errors import InputError
 
     logging.basicConfig(
         level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"

@@ -31,6 +31,7 @@ from api.schemas import (
     ValidationErrorOut,
     VehicleOut,
 )
+from service.errors import InputError
 from service.placement import (
     Decision,
     FutureReportError,
@@ -39,8 +40,6 @@ from service.placement import (
     PolicyBusyError,
     Report,
 )
-from sim.errors import InputError
-from sim.observation import UserReports
 
 _AUTH_RESPONSES: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorOut, "description": "Missing or wrong bearer token"},
@@ -109,7 +108,7 @@ def to_report(body: ReportIn, service: PlacementService) -> Report:
         name: np.array([getattr(u, name) for u in body.users], dtype=float)
         for name in ("x_m", "y_m", "offered_bps", "throughput_bps", "delay_s", "plr")
     }
-    return Report(body.timestamp, tuple(u.id for u in body.users), UserReports(**columns))
+    return Report.from_columns(body.timestamp, tuple(u.id for u in body.users), columns)
 
 
 @v1.post(
@@ -135,7 +134,7 @@ async def post_report(body: ReportIn, request: Request) -> DecisionOut:
     service = _service(request)
     report = to_report(body, service)
     try:
-        if service.settings.decision_mode == "on-report":  # runs the policy: off the event loop
+        if service.submit_runs_policy:  # off the event loop
             decision = await run_in_threadpool(service.submit_report, report)
         else:  # only stores the report (a lock held for microseconds)
             decision = service.submit_report(report)

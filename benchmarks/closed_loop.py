@@ -62,18 +62,14 @@ def _run(job: tuple[str, str, int, str, int]) -> dict[str, Any]:
     import torch
 
     torch.set_num_threads(1)
-    from policies.agents import TrainedAgent
-    from policies.baselines import make_policy
     from policies.evaluation import evaluate_policy
+    from policies.registry import resolve_policy
     from sim.world import get_world
 
     world_name, family, users, spec, n = job
     world = get_world(world_name)
     scenarios = test_set(family, users, n)
-    if spec in BASELINES:
-        policy: Any = make_policy(spec, world=world)
-    else:
-        policy = TrainedAgent.load(Path(spec), world.area, device="cpu")
+    policy = resolve_policy(spec, world)
     started = time.perf_counter()
     result = evaluate_policy(policy, scenarios, world, seed=0, progress=False)
     result["wall_s"] = time.perf_counter() - started
@@ -213,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
     for job, result in zip(jobs, done, strict=True):
         by_set.setdefault(job[:3], {})[job[3]] = result
 
-    from policies.agents import default_name
+    from policies.adapters import default_name
 
     def label(spec: str) -> str:
         return spec if spec in BASELINES else Path(spec).stem

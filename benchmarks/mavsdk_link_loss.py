@@ -5,7 +5,7 @@ One cycle, against an in-process PX4-flavoured ``sitl_mock`` on a loopback TCP p
 requests are in flight), the vehicle disappears (the mock stops), the link declares it lost and
 drops its MAVSDK session, the vehicle comes back on the same port, and the stream resumes. A
 session torn down while MAVSDK still had a command in flight used to end in a SIGSEGV inside the
-plugins' ``destroy`` (see the ``service.mavsdk_link`` docstring).
+plugins' ``destroy`` (see the ``service.mavsdk_session`` docstring).
 
 The cycles run in a child process, so a native crash is counted, not fatal; ``--busy N`` adds N
 busy-looping processes for the run (the crash needed a loaded machine to show).
@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))  # tests.sitl_mock.helpers is not an installed package
+sys.path.insert(0, str(REPO))  # tests.helpers is not an installed package
 
 RESULTS = Path(__file__).parent / "results" / "mavsdk_link_loss.json"
 CYCLE_LIMIT_S = 60.0
@@ -41,11 +41,11 @@ CYCLE_LIMIT_S = 60.0
 
 def one_cycle() -> float:
     """One link loss and recovery; returns the seconds from the vehicle's return to streaming."""
-    from service.mavlink_link import LinkConfig
     from service.mavsdk_link import MavsdkLink
+    from service.vehicle_link import LinkConfig
     from sitl_mock.server import MockAutopilot
     from sitl_mock.vehicle import VehicleConfig
-    from tests.sitl_mock.helpers import wait_for
+    from tests.helpers import wait_for
 
     mock = MockAutopilot("tcp:127.0.0.1:0", "px4", VehicleConfig(ready_delay_s=0.3)).start()
     port = mock.port

@@ -34,9 +34,9 @@ from typing import Any
 
 import numpy as np
 
-from policies.agents import TrainedAgent
-from policies.baselines import make_policy
+from policies.adapters import CheckpointPolicy
 from policies.evaluation import evaluate_policy, heterogeneity_bin
+from policies.registry import make_placement
 from sim.config import AreaConfig
 from sim.scenarios import generate_scenarios
 from sim.world import PAPER
@@ -54,7 +54,7 @@ def evaluate_all(
     scenarios = generate_scenarios(n_scenarios, n_users, seed=TEST_SEED + n_users, area=area)
     results = {}
     world = replace(PAPER, area=area)
-    for policy in [make_policy("min-distance", area), make_policy("oracle", area), *agents]:
+    for policy in [make_placement("min-distance", world), make_placement("oracle", world), *agents]:
         results[policy.name] = evaluate_policy(policy, scenarios, world, seed=0, progress=True)
     return results
 
@@ -135,7 +135,7 @@ def main() -> None:
     paths = args.checkpoint or sorted(p for p in SHIPPED.glob("*.zip"))
     if not paths:
         raise SystemExit(f"no checkpoints given and none shipped in {SHIPPED}")
-    agents = [TrainedAgent.load(p, area) for p in paths]
+    agents = [CheckpointPolicy.load(p, replace(PAPER, area=area)) for p in paths]
     names = [a.name for a in agents]
 
     started = time.monotonic()

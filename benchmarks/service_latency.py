@@ -38,7 +38,7 @@ import httpx
 import numpy as np
 from loadgen import load_phase
 
-from service.processes import start_service
+from closed_loop.processes import start_service
 from sitl_mock.config import VehicleConfig
 from sitl_mock.server import MockAutopilot
 from sitl_mock.vehicle import Vehicle

@@ -50,9 +50,9 @@ sys.path.insert(0, str(REPO))  # tests.faults.mock_process is not an installed p
 
 from loadgen import load_phase  # noqa: E402
 
-from service.processes import start_service  # noqa: E402
+from closed_loop.processes import start_service  # noqa: E402
 from tests.faults.mock_process import start_mock_process  # noqa: E402
-from tests.sitl_mock.helpers import wait_for  # noqa: E402
+from tests.helpers import wait_for  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results" / "soak.json"
 USERS = [

@@ -1,8 +1,9 @@
-"""Static placement policies: the paper's baseline, a load-weighted variant, and the registry.
+"""Static placements: the paper's baseline and a load-weighted variant.
 
-A *static* policy looks at one scenario — the users' ground positions and their offered loads,
-which is what the service will know from the users' reports — and returns one UAV position
-(area frame, metres) to hold for the whole episode. It never sees network metrics.
+A *static* placement (:class:`policies.interface.Placement`) looks at one scenario — the users'
+ground positions and their offered loads, which is what the service knows from the users'
+reports — and returns one UAV position (area frame, metres) to hold for the whole episode. It
+never sees network metrics.
 
 * ``min-distance`` (the paper's baseline, §IV): the point at the minimum altitude that minimises
   the mean **3-D** distance from the UAV to the users (users at ``area.user_height_m``). At a fixed
@@ -13,53 +14,23 @@ which is what the service will know from the users' reports — and returns one 
   2-D geometric median instead (the two differ by metres at most in the paper's area).
 * ``load-weighted``: the same, each user's distance weighted by its offered load, so the UAV
   leans toward the heavy users. Traffic-aware, but still blind to the MAC (airtime, queues).
-* ``oracle`` (:mod:`policies.oracle`): exhaustive search with the network model itself, the upper
-  bound every static policy is measured against.
 
-``BASELINES`` maps each name to a factory; :func:`make_policy` builds one by name.
+The ``oracle`` (:mod:`policies.oracle`: exhaustive search with the network model itself) is the
+third placement; :mod:`policies.registry` builds any of them by name.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Literal, Protocol, runtime_checkable
+from typing import Literal
 
 import numpy as np
 
-from sim.config import AreaConfig, NetworkConfig, UtilityConfig
-from sim.observation import UserReports
-from sim.world import World
+from policies.interface import UsersLike
+from sim.config import AreaConfig
+from sim.geometry import clip_to_volume
 
 DistanceMetric = Literal["3d", "ground"]
-
-
-class UsersLike(Protocol):
-    """Anything carrying users' positions and offered loads: a ``sim.scenarios.Scenario``, a
-    ``Case``, or the service's latest reports."""
-
-    @property
-    def users_xy_m(self) -> np.ndarray:
-        """(U, 2) ground positions in the area frame, metres."""
-        ...
-
-    @property
-    def load_bps(self) -> np.ndarray:
-        """(U,) uplink offered load of each user, bit/s."""
-        ...
-
-
-@runtime_checkable
-class PlacementPolicy(Protocol):
-    """A static placement policy: users' positions and loads in, one UAV position out.
-
-    ``place`` returns a float64 array (3,) — x, y, z in metres, area frame — inside the volume
-    ``[0, size_x_m] × [0, size_y_m] × [z_min_m, z_max_m]`` of the policy's area.
-    """
-
-    name: str
-
-    def place(self, scenario: UsersLike) -> np.ndarray: ...
 
 
 # --------------------------------------------------------------------------------------------
@@ -187,27 +158,6 @@ def _optimal_users(
     return candidates[strength <= eta * (1.0 + 1e-12)]
 
 
-@dataclass(frozen=True)
-class ReportedUsers:
-    """The users of a report (``sim.observation.UserReports``) as ``UsersLike``: what a
-    placement policy re-placing from reports sees."""
-
-    users_xy_m: np.ndarray
-    load_bps: np.ndarray
-
-    @classmethod
-    def of(cls, reports: UserReports) -> ReportedUsers:
-        xy = np.column_stack([reports.x_m, reports.y_m]).astype(float)
-        return cls(xy, np.asarray(reports.offered_bps, dtype=float))
-
-
-def clip_to_volume(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
-    """``xyz_m`` (…, 3) clipped into the UAV's volume of ``area``."""
-    lower = np.array([0.0, 0.0, area.z_min_m])
-    upper = np.array([area.size_x_m, area.size_y_m, area.z_max_m])
-    return np.clip(np.asarray(xyz_m, dtype=float), lower, upper)
-
-
 # --------------------------------------------------------------------------------------------
 # Baselines
 
@@ -240,60 +190,3 @@ class MinDistancePolicy:
         weights = np.asarray(scenario.load_bps, dtype=float) if self.load_weighted else None
         xy_m = geometric_median(scenario.users_xy_m, weights, max(height_m, 0.0), self.median)
         return clip_to_volume(np.array([xy_m[0], xy_m[1], area.z_min_m]), area)
-
-
-# --------------------------------------------------------------------------------------------
-# Registry
-
-PolicyFactory = Callable[[AreaConfig, NetworkConfig, UtilityConfig, int, float], PlacementPolicy]
-
-
-def _min_distance(
-    area: AreaConfig, network: NetworkConfig, utility: UtilityConfig, steps: int, step_s: float
-) -> PlacementPolicy:
-    return MinDistancePolicy(area)
-
-
-def _load_weighted(
-    area: AreaConfig, network: NetworkConfig, utility: UtilityConfig, steps: int, step_s: float
-) -> PlacementPolicy:
-    return MinDistancePolicy(area, load_weighted=True)
-
-
-def _oracle(
-    area: AreaConfig, network: NetworkConfig, utility: UtilityConfig, steps: int, step_s: float
-) -> PlacementPolicy:
-    from policies.oracle import OracleConfig, OraclePolicy
-
-    return OraclePolicy(area, network, utility, OracleConfig(episode_steps=steps, step_s=step_s))
-
-
-BASELINES: dict[str, PolicyFactory] = {
-    "min-distance": _min_distance,
-    "load-weighted": _load_weighted,
-    "oracle": _oracle,
-}
-
-
-def make_policy(
-    name: str,
-    area: AreaConfig = AreaConfig(),
-    network: NetworkConfig = NetworkConfig(),
-    utility: UtilityConfig = UtilityConfig(),
-    episode_steps: int = 100,
-    world: World | None = None,
-) -> PlacementPolicy:
-    """Build the static policy registered as ``name`` (a key of :data:`BASELINES`).
-
-    ``network``, ``utility`` and ``episode_steps`` matter to the oracle only: it optimises the
-    utility of an episode of that length under that network configuration (use the queueing the
-    evaluation runs with). A ``world`` gives all of them (and the step) at once, overriding the
-    others. Raises ``ValueError`` naming the choices for an unknown name.
-    """
-    try:
-        factory = BASELINES[name]
-    except KeyError:
-        raise ValueError(f"unknown policy {name!r} (choices: {', '.join(BASELINES)})") from None
-    if world is not None:
-        return factory(world.area, world.network, world.utility, world.episode_steps, world.step_s)
-    return factory(area, network, utility, episode_steps, 1.0)

@@ -23,7 +23,6 @@ import json
 import os
 import stat
 import subprocess
-import tempfile
 import zipfile
 import zlib
 from collections.abc import Sequence
@@ -34,7 +33,7 @@ from typing import Any
 
 from sim.config import AreaConfig
 from sim.errors import InputError
-from sim.files import atomic_write_json, replacement_mode
+from sim.files import atomic_write_bytes, atomic_write_json
 from sim.observation import observation_shape
 
 CHECKPOINT_FORMAT = "tupa-checkpoint/1"
@@ -63,20 +62,13 @@ def git_commit() -> str | None:
 def save_checkpoint(model: Any, path: Path, metadata: dict[str, Any]) -> None:
     """Write ``model`` (an SB3 algorithm) to ``path`` and its metadata beside it, atomically.
 
-    The zip goes to a temporary file first and is renamed into place; the JSON follows. A crash
-    in between leaves the previous checkpoint's zip and JSON intact.
+    The zip is built in memory and written with :func:`sim.files.atomic_write_bytes`; the JSON
+    follows. A crash in between leaves the previous checkpoint's zip and JSON intact.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".zip", dir=path.parent)
-    os.close(fd)
-    try:
-        model.save(tmp_name)
-        os.chmod(tmp_name, replacement_mode(path))
-        os.replace(tmp_name, path)
-    except BaseException:
-        Path(tmp_name).unlink(missing_ok=True)
-        raise
+    buffer = io.BytesIO()
+    model.save(buffer)
+    atomic_write_bytes(path, buffer.getvalue())
     atomic_write_json(metadata_path(path), {"format": CHECKPOINT_FORMAT, **metadata})
 
 
@@ -376,26 +368,15 @@ def export_checkpoint(
             for part in name.split("."):
                 obj = getattr(obj, part)
             obj.state.clear()
-    dest = Path(dest)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{dest.stem}.", suffix=".zip", dir=dest.parent)
-    os.close(fd)
-    plain = Path(tmp_name).with_suffix(".plain.zip")
-    try:
-        model.save(plain)
-        with (
-            zipfile.ZipFile(plain) as src,
-            zipfile.ZipFile(tmp_name, "w", compression=zipfile.ZIP_DEFLATED) as out,
-        ):
-            for item in src.infolist():
-                out.writestr(item.filename, src.read(item.filename))
-        os.chmod(tmp_name, replacement_mode(dest))
-        os.replace(tmp_name, dest)
-    except BaseException:
-        Path(tmp_name).unlink(missing_ok=True)
-        raise
-    finally:
-        plain.unlink(missing_ok=True)
+    plain, packed = io.BytesIO(), io.BytesIO()
+    model.save(plain)
+    with (
+        zipfile.ZipFile(plain) as src,
+        zipfile.ZipFile(packed, "w", compression=zipfile.ZIP_DEFLATED) as out,
+    ):
+        for item in src.infolist():
+            out.writestr(item.filename, src.read(item.filename))
+    atomic_write_bytes(Path(dest), packed.getvalue())
     metadata = {
         **{k: v for k, v in meta.items() if k != "format"},
         **extra_metadata,

@@ -147,16 +147,16 @@ def world_from_args(args: argparse.Namespace, default: str, area: object = None)
 
 
 def _eval(args: argparse.Namespace) -> int:
-    from policies.baselines import BASELINES, make_policy
     from policies.evaluation import evaluate_policy, format_results
+    from policies.registry import PLACEMENTS, resolve_policy
     from sim.errors import InputError
     from sim.files import atomic_write_json, load_scenarios
 
     names = list(dict.fromkeys(args.policy))  # drop repeats, keep the order
     for name in names:
-        if name not in BASELINES and not Path(name).exists():
+        if name not in PLACEMENTS and not Path(name).exists():
             raise InputError(
-                f"--policy: {name!r} is neither a policy ({', '.join(BASELINES)}) "
+                f"--policy: {name!r} is neither a policy ({', '.join(PLACEMENTS)}) "
                 "nor an existing checkpoint"
             )
     if args.seed < 0:
@@ -166,14 +166,7 @@ def _eval(args: argparse.Namespace) -> int:
     if not scenarios:
         raise InputError(f"{args.scenarios}: scenarios: empty (nothing to evaluate)")
     world = world_from_args(args, "paper", area)
-    policies = []
-    for name in names:
-        if name in BASELINES:
-            policies.append(make_policy(name, world=world))
-        else:
-            from policies.agents import TrainedAgent
-
-            policies.append(TrainedAgent.load(Path(name), area))
+    policies = [resolve_policy(name, world) for name in names]
     results = []
     for policy in policies:
         results.append(
@@ -252,13 +245,13 @@ def _add_ratio_to_oracle(
 ) -> None:
     """Add each scenario's ``ratio_to_oracle`` (utility / the oracle's on that scenario) to every
     result; the oracle is evaluated on the side when it is not among the policies."""
-    from policies.baselines import make_policy
     from policies.evaluation import evaluate_policy
+    from policies.registry import make_placement
 
     oracle = next((r for r in results if r["policy"] == "oracle"), None)
     if oracle is None:
         oracle = evaluate_policy(
-            make_policy("oracle", world=world),
+            make_placement("oracle", world),
             scenarios,
             world,
             seed=args.seed,

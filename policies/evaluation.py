@@ -1,21 +1,21 @@
-"""Evaluate a placement policy on a scenario set in a world: one episode per scenario.
+"""Evaluate a policy on a scenario set in a world: one episode per scenario.
 
 Protocol (:func:`evaluate_policy`), for scenario i of the set, in a :class:`sim.world.World`
 (``paper`` by default, the paper's protocol; ``closed-loop`` flies):
 
-* one environment (``FapContinuousEnv`` unless the policy asks for the discrete one) with the
-  world's episode (``episode_steps`` steps of ``step_s``), flight, users and reports;
+* every policy is a :class:`policies.interface.Policy` (a static placement is wrapped in
+  :class:`policies.adapters.StaticPolicy`), run by :func:`run_episode` exactly as the service
+  runs it: each step it decides a target from the report the decision sees
+  (``info["reports"]``) and the vehicle's position, and the environment
+  (:meth:`sim.envs.FapEnvBase.step_to`) flies the vehicle toward it under the world's limits;
 * ``reset(seed=seed + i)``: every policy sees the same fading draws, user motion and demand
   changes on the same scenario (the model draws the same number of random numbers per step
   wherever the UAV is), so differences between policies are the policies', not the dice's;
-* a static placement policy (:class:`StaticAgent`) is re-placed every step from the report the
-  decision sees (``info["reports"]``: users' reported positions and offered loads), the vehicle
-  flying there under the world's limits. Where the world says ``static_start="placement"`` (the
-  paper), its vehicle starts the episode at its placement; otherwise every policy starts at the
-  world's home. The ``oracle`` re-placed every step is the *tracking oracle*: the best static
-  position for the latest report, found with the model, flown to under the same limits;
-* an acting policy (:class:`EpisodePolicy`) starts where it asks (the world's home if it says
-  ``None``) and picks an action every step from the observation.
+* a static placement is re-placed every step from the report. Where the world says
+  ``static_start="placement"`` (the paper), its vehicle starts the episode at its placement;
+  otherwise every policy starts at the world's home. The ``oracle`` re-placed every step is the
+  *tracking oracle*: the best static position for the latest report, found with the model,
+  flown to under the same limits.
 
 Per scenario, all as means over the ``episode_steps`` scored steps:
 
@@ -37,18 +37,18 @@ from __future__ import annotations
 import math
 import sys
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Any, Literal, Protocol, runtime_checkable
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from policies.baselines import PlacementPolicy, ReportedUsers, UsersLike
-from sim.envs import FapContinuousEnv, FapDiscreteEnv
+from policies.adapters import StaticPolicy
+from policies.interface import Placement, Policy
+from sim.envs import FapContinuousEnv
 from sim.scenarios import Scenario
 from sim.utility import heterogeneity_index
-from sim.world import PAPER, World, position_to_coordinates
+from sim.world import PAPER, World
 
-EnvKind = Literal["continuous", "discrete"]
 HETEROGENEITY_BIN_WIDTH = 0.05
 REFERENCE_POLICY = "min-distance"
 SETTLED_WITHIN = 0.01  # time_to_final_s: how close to the final utility counts as settled
@@ -56,71 +56,60 @@ SETTLE_WINDOW = 5  # steps of the moving mean compared with the final utility
 FINAL_STEPS = 10  # steps averaged for the final utility
 
 
-@runtime_checkable
-class EpisodePolicy(Protocol):
-    """A policy that acts every step (a trained agent), or a static one wrapped as such.
-
-    ``env_kind`` picks the environment whose action space ``act`` answers in: ``"continuous"``
-    (``FapContinuous``: absolute coordinates in [0, 1]³) or ``"discrete"`` (``FapDiscrete``: 13
-    moves, masks in ``info["action_mask"]``). ``begin_episode`` is called before each reset with
-    the scenario and the world; it returns the UAV's start position (3,) in metres, or ``None``
-    for the world's home. ``act`` gets the latest observation and info (from the reset, then
-    from each step) and returns the next action.
-    """
-
-    name: str
-    env_kind: EnvKind
-
-    def begin_episode(self, scenario: UsersLike, world: World) -> np.ndarray | None: ...
-
-    def act(self, observation: np.ndarray, info: dict[str, Any]) -> Any: ...
+def as_policy(policy: Policy | Placement) -> Policy:
+    """``policy`` itself if it decides targets, else a placement wrapped in
+    :class:`~policies.adapters.StaticPolicy`."""
+    if isinstance(policy, Policy):
+        return policy
+    return StaticPolicy(policy)
 
 
 @dataclass
-class StaticAgent:
-    """A :class:`~policies.baselines.PlacementPolicy` as an :class:`EpisodePolicy`: every step
-    it places from the report the decision sees and answers with the continuous action that
-    targets that placement. Placements are cached for identical reports (static users), and a
-    policy with ``track(users, previous_m)`` (the oracle) is asked through it, so it can start
-    its search from where it placed last."""
+class Episode:
+    """One episode's per-step series (``episode_steps`` long) and its last info."""
 
-    policy: PlacementPolicy
-    env_kind: EnvKind = "continuous"
-    _world: World = field(default=PAPER, init=False, repr=False)
-    _last_key: tuple[bytes, bytes] | None = field(default=None, init=False, repr=False)
-    _target_m: np.ndarray | None = field(default=None, init=False, repr=False)
-
-    def __post_init__(self) -> None:
-        self.name = self.policy.name
-
-    def place(self, users: UsersLike) -> np.ndarray:
-        """The placement for ``users`` (cached while they do not change)."""
-        key = (users.users_xy_m.tobytes(), users.load_bps.tobytes())
-        if key != self._last_key or self._target_m is None:
-            track = getattr(self.policy, "track", None)
-            previous = self._target_m
-            target = track(users, previous) if track is not None else self.policy.place(users)
-            self._target_m = np.asarray(target, dtype=float)
-            self._last_key = key
-        return self._target_m
-
-    def begin_episode(self, scenario: UsersLike, world: World) -> np.ndarray | None:
-        self._world = world
-        self._last_key = self._target_m = None
-        if world.static_start == "placement":
-            return self.place(scenario)
-        return None
-
-    def act(self, observation: np.ndarray, info: dict[str, Any]) -> np.ndarray:
-        target_m = self.place(ReportedUsers.of(info["reports"]))
-        return position_to_coordinates(target_m, self._world.area)
+    utility: np.ndarray
+    throughput_bps: np.ndarray
+    delay_s: np.ndarray
+    plr: np.ndarray
+    final_info: dict[str, Any]
 
 
-def as_episode_policy(policy: PlacementPolicy | EpisodePolicy) -> EpisodePolicy:
-    """``policy`` itself if it acts every step, else wrapped in :class:`StaticAgent`."""
-    if isinstance(policy, EpisodePolicy):
-        return policy
-    return StaticAgent(policy)
+def run_episode(
+    policy: Policy,
+    scenario: Scenario,
+    world: World,
+    seed: int,
+    users_seed: int | None = None,
+    env: FapContinuousEnv | None = None,
+) -> Episode:
+    """Run ``policy`` for one episode of ``scenario`` in ``world``, from ``reset(seed=seed)``.
+
+    ``users_seed`` fixes the users' own generator (moving users, changing demand) so several
+    runs meet the same users; ``env`` reuses an environment (its world must be ``world``).
+    """
+    env = env if env is not None else FapContinuousEnv([scenario], world=world)
+    options: dict[str, Any] = {"scenario": scenario}
+    if users_seed is not None:
+        options["users_seed"] = users_seed
+    start_m = policy.begin_episode(scenario, world)
+    if start_m is not None:
+        options["uav_xyz_m"] = np.asarray(start_m, dtype=float)
+    _, info = env.reset(seed=seed, options=options)
+    steps = world.episode_steps
+    series = np.empty((4, steps))
+    for t in range(steps):
+        target_m = policy.decide(info["reports"], info["uav_xyz_m"])
+        _, reward, terminated, truncated, info = env.step_to(target_m)
+        series[:, t] = (
+            reward,
+            np.sum(info["throughput_bps"]),
+            np.mean(info["delay_s"]),
+            np.mean(info["plr"]),
+        )
+        if terminated or (truncated and t < steps - 1):
+            raise RuntimeError(f"episode of scenario {scenario.id} ended after {t + 1} steps")
+    return Episode(*series, final_info=info)
 
 
 def _progress(iterable: Sequence[Scenario], label: str, enabled: bool) -> Any:
@@ -143,7 +132,7 @@ def time_to_final_s(trace: np.ndarray, step_s: float) -> float:
 
 
 def evaluate_policy(
-    policy: PlacementPolicy | EpisodePolicy,
+    policy: Policy | Placement,
     scenarios: Sequence[Scenario],
     world: World = PAPER,
     seed: int = 0,
@@ -161,44 +150,24 @@ def evaluate_policy(
         raise ValueError("scenarios: the set is empty")
     if seed < 0:
         raise ValueError(f"seed: must be >= 0, got {seed}")
-    agent = as_episode_policy(policy)
-    env_class = FapDiscreteEnv if agent.env_kind == "discrete" else FapContinuousEnv
-    env = env_class(scenarios, world=world)
-    area = world.area
-    steps = world.episode_steps
-
+    agent = as_policy(policy)
+    env = FapContinuousEnv(scenarios, world=world)
     rows = []
     for i, scenario in enumerate(_progress(scenarios, agent.name, progress)):
-        options: dict[str, Any] = {"scenario": scenario}
-        start_m = agent.begin_episode(scenario, world)
-        if start_m is not None:
-            options["uav_xyz_m"] = np.asarray(start_m, dtype=float)
-        observation, info = env.reset(seed=seed + i, options=options)
-        utilities = np.empty(steps)
-        throughput = np.empty(steps)
-        delay = np.empty(steps)
-        plr = np.empty(steps)
-        for t in range(steps):
-            observation, reward, terminated, truncated, info = env.step(
-                agent.act(observation, info)
-            )
-            utilities[t] = reward
-            throughput[t] = np.sum(info["throughput_bps"])
-            delay[t] = np.mean(info["delay_s"])
-            plr[t] = np.mean(info["plr"])
-            if terminated or (truncated and t < steps - 1):
-                raise RuntimeError(f"episode of scenario {scenario.id} ended after {t + 1} steps")
+        episode = run_episode(agent, scenario, world, seed + i, env=env)
         rows.append(
             {
                 "id": scenario.id,
-                "utility": float(utilities.mean()),
-                "heterogeneity": heterogeneity_index(scenario.users_xy_m, scenario.load_bps, area),
-                "throughput_bps": float(throughput.mean()),
-                "delay_s": float(delay.mean()),
-                "plr": float(plr.mean()),
-                "time_to_final_s": time_to_final_s(utilities, world.step_s),
-                "uav_xyz_m": [float(v) for v in info["uav_xyz_m"]],
-                "trace": [round(float(u), 4) for u in utilities],
+                "utility": float(episode.utility.mean()),
+                "heterogeneity": heterogeneity_index(
+                    scenario.users_xy_m, scenario.load_bps, world.area
+                ),
+                "throughput_bps": float(episode.throughput_bps.mean()),
+                "delay_s": float(episode.delay_s.mean()),
+                "plr": float(episode.plr.mean()),
+                "time_to_final_s": time_to_final_s(episode.utility, world.step_s),
+                "uav_xyz_m": [float(v) for v in episode.final_info["uav_xyz_m"]],
+                "trace": [round(float(u), 4) for u in episode.utility],
             }
         )
     values = np.array([row["utility"] for row in rows])
@@ -212,7 +181,7 @@ def evaluate_policy(
         "mean_time_to_final_s": float(np.mean([row["time_to_final_s"] for row in rows])),
         "seed": seed,
         "queueing": world.network.queue.queueing,
-        "episode_steps": steps,
+        "episode_steps": world.episode_steps,
         "mode": "stochastic" if world.stochastic else "expected",
         "scenarios": rows,
     }

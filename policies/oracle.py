@@ -68,8 +68,10 @@ from typing import Literal
 
 import numpy as np
 
-from policies.baselines import MinDistancePolicy, UsersLike, clip_to_volume
+from policies.baselines import MinDistancePolicy
+from policies.interface import UsersLike
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
+from sim.geometry import clip_to_volume
 from sim.network import NetworkModel, QueueState
 from sim.utility import network_utility
 
@@ -278,7 +280,7 @@ class _Episodes:
 
 @dataclass
 class OraclePolicy:
-    """The oracle as a :class:`~policies.baselines.PlacementPolicy` (``name = "oracle"``).
+    """The oracle as a :class:`~policies.interface.Placement` (``name = "oracle"``).
 
     ``network`` must be the configuration the evaluation runs (queueing in particular), and
     ``config.episode_steps``/``step_s`` its episode, or the oracle optimises a different game.

@@ -27,10 +27,11 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from policies.baselines import MinDistancePolicy, ReportedUsers, clip_to_volume
+from policies.baselines import MinDistancePolicy
+from policies.interface import ReportedUsers
 from sim.config import AreaConfig
+from sim.geometry import clip_to_volume, m_to_unit
 from sim.observation import UserReports
-from sim.world import position_to_coordinates
 
 RESIDUAL_RADIUS_M = 125.0
 """How far (m) the actor may move the target from the load-weighted placement, per axis."""
@@ -94,6 +95,6 @@ class ResidualActions(gym.Wrapper):
             raise ValueError(f"action: must be 3 finite numbers in [-1, 1], got {action!r}")
         area = self.env.unwrapped.area
         target = residual_target(a, self._reports, area, self.radius_m)
-        result = self.env.step(position_to_coordinates(target, area))
+        result = self.env.step(m_to_unit(target, area))
         self._reports = result[4]["reports"]
         return result

@@ -40,12 +40,12 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.noise import NormalActionNoise
 
-from policies.agents import TrainedAgent
-from policies.baselines import make_policy
+from policies.adapters import CheckpointPolicy
 from policies.checkpoints import algorithm_class, git_commit, save_checkpoint
 from policies.evaluation import evaluate_policy
 from policies.networks import ZoneMapsCNN
 from policies.presets import NetworkPreset, Preset, get_preset
+from policies.registry import make_placement
 from policies.residual import ResidualActions, residual_metadata
 from sim.config import AreaConfig, NetworkConfig, Queueing
 from sim.envs import FapContinuousEnv, FapDiscreteEnv, ScenarioCycle
@@ -399,18 +399,12 @@ class _Run:
 
     def evaluate(self, model: Any, scenarios: list[Scenario]) -> dict[str, Any]:
         c = self.config
-        agent = TrainedAgent(
-            model,
-            {
-                "algorithm": c.algorithm,
-                "strategy": c.strategy,
-                **residual_metadata(c.action),
-            },
-        )
+        metadata = {"algorithm": c.algorithm, "strategy": c.strategy, **residual_metadata(c.action)}
+        agent = CheckpointPolicy(model, metadata, world=self.world)
         return evaluate_policy(agent, scenarios, self.world, seed=0, progress=False)
 
     def add_curve_point(self, model: Any, episodes: int) -> None:
-        from policies.report import write_learning_curve
+        from policies.report.curves import write_learning_curve
 
         result = self.evaluate(model, self.curve_test)
         curve = json.loads(self.curve_path.read_text()) if self.curve_path.exists() else None
@@ -434,7 +428,7 @@ class _Run:
     def reference_medians(self) -> dict[str, float]:
         medians = {}
         for name in ("min-distance", "oracle"):
-            policy = make_policy(name, world=self.world)
+            policy = make_placement(name, self.world)
             medians[name] = evaluate_policy(
                 policy, self.curve_test, self.world, seed=0, progress=False
             )["median_utility"]
@@ -497,7 +491,7 @@ def final_evaluation(run: _Run, model: Any) -> dict[str, Any]:
     per_policy = {}
     for name in ("min-distance", "oracle"):
         per_policy[name] = evaluate_policy(
-            make_policy(name, world=run.world), run.test, run.world, seed=0, progress=False
+            make_placement(name, run.world), run.test, run.world, seed=0, progress=False
         )
     per_policy["policy"] = run.evaluate(model, run.test)
     for name, result in per_policy.items():

@@ -18,7 +18,7 @@ _COMMAND_MODULES: tuple[str, ...] = (
     "policies.cli",
     "sitl_mock.cli",
     "api.cli",
-    "service.demo_cli",
+    "closed_loop.cli",
 )
 
 

@@ -46,17 +46,18 @@ import time
 from collections import Counter
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+from policies.interface import Policy
 from service.frames import FrameConfig
-from service.mavlink_link import LinkConfig, LinkState
-from service.policy_runtime import ServingPolicy, load_policy
+from service.policy_runtime import load_policy
 from service.settings import ServiceSettings
-from sim.config import AreaConfig, NetworkConfig, UtilityConfig
+from service.vehicle_link import LinkConfig, LinkState, VehicleLink
+from sim.config import AreaConfig
 from sim.files import atomic_write_json
 from sim.observation import UserReports
+from sim.world import World
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +72,14 @@ class Report:
     timestamp_s: float
     user_ids: tuple[str, ...]
     users: UserReports
+
+    @classmethod
+    def from_columns(
+        cls, timestamp_s: float, user_ids: tuple[str, ...], columns: dict[str, np.ndarray]
+    ) -> Report:
+        """A report from one array per :class:`~sim.observation.UserReports` field (``x_m``,
+        ``y_m``, ``offered_bps``, ``throughput_bps``, ``delay_s``, ``plr``), one entry a user."""
+        return cls(timestamp_s, user_ids, UserReports(**columns))
 
 
 @dataclass(frozen=True)
@@ -108,17 +117,14 @@ class PlacementService:
     def __init__(
         self,
         settings: ServiceSettings,
-        link: Any,
-        policy: ServingPolicy,
-        area: AreaConfig = AreaConfig(),
-        network: NetworkConfig = NetworkConfig(),
-        utility: UtilityConfig = UtilityConfig(),
+        link: VehicleLink,
+        policy: Policy,
+        world: World | None = None,
     ) -> None:
         self.settings = settings
         self.link = link
-        self.area = area
-        self.network = network
-        self.utility = utility
+        self.world = world if world is not None else settings.policy_world()
+        """The world the policy decides in (area, network, utility, decision period)."""
         self._policy = policy
         self._lock = threading.Lock()  # the state below; held for microseconds
         self._deciding = threading.Lock()  # one decision at a time (see decide_once)
@@ -133,6 +139,18 @@ class PlacementService:
         self.counters: Counter[str] = Counter()
         self._takeoff_deferred = False
 
+    @property
+    def area(self) -> AreaConfig:
+        """The area the service places in (the world's)."""
+        return self.world.area
+
+    @property
+    def submit_runs_policy(self) -> bool:
+        """Whether :meth:`submit_report` runs the policy before it returns (``on-report``
+        mode: milliseconds to a second for the oracle with hundreds of users), so an event
+        loop should call it from a worker thread; otherwise it only stores the report."""
+        return self.settings.decision_mode == "on-report"
+
     # ------------------------------------------------------------------ construction
 
     @classmethod
@@ -140,16 +158,12 @@ class PlacementService:
         """Load the policy (``InputError`` if unusable) and open the link (retries on its own)."""
         from service.links import open_link
 
-        area = AreaConfig()
-        network = NetworkConfig().with_queueing(settings.queueing)
-        utility = UtilityConfig()
+        world = settings.policy_world()
         # The operator's own choice: from any directory, within the size limit.
-        policy = load_policy(
-            settings.policy, area, network, utility, max_bytes=settings.checkpoint_max_bytes
-        )
+        policy = load_policy(settings.policy, world, max_bytes=settings.checkpoint_max_bytes)
         link_config = LinkConfig(
             url=settings.mavlink,
-            area=area,
+            area=world.area,
             frames=FrameConfig(
                 settings.area_origin_north_m,
                 settings.area_origin_east_m,
@@ -159,7 +173,7 @@ class PlacementService:
             signing_key=settings.signing_key_bytes(),
         )
         link = open_link(settings.mavlink_backend, link_config)
-        return cls(settings, link, policy, area, network, utility)
+        return cls(settings, link, policy, world)
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -222,7 +236,7 @@ class PlacementService:
             self._decide_guarded()
         return self.current_decision()
 
-    def swap_policy(self, spec: str) -> ServingPolicy:
+    def swap_policy(self, spec: str) -> Policy:
         """Load and check ``spec`` fully, then swap it in atomically (``InputError`` otherwise:
         the serving policy stays).
 
@@ -248,7 +262,7 @@ class PlacementService:
     # ------------------------------------------------------------------ outputs
 
     @property
-    def policy(self) -> ServingPolicy:
+    def policy(self) -> Policy:
         with self._lock:
             return self._policy
 
@@ -316,7 +330,6 @@ class PlacementService:
     def _decide_latest(self) -> Decision | None:
         with self._lock:
             report, received, policy = self._report, self._report_received, self._policy
-            previous = self._decision
         if report is None or received is None:
             return None
         if time.monotonic() - received > self.settings.report_max_age_s:
@@ -328,13 +341,12 @@ class PlacementService:
             self._waiting_for_link.set()
             return None
         vehicle = np.asarray(state.position_m, dtype=float)
-        current = np.asarray(previous.target_m, dtype=float) if previous else vehicle
         started = time.perf_counter()
         if self._takeoff_deferred:  # the first decision after a restart (see start())
             self._takeoff_deferred = False
             self.link.arm_and_takeoff(timeout_s=self.settings.takeoff_timeout_s)
         try:
-            target = policy.decide(report.users, vehicle, current)
+            target = policy.decide(report.users, vehicle)
             clamped = self.link.set_target(tuple(float(v) for v in target))
         except ValueError as exc:  # a non-finite target: refused by the geofence, target held
             self._count("decisions_rejected")
@@ -435,14 +447,12 @@ class PlacementService:
         )
         return True
 
-    def _load_allowed(self, spec: str) -> ServingPolicy:
+    def _load_allowed(self, spec: str) -> Policy:
         """``spec`` loaded under the checks a client's choice gets: from ``policy_dirs`` only,
         within ``checkpoint_max_bytes``."""
         return load_policy(
             spec,
-            self.area,
-            self.network,
-            self.utility,
+            self.world,
             allowed_dirs=self.settings.policy_dirs,
             max_bytes=self.settings.checkpoint_max_bytes,
         )

@@ -10,12 +10,15 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from service.policy_runtime import SHIPPED_CHECKPOINTS, default_policy_spec
+
+if TYPE_CHECKING:
+    from sim.world import World
 
 DecisionMode = Literal["paced", "on-report"]
 MavlinkBackend = Literal["pymavlink", "mavsdk"]
@@ -111,6 +114,17 @@ class ServiceSettings(BaseSettings):
         from sim.world import get_world
 
         return get_world(self.world).step_s
+
+    def policy_world(self) -> World:
+        """The world the served policy decides in: :attr:`world` with the service's queueing
+        and decision period (what the oracle optimises for and the observation is built with)."""
+        from dataclasses import replace
+
+        from sim.config import NetworkConfig
+        from sim.world import get_world
+
+        network = NetworkConfig().with_queueing(self.queueing)
+        return replace(get_world(self.world), network=network, step_s=self.decision_period_s)
 
     @field_validator("area_origin_north_m", "area_origin_east_m", "area_origin_down_m")
     @classmethod

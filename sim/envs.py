@@ -6,7 +6,7 @@
                           ``info["action_mask"]``); one taken anyway targets the vehicle's own
                           zone and sets ``info["refused_move"]``.
 ``tupa/FapContinuous-v0`` ``Box(0, 1, (3,))``: absolute coordinates in the volume
-                          (:func:`sim.world.coordinates_target`).
+                          (:func:`sim.geometry.unit_to_m`).
 
 Everything about the episode but the scenario comes from a :class:`sim.world.World` (the
 ``paper`` preset by default): ``episode_steps`` steps of ``step_s``, the vehicle's start
@@ -42,19 +42,22 @@ import numpy as np
 from gymnasium import spaces
 
 from sim.config import AreaConfig
+from sim.geometry import (
+    MOVES,
+    clip_to_volume,
+    m_to_unit,
+    move_mask,
+    move_target,
+    unit_to_m,
+    zone_index,
+    zone_position,
+)
 from sim.network import NetworkModel, QueueState, StepResult
 from sim.observation import UserReports, build_observation, observation_shape
 from sim.scenarios import Scenario, ScenarioSampler
 from sim.users import UserDynamics
 from sim.utility import network_utility
-from sim.world import (
-    PAPER,
-    World,
-    coordinates_target,
-    move_target,
-    position_to_coordinates,
-)
-from sim.zones import MOVES, move_mask, zone_index, zone_position
+from sim.world import PAPER, World
 
 __all__ = [
     "CONTINUOUS_ENV_ID",
@@ -181,7 +184,24 @@ class _FapEnv(gym.Env, ABC):
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self.scenario is None or self.users is None:
             raise RuntimeError("step() called before reset()")
-        self.target_xyz_m = self._target_from_action(action)
+        return self._step_toward(self._target_from_action(action))
+
+    def step_to(self, target_m: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """:meth:`step` with a target in metres instead of an action: what a policy that
+        decides targets (``policies.interface.Policy``: a placement re-placed every step, or a
+        checkpoint deciding as the service does) feeds the environment. The target is clipped
+        into the volume; ValueError for one that is not three finite numbers."""
+        if self.scenario is None or self.users is None:
+            raise RuntimeError("step_to() called before reset()")
+        target = np.asarray(target_m, dtype=float)
+        if target.shape != (3,) or not np.all(np.isfinite(target)):
+            raise ValueError(f"target_m: must be 3 finite numbers, got {target_m!r}")
+        return self._step_toward(clip_to_volume(target, self.area))
+
+    def _step_toward(
+        self, target_m: np.ndarray
+    ) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        self.target_xyz_m = target_m
         self.uav_xyz_m = self.world.fly(self.uav_xyz_m, self.target_xyz_m)
         self._moved()
         self.users.advance(self.world.step_s, self._users_rng)
@@ -197,10 +217,7 @@ class _FapEnv(gym.Env, ABC):
 
     def _place_start(self, xyz_m: np.ndarray) -> np.ndarray:
         """A start position: kept as is, inside the volume (the discrete env snaps it)."""
-        area = self.area
-        return np.clip(
-            xyz_m, [0.0, 0.0, area.z_min_m], [area.size_x_m, area.size_y_m, area.z_max_m]
-        )
+        return clip_to_volume(xyz_m, self.area)
 
     def _simulate(self) -> StepResult:
         users = self.users
@@ -332,13 +349,13 @@ class FapContinuousEnv(_FapEnv):
             raise ValueError(f"action: must be 3 finite numbers in [0, 1], got {action!r}")
         if np.any(a < -1e-6) or np.any(a > 1.0 + 1e-6):
             raise ValueError(f"action: coordinates must lie in [0, 1], got {a.tolist()}")
-        return coordinates_target(a, self.area)
+        return unit_to_m(a, self.area)
 
 
 def position_to_action(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
     """The continuous action for ``xyz_m``, as the action space's float32
-    (:func:`sim.world.position_to_coordinates` keeps float64)."""
-    return position_to_coordinates(xyz_m, area).astype(np.float32)
+    (:func:`sim.geometry.m_to_unit` keeps float64)."""
+    return m_to_unit(xyz_m, area).astype(np.float32)
 
 
 def register_envs() -> None:

@@ -65,9 +65,9 @@ def replacement_mode(path: Path) -> int:
         return 0o666 & ~mask
 
 
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` (UTF-8) to ``path`` so that readers see the old file or the new one, never
-    a half-written one.
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` so that readers see the old file or the new one, never a
+    half-written one.
 
     Writes a temporary file in the same directory, fsyncs it, renames it over ``path`` with
     ``os.replace`` and fsyncs the directory. Creates missing parent directories. The new file
@@ -79,8 +79,8 @@ def atomic_write_text(path: Path, text: str) -> None:
     mode = replacement_mode(path)
     fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            handle.write(text)
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(data)
             handle.flush()
             os.fchmod(handle.fileno(), mode)
             os.fsync(handle.fileno())
@@ -99,6 +99,12 @@ def atomic_write_text(path: Path, text: str) -> None:
         pass
     finally:
         os.close(dir_fd)
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` as UTF-8 atomically, see :func:`atomic_write_bytes`. The text is encoded
+    before any file is touched."""
+    atomic_write_bytes(path, text.encode("utf-8"))
 
 
 def atomic_write_json(path: Path, obj: Any) -> None:

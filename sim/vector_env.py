@@ -10,10 +10,10 @@ of :class:`sim.envs.FapDiscreteEnv` (``kind="discrete"``) or :class:`sim.envs.Fa
   own :class:`sim.users.UserDynamics` and generator, as the single environment's), simulates
   the cells with their queues carried over, and returns the utilities as rewards and the
   observations built from the report the world shows (report age) at each vehicle's position.
-- Flight, targets and masks are numpy over (E, 3) arrays (:func:`fly_many`,
-  :func:`move_targets`, :func:`coordinates_targets`, :func:`valid_moves_many`): row e equals
-  the scalar function of :mod:`sim.world` exactly. The cells go through
-  :meth:`sim.network.NetworkModel.step_many`, one call per user count (environments whose
+- Flight, targets and masks are numpy over (E, 3) arrays (:func:`sim.world.fly_many`,
+  :func:`sim.geometry.move_targets`, :func:`sim.geometry.unit_to_m_many`,
+  :func:`sim.geometry.valid_moves_many`): row e equals the scalar function exactly. The cells
+  go through :meth:`sim.network.NetworkModel.step_many`, one call per user count (environments whose
   scenarios have different numbers of users are grouped by it), the utilities through
   :func:`sim.utility.network_utility` over (E, U), the observations through
   :func:`sim.observation.build_observations`.
@@ -43,11 +43,9 @@ hold each environment's users and scenario.
 
 from __future__ import annotations
 
-import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -56,129 +54,31 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from sim.config import AreaConfig
 from sim.envs import ScenarioCycle, ScenarioSource
+from sim.geometry import (
+    MOVES,
+    move_masks,
+    move_targets,
+    unit_to_m_many,
+    zone_indices,
+    zone_positions,
+)
 from sim.network import NetworkModel, QueueState
 from sim.observation import build_observations, observation_shape
 from sim.scenarios import Scenario, ScenarioSampler
 from sim.users import UserDynamics
 from sim.utility import network_utility
-from sim.world import PAPER, Flight, World
-from sim.zones import MOVES, grid_shape
+from sim.world import PAPER, World, fly_many
 
 __all__ = [
     "KINDS",
     "FapVectorEnv",
-    "coordinates_targets",
-    "fly_many",
-    "move_targets",
-    "valid_moves_many",
-    "zone_indices",
-    "zone_positions",
 ]
 
 KINDS: tuple[str, ...] = ("discrete", "continuous")
 N_MOVES = len(MOVES)
 # The spawn key of the batch's fading generator: a stream no environment's own seed gives.
 _FADING_KEY = 0xFADE
-
-
-# --------------------------------------------------------------------------------------------
-# Actions, targets and flight over (E, 3) arrays: row e is sim.world's scalar function exactly
-
-
-def zone_indices(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
-    """:func:`sim.zones.zone_index` of each row of ``xyz_m`` (E, 3): int64 (E, 3)."""
-    xyz = np.asarray(xyz_m, dtype=float)
-    raw = np.empty(xyz.shape, dtype=np.int64)
-    raw[:, 0] = np.floor(xyz[:, 0] / area.zone_m)
-    raw[:, 1] = np.floor(xyz[:, 1] / area.zone_m)
-    raw[:, 2] = np.rint((xyz[:, 2] - area.z_min_m) / area.zone_m)  # half to even, as round()
-    return np.clip(raw, 0, grid_shape(area) - 1)
-
-
-def zone_positions(index: np.ndarray, area: AreaConfig) -> np.ndarray:
-    """:func:`sim.zones.zone_position` of each row of ``index`` (E, 3): metres (E, 3)."""
-    out = np.empty(index.shape, dtype=float)
-    out[:, 0] = (index[:, 0] + 0.5) * area.zone_m
-    out[:, 1] = (index[:, 1] + 0.5) * area.zone_m
-    out[:, 2] = area.z_min_m + index[:, 2] * area.zone_m
-    return out
-
-
-def _masks(index: np.ndarray, area: AreaConfig) -> np.ndarray:
-    """Bool (E, 13) move masks of zone indices (E, 3), looked up in the grid's table."""
-    return _mask_table(area)[index[:, 0], index[:, 1], index[:, 2]]
-
-
-@lru_cache(maxsize=8)
-def _mask_table(area: AreaConfig) -> np.ndarray:
-    """Bool (n_x, n_y, n_z, 13): the moves that stay on the grid from every zone index."""
-    shape = grid_shape(area)
-    index = np.stack(np.meshgrid(*(np.arange(n) for n in shape), indexing="ij"), axis=-1)
-    landing = index[..., None, :] + MOVES
-    table = np.all((landing >= 0) & (landing < shape), axis=-1)
-    table.setflags(write=False)
-    return table
-
-
-def valid_moves_many(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
-    """:func:`sim.world.valid_moves` of each row of ``xyz_m`` (E, 3): bool (E, 13)."""
-    return _masks(zone_indices(xyz_m, area), area)
-
-
-def move_targets(
-    moves: np.ndarray, xyz_m: np.ndarray, area: AreaConfig, index: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`sim.world.move_target` of each environment: targets (E, 3), refused (E,).
-
-    ``moves`` (E,) are valid move numbers; ``index`` the vehicles' zone indices when known."""
-    if index is None:
-        index = zone_indices(xyz_m, area)
-    landing = index + MOVES[moves]
-    allowed = np.all((landing >= 0) & (landing < grid_shape(area)), axis=1)
-    landing[~allowed] = index[~allowed]
-    return zone_positions(landing, area), ~allowed
-
-
-def coordinates_targets(actions: np.ndarray, area: AreaConfig) -> np.ndarray:
-    """:func:`sim.world.coordinates_target` of each row of ``actions`` (E, 3): metres (E, 3)."""
-    a = np.clip(np.asarray(actions, dtype=float), 0.0, 1.0)
-    out = np.empty(a.shape)
-    out[:, 0] = a[:, 0] * area.size_x_m
-    out[:, 1] = a[:, 1] * area.size_y_m
-    out[:, 2] = area.z_min_m + a[:, 2] * (area.z_max_m - area.z_min_m)
-    return out
-
-
-def fly_many(
-    position_m: np.ndarray, target_m: np.ndarray, flight: Flight, duration_s: float
-) -> np.ndarray:
-    """:func:`sim.world.fly` of each row of ``position_m`` toward ``target_m`` (E, 3).
-
-    The horizontal distance is Python's ``math.hypot`` (as the scalar function's), one call per
-    row: numpy's ``hypot`` rounds differently in the last bit now and then."""
-    position = np.asarray(position_m, dtype=float)
-    out = np.array(target_m, dtype=float)
-    if flight.horizontal_mps is not None:
-        gap_x = out[:, 0] - position[:, 0]
-        gap_y = out[:, 1] - position[:, 1]
-        distance = np.fromiter(
-            map(math.hypot, gap_x.tolist(), gap_y.tolist()), dtype=float, count=len(out)
-        )
-        reach = flight.horizontal_mps * duration_s
-        far = distance > reach
-        if far.any():
-            scale = reach / distance[far]
-            out[far, 0] = position[far, 0] + gap_x[far] * scale
-            out[far, 1] = position[far, 1] + gap_y[far] * scale
-    if flight.vertical_mps is not None:
-        reach_z = flight.vertical_mps * duration_s
-        gap_z = out[:, 2] - position[:, 2]
-        far = np.abs(gap_z) > reach_z
-        if far.any():
-            out[far, 2] = position[far, 2] + np.copysign(reach_z, gap_z[far])
-    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -255,7 +155,6 @@ class FapVectorEnv(VectorEnv):
         self._index = np.zeros((n, 3), dtype=np.int64)
         self._mask = np.ones((n, N_MOVES), dtype=bool)
         self._refused = np.zeros(n, dtype=bool)
-        self._rows = np.arange(n)
         self._groups: list[_Group] = []
         self._steps = 0
         self._started = False
@@ -284,12 +183,11 @@ class FapVectorEnv(VectorEnv):
         world = self.world
         if self.kind == "discrete":
             moves = self._check_moves(actions)
-            allowed = self._mask[self._rows, moves]
-            landing = self._index + MOVES[moves] * allowed[:, None]
-            self._refused = ~allowed
-            self.target_xyz_m = zone_positions(landing, self.area)
+            self.target_xyz_m, self._refused = move_targets(
+                moves, self.uav_xyz_m, self.area, index=self._index
+            )
         else:
-            self.target_xyz_m = coordinates_targets(self._check_coordinates(actions), self.area)
+            self.target_xyz_m = unit_to_m_many(self._check_coordinates(actions), self.area)
         if world.flight.teleports:
             self.uav_xyz_m = self.target_xyz_m.copy()
         else:
@@ -384,7 +282,7 @@ class FapVectorEnv(VectorEnv):
         """The vehicles are somewhere new: their zones (and, discrete, their move masks)."""
         if self.kind == "discrete":
             self._index = zone_indices(self.uav_xyz_m, self.area)
-            self._mask = _masks(self._index, self.area)
+            self._mask = move_masks(self._index, self.area)
 
     def _simulate(self, refresh_users: bool) -> np.ndarray:
         """One step of every cell (queues carried over); the utilities (E,), the reports kept."""

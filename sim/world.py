@@ -20,13 +20,9 @@ Every knob can be changed from the command line with ``--world-set key=value`` (
 e.g. ``flight.horizontal_mps=5`` or ``mobility.model=group``): :func:`world_with` parses and
 checks them, one-line errors naming the field.
 
-**Actions become targets here** (:func:`move_target`, :func:`coordinates_target`), one code path
-for the environments and the service. A discrete move applies to the zone the vehicle is *in
-now*, not to the previous target: the policy sees the vehicle where it is (the observation is
-built at the vehicle's position), so "east 1" must mean one zone east of *that*. Each decision
-replaces the target while the vehicle chases it; a policy that keeps choosing "east" flies east
-at full speed, "stay" stops it at the centre of its zone. Under the paper's protocol the vehicle
-is always at its target zone's centre, so this is exactly the paper's move.
+Actions become targets in :mod:`sim.geometry` (:func:`~sim.geometry.move_target`,
+:func:`~sim.geometry.unit_to_m`): one code path for the environments and the service. The
+vehicle flies toward its target through :func:`fly`.
 """
 
 from __future__ import annotations
@@ -41,7 +37,7 @@ import numpy as np
 
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
 from sim.errors import InputError
-from sim.zones import MOVES, move_mask, zone_index, zone_position
+from sim.geometry import zone_position
 
 __all__ = [
     "WORLDS",
@@ -50,11 +46,9 @@ __all__ = [
     "Mobility",
     "ReportModel",
     "World",
-    "coordinates_target",
     "fly",
+    "fly_many",
     "get_world",
-    "move_target",
-    "position_to_coordinates",
     "world_with",
 ]
 
@@ -248,7 +242,7 @@ def _check_range(name: str, value: tuple[float, float], positive: bool) -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# Flight and actions: one code path for the environments and the service
+# Flight: one code path for the environments and the service
 
 
 def fly(
@@ -271,52 +265,34 @@ def fly(
     return np.array([x, y, z])
 
 
-def move_target(
-    move: int, vehicle_xyz_m: np.ndarray, area: AreaConfig, index: np.ndarray | None = None
-) -> tuple[np.ndarray, bool]:
-    """The target of discrete ``move`` taken where the vehicle is: ``(target, refused)``.
+def fly_many(
+    position_m: np.ndarray, target_m: np.ndarray, flight: Flight, duration_s: float
+) -> np.ndarray:
+    """:func:`fly` of each row of ``position_m`` toward ``target_m`` (E, 3).
 
-    The move steps the index of the zone holding the vehicle (:func:`sim.zones.zone_index`;
-    ``index`` when the caller has it already); a move that would leave the volume is refused
-    and the target is that zone's centre (as "stay"). See the module doc for why moves apply to
-    the vehicle's zone.
-    """
-    if index is None:
-        index = zone_index(np.asarray(vehicle_xyz_m, dtype=float), area)
-    refused = not bool(move_mask(index, area)[move])
-    if refused:
-        return zone_position(index, area), True
-    return zone_position(index + MOVES[move], area), False
-
-
-def valid_moves(vehicle_xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
-    """Boolean (13,): the moves :func:`move_target` accepts from where the vehicle is."""
-    return move_mask(zone_index(np.asarray(vehicle_xyz_m, dtype=float), area), area)
-
-
-def coordinates_target(action: np.ndarray, area: AreaConfig) -> np.ndarray:
-    """The target of an absolute-coordinates action (x, y, z) in [0, 1]³, metres."""
-    a = np.clip(np.asarray(action, dtype=float).reshape(3), 0.0, 1.0)
-    return np.array(
-        [
-            a[0] * area.size_x_m,
-            a[1] * area.size_y_m,
-            area.z_min_m + a[2] * (area.z_max_m - area.z_min_m),
-        ]
-    )
-
-
-def position_to_coordinates(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
-    """Inverse of :func:`coordinates_target` (float64, clipped to [0, 1])."""
-    span_z = area.z_max_m - area.z_min_m
-    action = np.array(
-        [
-            xyz_m[0] / area.size_x_m,
-            xyz_m[1] / area.size_y_m,
-            (xyz_m[2] - area.z_min_m) / span_z if span_z > 0 else 0.0,
-        ]
-    )
-    return np.clip(action, 0.0, 1.0)
+    The horizontal distance is Python's ``math.hypot`` (as the scalar function's), one call per
+    row: numpy's ``hypot`` rounds differently in the last bit now and then."""
+    position = np.asarray(position_m, dtype=float)
+    out = np.array(target_m, dtype=float)
+    if flight.horizontal_mps is not None:
+        gap_x = out[:, 0] - position[:, 0]
+        gap_y = out[:, 1] - position[:, 1]
+        distance = np.fromiter(
+            map(math.hypot, gap_x.tolist(), gap_y.tolist()), dtype=float, count=len(out)
+        )
+        reach = flight.horizontal_mps * duration_s
+        far = distance > reach
+        if far.any():
+            scale = reach / distance[far]
+            out[far, 0] = position[far, 0] + gap_x[far] * scale
+            out[far, 1] = position[far, 1] + gap_y[far] * scale
+    if flight.vertical_mps is not None:
+        reach_z = flight.vertical_mps * duration_s
+        gap_z = out[:, 2] - position[:, 2]
+        far = np.abs(gap_z) > reach_z
+        if far.any():
+            out[far, 2] = position[far, 2] + np.copysign(reach_z, gap_z[far])
+    return out
 
 
 # --------------------------------------------------------------------------------------------

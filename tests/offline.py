@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-from service.mavlink_link import LinkConfig, MavlinkLink
+from service.mavlink_link import MavlinkLink
 from service.placement import PlacementService
 from service.policy_runtime import load_policy
 from service.settings import ServiceSettings
+from service.vehicle_link import LinkConfig
 
 
 def offline_service(settings: ServiceSettings) -> PlacementService:

@@ -23,8 +23,8 @@ from service.policy_runtime import SHIPPED_CHECKPOINTS, SHIPPED_DDQN
 from service.settings import ServiceSettings
 from sitl_mock.config import VehicleConfig
 from sitl_mock.server import MockAutopilot
+from tests.helpers import wait_for
 from tests.offline import offline_service
-from tests.sitl_mock.helpers import wait_for
 
 TOKEN = "test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

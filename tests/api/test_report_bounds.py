@@ -17,10 +17,9 @@ from hypothesis import strategies as st
 
 from api.app import create_app
 from api.schemas import MAX_BPS, MAX_DELAY_S, ReportIn
-from policies.baselines import make_policy
-from service.policy_runtime import BaselinePolicy
+from policies.registry import resolve_policy
 from service.settings import ServiceSettings
-from sim.config import AreaConfig, NetworkConfig, UtilityConfig
+from sim.config import AreaConfig
 from sim.observation import UserReports
 from tests.offline import offline_service
 
@@ -137,14 +136,7 @@ def test_the_largest_accepted_values_are_accepted(client: TestClient) -> None:
     assert response.status_code == 200, response.text
 
 
-_POLICIES = {
-    name: BaselinePolicy(
-        name,
-        make_policy(name, AREA, NetworkConfig(), UtilityConfig()),
-        name,
-    )
-    for name in ("min-distance", "load-weighted")
-}
+_POLICIES = {name: resolve_policy(name) for name in ("min-distance", "load-weighted")}
 _bps = st.floats(0.0, MAX_BPS)
 _user = st.fixed_dictionaries(
     {
@@ -167,7 +159,7 @@ def test_baselines_give_a_finite_target_inside_the_area_for_every_accepted_repor
     ReportIn.model_validate(body)  # the schema accepts it: the property covers what is served
     reports = UserReports(**{k: np.array([u[k] for u in users], dtype=float) for k in users[0]})
     centre = np.array([AREA.size_x_m / 2, AREA.size_y_m / 2, AREA.z_min_m])
-    target = _POLICIES[name].decide(reports, centre, centre)
+    target = _POLICIES[name].decide(reports, centre)
     assert target.shape == (3,) and all(math.isfinite(v) for v in target), target
     assert 0.0 <= target[0] <= AREA.size_x_m and 0.0 <= target[1] <= AREA.size_y_m
     assert AREA.z_min_m <= target[2] <= AREA.z_max_m
@@ -186,5 +178,5 @@ def test_many_users_at_the_largest_loads_stay_finite() -> None:
     )
     centre = np.array([AREA.size_x_m / 2, AREA.size_y_m / 2, AREA.z_min_m])
     for policy in _POLICIES.values():
-        target = policy.decide(reports, centre, centre)
+        target = policy.decide(reports, centre)
         assert np.all(np.isfinite(target)) and 0 <= target[0] <= AREA.size_x_m

@@ -16,14 +16,14 @@ import httpx
 import numpy as np
 import pytest
 
-from policies.baselines import make_policy
-from service.controller_sim import SimulatedNetwork, TruePosition, run_scenario
+from closed_loop.controller import SimulatedNetwork, TruePosition, run_scenario
+from closed_loop.processes import TupaProcess, start_service, start_sitl_mock
+from policies.registry import make_placement
 from service.frames import FrameConfig
-from service.processes import TupaProcess, start_service, start_sitl_mock
 from sim.network import NetworkModel
 from sim.scenarios import Scenario
 from sim.utility import network_utility
-from tests.sitl_mock.helpers import wait_for
+from tests.helpers import wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -92,8 +92,8 @@ def test_vehicle_ends_nearer_the_load_weighted_optimum(loop: tuple[str, str, int
     finally:
         vehicle.close()
     final = np.asarray(records[-1].position_m)
-    weighted = make_policy("load-weighted").place(SCENARIO)
-    plain = make_policy("min-distance").place(SCENARIO)
+    weighted = make_placement("load-weighted").place(SCENARIO)
+    plain = make_placement("min-distance").place(SCENARIO)
     to_weighted = np.linalg.norm(final[:2] - weighted[:2])
     to_plain = np.linalg.norm(final[:2] - plain[:2])
     assert to_weighted < to_plain, (final, weighted, plain)

@@ -19,10 +19,10 @@ from typing import Any
 
 import httpx
 
-from service.processes import TupaProcess, start_service
+from closed_loop.processes import TupaProcess, start_service
 from tests.faults.mock_process import MockProcess, start_mock_process
 from tests.faults.udp_proxy import UdpProxy
-from tests.sitl_mock.helpers import wait_for
+from tests.helpers import wait_for
 
 ORIGIN_M = -250.0
 PX4_FAST = [

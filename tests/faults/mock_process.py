@@ -7,7 +7,7 @@ object with the mock's ``stats`` (setpoints received, signing rejections, failsa
 vehicle's ``state`` (mode, armed, position). It prints ``stats on http://127.0.0.1:PORT/`` before
 the usual ``listening on`` line. Being a real process, a test can SIGKILL it mid-flight.
 
-:func:`start_mock_process` starts it (dying with the test process, as :mod:`service.processes`
+:func:`start_mock_process` starts it (dying with the test process, as :mod:`closed_loop.processes`
 children do) and returns a :class:`MockProcess` with ``port``, ``stats()`` and ``state()``.
 """
 
@@ -24,7 +24,7 @@ from typing import Any
 
 import httpx
 
-from service.processes import TupaProcess
+from closed_loop.processes import TupaProcess
 
 REPO = Path(__file__).resolve().parents[2]
 

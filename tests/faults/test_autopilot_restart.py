@@ -23,7 +23,7 @@ from tests.faults.harness import (
     target_xyz,
     wait_airborne,
 )
-from tests.sitl_mock.helpers import wait_for
+from tests.helpers import wait_for
 
 pytestmark = pytest.mark.slow
 

@@ -26,7 +26,7 @@ import pytest
 
 from service.policy_runtime import SHIPPED_DDQN
 from tests.faults.harness import PX4_FAST, USERS_EAST, USERS_NORTH, Api, Harness
-from tests.sitl_mock.helpers import wait_for
+from tests.helpers import wait_for
 
 pytestmark = pytest.mark.slow
 

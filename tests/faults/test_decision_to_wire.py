@@ -24,10 +24,10 @@ import pytest
 
 from service.frames import FrameConfig, area_to_ned
 from service.links import LINK_BACKENDS, open_link
-from service.mavlink_link import LinkConfig
+from service.vehicle_link import LinkConfig
 from sim.config import AreaConfig
 from sitl_mock.vehicle import Vehicle
-from tests.sitl_mock.helpers import wait_for
+from tests.helpers import wait_for
 
 AREA = AreaConfig(size_x_m=60.0, size_y_m=60.0, zone_m=5.0, z_min_m=5.0, z_max_m=20.0)
 FRAMES = FrameConfig(area_origin_north_m=-20.0, area_origin_east_m=-10.0)

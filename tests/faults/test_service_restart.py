@@ -33,7 +33,7 @@ from tests.faults.harness import (
     wait_airborne,
     wait_at,
 )
-from tests.sitl_mock.helpers import wait_for
+from tests.helpers import wait_for
 
 pytestmark = pytest.mark.slow
 

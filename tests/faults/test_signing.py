@@ -16,7 +16,7 @@ import secrets
 import pytest
 
 from tests.faults.harness import PX4_FAST, USERS_EAST, Harness
-from tests.sitl_mock.helpers import wait_for
+from tests.helpers import wait_for
 
 pytestmark = pytest.mark.slow
 

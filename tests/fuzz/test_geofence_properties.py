@@ -3,10 +3,10 @@ setpoint outside the geofence (the area volume: x, y in [0, 500] m, z in [25, 10
 
 Three levels, all on real code (no fakes):
 
-* :func:`service.geofence.clamp_to_area` on any three floats;
+* :func:`sim.geometry.clamp_point` (the geofence) on any three floats;
 * every policy kind (the baselines: ``placement``; the shipped DDQN checkpoint when it is there:
   ``moves``; a real, untrained DDPG network: ``coordinates``) deciding on
-  any report from any vehicle position and current target, its target handed to a real
+  any report from any vehicle position, its target handed to a real
   :class:`~service.mavlink_link.MavlinkLink` (to a closed port: it clamps without a vehicle),
   exactly as :meth:`PlacementService.decide_once` does: the target the link would stream is
   inside the volume, or the decision is refused with ValueError and the old target stays;
@@ -20,6 +20,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Iterator
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -27,11 +28,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from service.geofence import clamp_to_area
-from service.mavlink_link import LinkConfig, MavlinkLink
-from service.policy_runtime import SHIPPED_DDQN, ServingPolicy, load_policy
+from policies.interface import Policy
+from service.mavlink_link import MavlinkLink
+from service.policy_runtime import SHIPPED_DDQN, load_policy
+from service.vehicle_link import LinkConfig
 from sim.config import AreaConfig
+from sim.geometry import clamp_point
 from sim.observation import UserReports
+from sim.world import CLOSED_LOOP, PAPER
 
 AREA = AreaConfig()
 BOUNDS = ((0.0, AREA.size_x_m), (0.0, AREA.size_y_m), (AREA.z_min_m, AREA.z_max_m))
@@ -104,7 +108,7 @@ def hostile_reports(draw: Any, max_users: int = 50) -> UserReports:
     )
 
 
-# --------------------------------------------------------------------------- clamp_to_area
+# --------------------------------------------------------------------------- clamp_point
 
 
 @given(target=st.tuples(any_float, any_float, any_float))
@@ -112,14 +116,14 @@ def hostile_reports(draw: Any, max_users: int = 50) -> UserReports:
 def test_clamp_to_area_puts_every_finite_target_inside(target: tuple[float, ...]) -> None:
     if not all(math.isfinite(v) for v in target):
         with pytest.raises(ValueError, match="finite"):
-            clamp_to_area(target, AREA)
+            clamp_point(target, AREA)
         return
-    clamped, was_clamped = clamp_to_area(target, AREA)
+    clamped, was_clamped = clamp_point(target, AREA)
     assert inside(clamped)
     assert was_clamped == (not inside(target))
     if inside(target):
         assert clamped == tuple(float(v) for v in target)
-    assert clamp_to_area(clamped, AREA) == (clamped, False)  # idempotent
+    assert clamp_point(clamped, AREA) == (clamped, False)  # idempotent
     for value, got, (lo, hi) in zip(target, clamped, BOUNDS, strict=True):
         assert got == min(max(value, lo), hi)  # the nearest point: per-axis clamp
 
@@ -128,7 +132,7 @@ def test_clamp_to_area_puts_every_finite_target_inside(target: tuple[float, ...]
 @PROPERTY
 def test_clamp_to_area_refuses_anything_but_three_numbers(target: list[float]) -> None:
     with pytest.raises(ValueError, match="target"):
-        clamp_to_area(target, AREA)
+        clamp_point(target, AREA)
 
 
 # --------------------------------------------------------------------------- every policy kind
@@ -153,35 +157,35 @@ def _policy_specs() -> list[Any]:
     return specs
 
 
-_POLICIES: dict[str, ServingPolicy] = {}
+_POLICIES: dict[str, Policy] = {}
 DDPG_UNTRAINED = "ddpg-untrained"
 
 
-def _untrained_ddpg() -> ServingPolicy:
+def _untrained_ddpg() -> Policy:
     """A DDPG policy (kind ``coordinates``) as the service serves one, with a freshly built
     (untrained, small) network: no DDPG checkpoint is shipped."""
     from dataclasses import replace
 
+    from policies.adapters import CheckpointPolicy
     from policies.presets import NetworkPreset, get_preset
     from policies.training import build_model, make_env
-    from service.policy_runtime import CheckpointPolicy
-    from sim.config import UtilityConfig
     from sim.scenarios import generate_scenarios
-    from sim.world import PAPER
 
     tiny = NetworkPreset(channels=(8,), hidden=32, features_dim=32, dropout=0.0)
     preset = replace(get_preset("fast", "ddpg"), network=tiny, buffer_size=1_000)
     env = make_env("ddpg", generate_scenarios(2, 3, seed=7), replace(PAPER, area=AREA))
     model = build_model("ddpg", env, preset, seed=0, tensorboard_log=None)
     metadata = {"algorithm": "ddpg", "strategy": "untrained"}
-    return CheckpointPolicy(
-        DDPG_UNTRAINED, model, metadata, DDPG_UNTRAINED, AREA, UtilityConfig(), "coordinates"
-    )
+    return CheckpointPolicy(model, metadata, DDPG_UNTRAINED, world=replace(PAPER, area=AREA))
 
 
-def _policy(spec: str) -> ServingPolicy:
+def _policy(spec: str) -> Policy:
     if spec not in _POLICIES:  # loading a checkpoint takes seconds: once per session
-        _POLICIES[spec] = _untrained_ddpg() if spec == DDPG_UNTRAINED else load_policy(spec, AREA)
+        _POLICIES[spec] = (
+            _untrained_ddpg()
+            if spec == DDPG_UNTRAINED
+            else load_policy(spec, replace(CLOSED_LOOP, area=AREA))
+        )
     return _POLICIES[spec]
 
 
@@ -194,15 +198,14 @@ def link() -> Iterator[MavlinkLink]:
 
 def _decide_and_stream(
     link: MavlinkLink,
-    policy: ServingPolicy,
+    policy: Policy,
     reports: UserReports,
     vehicle: np.ndarray,
-    current: np.ndarray,
 ) -> None:
     """What decide_once does with a decision, and the property about it."""
     before = link.state().target_m
     try:
-        target = policy.decide(reports, vehicle, current)
+        target = policy.decide(reports, vehicle)
         clamped = link.set_target(tuple(float(v) for v in np.asarray(target).ravel()))
     except ValueError:  # the one documented refusal (InputError is one)
         assert link.state().target_m == before  # refused: the old target stays
@@ -213,31 +216,30 @@ def _decide_and_stream(
 
 
 @pytest.mark.parametrize("spec", _policy_specs())
-@given(reports=valid_reports(), vehicle=position, current=position)
+@given(reports=valid_reports(), vehicle=position)
 @PROPERTY
 def test_any_valid_report_and_any_position_stream_inside_the_geofence(
-    spec: str, link: MavlinkLink, reports: UserReports, vehicle: Any, current: Any
+    spec: str, link: MavlinkLink, reports: UserReports, vehicle: Any
 ) -> None:
     policy = _policy(spec)
     if spec == "oracle" and len(reports.x_m) > 40:  # the oracle searches the volume: keep it quick
         reports = UserReports(*(np.asarray(col)[:40] for col in _columns(reports)))
     with np.errstate(invalid="ignore"):  # a 1e300 m position cast to a zone index
-        _decide_and_stream(link, policy, reports, np.array(vehicle), np.array(current))
+        _decide_and_stream(link, policy, reports, np.array(vehicle))
 
 
 @pytest.mark.parametrize("spec", _policy_specs())
 @given(
     reports=hostile_reports(),
     vehicle=st.tuples(any_float, any_float, any_float),
-    current=st.tuples(any_float, any_float, any_float),
 )
 @PROPERTY
 def test_nan_and_hostile_numbers_never_stream_outside_the_geofence(
-    spec: str, link: MavlinkLink, reports: UserReports, vehicle: Any, current: Any
+    spec: str, link: MavlinkLink, reports: UserReports, vehicle: Any
 ) -> None:
     policy = _policy(spec)
     with np.errstate(all="ignore"):
-        _decide_and_stream(link, policy, reports, np.array(vehicle), np.array(current))
+        _decide_and_stream(link, policy, reports, np.array(vehicle))
 
 
 def _columns(reports: UserReports) -> list[np.ndarray]:
@@ -261,7 +263,7 @@ def placement() -> Iterator[Any]:
     from service.settings import ServiceSettings
     from sitl_mock.config import VehicleConfig
     from sitl_mock.server import MockAutopilot
-    from tests.sitl_mock.helpers import wait_for
+    from tests.helpers import wait_for
 
     mock = MockAutopilot("tcp:127.0.0.1:0", "px4", VehicleConfig(ready_delay_s=0.3))
     mock.start()

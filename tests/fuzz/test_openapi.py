@@ -26,7 +26,7 @@ from api.app import create_app
 from service.settings import ServiceSettings
 from sitl_mock.config import VehicleConfig
 from sitl_mock.server import MockAutopilot
-from tests.sitl_mock.helpers import wait_for
+from tests.helpers import wait_for
 
 TOKEN = "fuzz-token-0123456789abcdef"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

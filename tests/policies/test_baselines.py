@@ -2,20 +2,19 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from policies.baselines import (
-    BASELINES,
-    MinDistancePolicy,
-    PlacementPolicy,
-    geometric_median,
-    make_policy,
-)
+from policies.baselines import MinDistancePolicy, geometric_median
+from policies.interface import Placement
+from policies.registry import PLACEMENTS, make_placement
 from sim.config import AreaConfig
 from sim.scenarios import Scenario
+from sim.world import PAPER
 
 AREA = AreaConfig()
 HEIGHT_M = AREA.z_min_m - AREA.user_height_m
@@ -125,7 +124,7 @@ def test_load_weighted_moves_toward_the_heavy_user(points, heavy, factor) -> Non
 def test_baseline_positions_lie_in_the_volume_at_minimum_altitude(points, data, name) -> None:
     xy = np.array(points)
     loads = data.draw(st.lists(st.floats(1.0, 4e7), min_size=len(xy), max_size=len(xy)))
-    position = make_policy(name, AREA).place(Scenario("s", xy, np.array(loads)))
+    position = make_placement(name).place(Scenario("s", xy, np.array(loads)))
     assert position.shape == (3,)
     assert 0.0 <= position[0] <= AREA.size_x_m
     assert 0.0 <= position[1] <= AREA.size_y_m
@@ -133,13 +132,13 @@ def test_baseline_positions_lie_in_the_volume_at_minimum_altitude(points, data, 
 
 
 def test_registry_and_unknown_name() -> None:
-    assert list(BASELINES) == ["min-distance", "load-weighted", "oracle"]
-    for name in BASELINES:
-        policy = make_policy(name, AREA, episode_steps=5)
+    assert list(PLACEMENTS) == ["min-distance", "load-weighted", "oracle"]
+    for name in PLACEMENTS:
+        policy = make_placement(name, replace(PAPER, episode_steps=5))
         assert policy.name == name
-        assert isinstance(policy, PlacementPolicy)
+        assert isinstance(policy, Placement)
     with pytest.raises(ValueError, match="min-distance, load-weighted, oracle"):
-        make_policy("nearest", AREA)
+        make_placement("nearest")
 
 
 def test_bad_weights_are_rejected() -> None:

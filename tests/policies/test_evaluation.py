@@ -9,18 +9,19 @@ from typing import Any
 import numpy as np
 import pytest
 
-from policies.baselines import make_policy
 from policies.evaluation import (
-    EpisodePolicy,
     evaluate_policy,
     format_results,
     heterogeneity_bin,
 )
+from policies.interface import Policy
+from policies.registry import make_placement
 from sim.config import AreaConfig
 from sim.errors import InputError
+from sim.observation import UserReports
 from sim.scenarios import Scenario, generate_scenarios
 from sim.utility import heterogeneity_index
-from sim.world import PAPER, World, position_to_coordinates
+from sim.world import PAPER, World
 
 AREA = AreaConfig()
 STEPS = 20
@@ -41,7 +42,7 @@ def run(policy: Any, scenarios: list[Scenario], **kwargs: Any) -> dict[str, Any]
 
 
 def test_result_shape(scenarios: list[Scenario]) -> None:
-    result = run(make_policy("min-distance", AREA), scenarios)
+    result = run(make_placement("min-distance"), scenarios)
     assert list(result) == [
         "policy",
         "world",
@@ -75,9 +76,7 @@ def test_result_shape(scenarios: list[Scenario]) -> None:
         assert all(type(row[k]) is float for k in list(row)[1:-2])
         assert len(row["trace"]) == STEPS
         assert 0 < row["time_to_final_s"] <= STEPS * WORLD.step_s
-        np.testing.assert_allclose(
-            row["uav_xyz_m"], make_policy("min-distance", AREA).place(scenario)
-        )
+        np.testing.assert_allclose(row["uav_xyz_m"], make_placement("min-distance").place(scenario))
         assert 0.0 <= row["utility"] <= 1.0
         assert 0.0 <= row["plr"] <= 1.0
         assert row["delay_s"] >= 0.0
@@ -93,7 +92,7 @@ def test_result_shape(scenarios: list[Scenario]) -> None:
 
 
 def test_same_seed_same_json_other_seed_differs(scenarios: list[Scenario]) -> None:
-    policy = make_policy("load-weighted", AREA)
+    policy = make_placement("load-weighted")
     first = json.dumps(run(policy, scenarios, seed=3))
     assert json.dumps(run(policy, scenarios, seed=3)) == first
     assert json.dumps(run(policy, scenarios, seed=4)) != first
@@ -110,26 +109,27 @@ class FixedPlacement:
 
 @dataclass
 class HoverAtStart:
-    """An acting policy (the seam a trained agent plugs into): default start, then hold."""
+    """A policy deciding targets itself (the seam a checkpoint plugs into): default start,
+    then hold where it is."""
 
-    env_kind: str
     name: str = "hover"
+    spec: str = "hover"
+    kind: str = "coordinates"
 
-    def begin_episode(self, scenario: Any, world: World) -> None:
+    def begin_episode(self, users: Any, world: World) -> None:
         return None
 
-    def act(self, observation: np.ndarray, info: dict[str, Any]) -> Any:
-        assert observation.shape == (6, AREA.n_zones_x, AREA.n_zones_y)
-        if self.env_kind == "discrete":
-            assert info["action_mask"][0]
-            return 0  # stay
-        return position_to_coordinates(CENTRE_M, AREA)
+    def decide(self, reports: UserReports, vehicle_xyz_m: np.ndarray) -> np.ndarray:
+        assert len(reports.x_m) == 3
+        return vehicle_xyz_m.copy()
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name}
 
 
-@pytest.mark.parametrize("env_kind", ["continuous", "discrete"])
-def test_acting_policy_runs_in_the_same_loop(scenarios: list[Scenario], env_kind: str) -> None:
-    agent = HoverAtStart(env_kind)
-    assert isinstance(agent, EpisodePolicy)
+def test_a_deciding_policy_runs_in_the_same_loop(scenarios: list[Scenario]) -> None:
+    agent = HoverAtStart()
+    assert isinstance(agent, Policy)
     acted = run(agent, scenarios, seed=9)
     static = run(FixedPlacement("hover", CENTRE_M), scenarios, seed=9)
     assert acted == static
@@ -143,7 +143,7 @@ def test_every_policy_sees_the_same_random_numbers(scenarios: list[Scenario]) ->
 
 
 def test_bad_arguments(scenarios: list[Scenario]) -> None:
-    policy = make_policy("min-distance", AREA)
+    policy = make_placement("min-distance")
     with pytest.raises(ValueError, match="empty"):
         evaluate_policy(policy, [], WORLD, progress=False)
     with pytest.raises(ValueError, match="seed"):
@@ -160,7 +160,7 @@ def test_heterogeneity_bins() -> None:
 
 
 def test_tables_name_policies_bins_and_gains(scenarios: list[Scenario]) -> None:
-    results = [run(make_policy(n, AREA), scenarios) for n in ("min-distance", "load-weighted")]
+    results = [run(make_placement(n), scenarios) for n in ("min-distance", "load-weighted")]
     text = format_results(results)
     assert "min-distance" in text and "load-weighted" in text
     assert "load-weighted/min-distance" in text

@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from policies.baselines import make_policy
 from policies.evaluation import evaluate_policy
 from policies.oracle import OracleConfig, OraclePolicy, episode_utility
+from policies.registry import make_placement
 from sim.config import AreaConfig, NetworkConfig
 from sim.scenarios import Scenario, generate_scenarios
 from sim.world import PAPER
@@ -46,7 +46,7 @@ def test_oracle_is_never_beaten_by_the_baselines_on_the_expected_model(
         network=NetworkConfig().with_queueing(queueing),
     )
     results = {
-        name: evaluate_policy(make_policy(name, world=world), scenarios, world, progress=False)
+        name: evaluate_policy(make_placement(name, world), scenarios, world, progress=False)
         for name in ("min-distance", "load-weighted", "oracle")
     }
     oracle = [s["utility"] for s in results["oracle"]["scenarios"]]

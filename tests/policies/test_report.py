@@ -14,18 +14,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from policies.baselines import make_policy
 from policies.evaluation import evaluate_policy
-from policies.report import (
+from policies.registry import make_placement
+from policies.report import ReportFiles, build_report
+from policies.report.curves import (
     LEARNING_CURVE_FORMAT,
     CurvePoint,
     LearningCurve,
-    Report,
-    build_report,
-    load_eval_results,
     load_learning_curve,
     write_learning_curve,
 )
+from policies.report.inputs import load_eval_results
 from service.cli import main
 from sim.config import AreaConfig, NetworkConfig
 from sim.errors import InputError
@@ -61,7 +60,7 @@ CURVE = {
 
 def _evaluate(name: str, scenarios: list) -> dict:
     world = replace(PAPER, area=AREA, network=NetworkConfig(), episode_steps=5)
-    return evaluate_policy(make_policy(name, world=world), scenarios, world, seed=1, progress=False)
+    return evaluate_policy(make_placement(name, world), scenarios, world, seed=1, progress=False)
 
 
 @pytest.fixture(scope="module")
@@ -100,7 +99,7 @@ def results_dir(tmp_path: Path, evaluations: dict[str, dict]) -> Path:
 
 
 @pytest.fixture(scope="module")
-def built(tmp_path_factory, evaluations: dict[str, dict]) -> tuple[Path, Report, list[str]]:
+def built(tmp_path_factory, evaluations: dict[str, dict]) -> tuple[Path, ReportFiles, list[str]]:
     """The report of the intact results directory, built once: (out dir, report, warnings)."""
     base = tmp_path_factory.mktemp("built")
     results = _write_results_dir(base / "results", evaluations)

@@ -7,9 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from policies.agents import TrainedAgent
+from policies.adapters import CheckpointPolicy
+from policies.interface import ReportedUsers
+from policies.registry import make_placement
 from sim.config import AreaConfig
-from sim.envs import FapContinuousEnv, FapDiscreteEnv
+from sim.envs import FapContinuousEnv
+from sim.geometry import move_target, valid_moves, volume_bounds
 from sim.scenarios import generate_scenarios
 
 SHIPPED = Path(__file__).resolve().parents[2] / "policies" / "checkpoints"
@@ -19,7 +22,7 @@ AREA = AreaConfig()
 @pytest.mark.parametrize(("name", "algorithm"), [("ddqn-dr", "ddqn"), ("ddpg-residual-dr", "ddpg")])
 def test_shipped_checkpoint_has_its_metadata(name: str, algorithm: str) -> None:
     assert (SHIPPED / f"{name}.zip").is_file()
-    agent = TrainedAgent.load(SHIPPED / f"{name}.zip", AREA, device="cpu")
+    agent = CheckpointPolicy.load(SHIPPED / f"{name}.zip", device="cpu")
     assert agent.name == name
     assert agent.metadata["algorithm"] == algorithm
     assert agent.metadata["strategy"] == "gen10k"
@@ -36,35 +39,33 @@ def test_shipped_checkpoints_are_small_and_hold_no_replay_buffer() -> None:
 
 
 def test_shipped_ddqn_picks_only_valid_moves() -> None:
-    agent = TrainedAgent.load(SHIPPED / "ddqn-dr.zip", AREA, device="cpu")
-    env = FapDiscreteEnv(generate_scenarios(3, 3, seed=7, area=AREA))
+    agent = CheckpointPolicy.load(SHIPPED / "ddqn-dr.zip", device="cpu")
+    env = FapContinuousEnv(generate_scenarios(3, 3, seed=7, area=AREA))
     for episode in range(3):
-        obs, info = env.reset(seed=episode)
+        _, info = env.reset(seed=episode)
         for _ in range(15):
-            action = agent.act(obs, info)
-            assert isinstance(action, int)
-            assert info["action_mask"][action]
-            obs, _, _, _, info = env.step(action)
-            assert not info["refused_move"]
+            vehicle = info["uav_xyz_m"]
+            allowed = np.flatnonzero(valid_moves(vehicle, AREA))
+            reachable = {tuple(move_target(int(m), vehicle, AREA)[0]) for m in allowed}
+            target = agent.decide(info["reports"], vehicle)
+            assert tuple(target) in reachable
+            _, _, _, _, info = env.step_to(target)
 
 
-def test_shipped_ddpg_acts_inside_the_unit_cube_near_the_load_weighted_placement() -> None:
+def test_shipped_ddpg_decides_near_the_load_weighted_placement() -> None:
     """Residual actions: every target lies within the residual radius of the load-weighted
     placement of the reported users, inside the volume."""
-    from policies.baselines import ReportedUsers, make_policy
-
-    agent = TrainedAgent.load(SHIPPED / "ddpg-residual-dr.zip", AREA, device="cpu")
+    agent = CheckpointPolicy.load(SHIPPED / "ddpg-residual-dr.zip", device="cpu")
     radius_m = agent.metadata["residual_radius_m"]
-    weighted = make_policy("load-weighted", AREA)
+    weighted = make_placement("load-weighted")
     env = FapContinuousEnv(generate_scenarios(3, 8, seed=7, area=AREA, family="hotspots"))
+    lower, upper = volume_bounds(AREA)
     for episode in range(3):
-        obs, info = env.reset(seed=episode)
+        _, info = env.reset(seed=episode)
         for _ in range(5):
-            action = agent.act(obs, info)
-            assert action.shape == (3,)
-            assert np.all(np.isfinite(action))
-            assert np.all((action >= 0.0) & (action <= 1.0))
+            target = agent.decide(info["reports"], info["uav_xyz_m"])
+            assert target.shape == (3,)
+            assert np.all((target >= lower) & (target <= upper))
             prior = weighted.place(ReportedUsers.of(info["reports"]))
-            obs, _, _, _, info = env.step(action)
-            gap = np.abs(info["target_xyz_m"][:2] - prior[:2])
-            assert np.all(gap <= radius_m + 1e-6)
+            assert np.all(np.abs(target[:2] - prior[:2]) <= radius_m + 1e-6)
+            _, _, _, _, info = env.step_to(target)

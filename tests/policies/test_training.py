@@ -13,17 +13,19 @@ import torch as th
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from policies.agents import TrainedAgent
-from policies.baselines import ReportedUsers, make_policy
+from policies.adapters import CheckpointPolicy
 from policies.checkpoints import load_checkpoint, save_checkpoint
 from policies.ddqn import double_dqn_targets
 from policies.evaluation import evaluate_policy
+from policies.interface import ReportedUsers
 from policies.presets import NetworkPreset, get_preset
+from policies.registry import make_placement
 from policies.training import TrainConfig, build_model, make_env, train
 from service.cli import main
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.files import save_scenarios
+from sim.geometry import move_target, valid_moves
 from sim.scenarios import Scenario, generate_scenarios
 from sim.world import PAPER
 
@@ -127,19 +129,26 @@ def test_short_ddqn_training_beats_a_random_walk(tmp_path):
         ),
     )
     train(config)
-    agent = TrainedAgent.load(tmp_path / "run")
+    agent = CheckpointPolicy.load(tmp_path / "run")
 
     class RandomWalk:
-        name, env_kind = "random", "discrete"
+        """Random valid moves, as a policy deciding targets."""
+
+        name = spec = "random"
+        kind = "moves"
 
         def __init__(self):
             self.rng = np.random.default_rng(0)
 
-        def begin_episode(self, scenario, world):
+        def begin_episode(self, users, world):
             return None
 
-        def act(self, observation, info):
-            return int(self.rng.choice(np.flatnonzero(info["action_mask"])))
+        def decide(self, reports, vehicle_xyz_m):
+            move = int(self.rng.choice(np.flatnonzero(valid_moves(vehicle_xyz_m, AREA))))
+            return move_target(move, vehicle_xyz_m, AREA)[0]
+
+        def describe(self):
+            return {"name": self.name}
 
     kwargs = {"world": replace(PAPER, episode_steps=20), "seed": 0, "progress": False}
     trained = evaluate_policy(agent, [scenario], **kwargs)["mean_utility"]
@@ -159,7 +168,7 @@ def test_checkpoint_round_trip_and_resume_continues_the_step_counter(tmp_path, t
     assert loaded_meta["episodes"] == 10
     obs = np.random.default_rng(0).random((4, 6, 20, 20), dtype=np.float32)
     masks = np.ones((4, 13), dtype=bool)
-    original = TrainedAgent.load(out).model
+    original = CheckpointPolicy.load(out).model
     np.testing.assert_array_equal(
         model.masked_predict(obs, masks), original.masked_predict(obs, masks)
     )
@@ -174,7 +183,7 @@ def test_ddpg_trains_and_acts_inside_the_volume(tmp_path, test_file):
     out = tmp_path / "ddpg"
     meta = train(small_config(test_file, out, "ddpg", 6))
     assert meta["algorithm"] == "ddpg"
-    agent = TrainedAgent.load(out)
+    agent = CheckpointPolicy.load(out)
     result = evaluate_policy(
         agent, generate_scenarios(2, 3, seed=5), replace(PAPER, episode_steps=5), progress=False
     )
@@ -346,7 +355,7 @@ def test_an_untrained_residual_ddpg_is_the_load_weighted_baseline(test_file):
     env = make_env("ddpg", scenarios, replace(PAPER, area=AREA), action="residual")
     model = build_model("ddpg", env, tiny_preset("ddpg"), seed=0, tensorboard_log=None)
     zero_actor_output(model)
-    weighted = make_policy("load-weighted", AREA)
+    weighted = make_placement("load-weighted")
     for seed in range(3):
         observation, info = env.reset(seed=seed)
         delta, _ = model.predict(observation, deterministic=True)

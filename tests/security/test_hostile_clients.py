@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import httpx
 import pytest
 
-from service.processes import TupaProcess, start_service
-from tests.sitl_mock.helpers import wait_for
+from closed_loop.processes import TupaProcess, start_service
+from tests.helpers import wait_for
 
 TOKEN = "hostile-clients-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

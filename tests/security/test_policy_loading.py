@@ -27,9 +27,9 @@ from fastapi.testclient import TestClient
 from api.app import create_app
 from service.policy_runtime import SHIPPED_CHECKPOINTS
 from service.settings import ServiceSettings
+from tests.helpers import wait_for
 from tests.offline import offline_service
 from tests.security.crafted import Call, crafted_checkpoint, shipped_or_skip
-from tests.sitl_mock.helpers import wait_for
 
 TOKEN = "policy-loading-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

@@ -14,12 +14,12 @@ from fastapi.testclient import TestClient
 
 import api.auth
 from api.app import create_app
-from service.processes import start_service
+from closed_loop.processes import start_service
 from service.settings import ServiceSettings
 from sitl_mock.config import VehicleConfig
 from sitl_mock.server import MockAutopilot
+from tests.helpers import wait_for
 from tests.offline import offline_service
-from tests.sitl_mock.helpers import wait_for
 
 TOKEN = "sec-" + secrets.token_urlsafe(24)
 SIGNING_KEY = secrets.token_hex(32)

@@ -19,8 +19,8 @@ from service.frames import (
     ned_to_area,
     ned_to_global,
 )
-from service.geofence import clamp_to_area
 from sim.config import AreaConfig
+from sim.geometry import clamp_point
 
 offsets = st.floats(-5000.0, 5000.0, allow_nan=False)
 configs = st.builds(FrameConfig, offsets, offsets, st.floats(-200.0, 200.0))
@@ -91,7 +91,7 @@ AREA = AreaConfig(size_x_m=100.0, size_y_m=50.0, zone_m=5.0, z_min_m=5.0, z_max_
 
 @given(st.tuples(*[st.floats(-1e9, 1e9, allow_nan=False)] * 3))
 def test_nothing_leaves_the_fence(target):
-    (x_m, y_m, z_m), was_clamped = clamp_to_area(target, AREA)
+    (x_m, y_m, z_m), was_clamped = clamp_point(target, AREA)
     assert 0.0 <= x_m <= AREA.size_x_m
     assert 0.0 <= y_m <= AREA.size_y_m
     assert AREA.z_min_m <= z_m <= AREA.z_max_m
@@ -99,10 +99,10 @@ def test_nothing_leaves_the_fence(target):
 
 
 def test_a_point_inside_is_untouched_and_non_finite_is_refused():
-    assert clamp_to_area((10.0, 20.0, 15.0), AREA) == ((10.0, 20.0, 15.0), False)
-    assert clamp_to_area((-1.0, 60.0, 1.0), AREA) == ((0.0, 50.0, 5.0), True)
+    assert clamp_point((10.0, 20.0, 15.0), AREA) == ((10.0, 20.0, 15.0), False)
+    assert clamp_point((-1.0, 60.0, 1.0), AREA) == ((0.0, 50.0, 5.0), True)
     for bad in ((math.nan, 0.0, 10.0), (0.0, math.inf, 10.0), (0.0, 0.0, -math.inf)):
         with pytest.raises(ValueError, match="finite"):
-            clamp_to_area(bad, AREA)
+            clamp_point(bad, AREA)
     with pytest.raises(ValueError):
-        clamp_to_area((1.0, 2.0), AREA)
+        clamp_point((1.0, 2.0), AREA)

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from service.links import LINK_BACKENDS, VehicleLink, open_link
-from service.mavlink_link import LinkConfig, MavlinkLink, signing_key_from_passphrase
+from service.links import LINK_BACKENDS, open_link
+from service.mavlink_link import MavlinkLink
 from service.mavsdk_link import MavsdkLink
+from service.vehicle_link import LinkConfig, VehicleLink, signing_key_from_passphrase
 
 CONFIG = LinkConfig("tcp:127.0.0.1:1")
 

@@ -10,7 +10,7 @@ import math
 import pytest
 
 from service import mavlink_commands
-from service.mavlink_link import mavlink
+from service.vehicle_link import mavlink
 
 SENT = {
     mavlink.MAV_CMD_NAV_TAKEOFF: mavlink_commands.takeoff(25.0),

@@ -2,11 +2,14 @@
 decision path, must give exactly the targets the environment chose.
 
 The environment flies an episode in the ``closed-loop`` world (flight limits, reports one step
-old) with a policy; every step records the report the decision saw, where the vehicle was and
-the target the action became. The same reports then go to a :class:`PlacementService` serving
-the same policy, its link replaying the recorded vehicle positions: each decision's target must
-equal the environment's, to the bit. A difference in the observation, the mask, the move rule or
-the coordinates mapping between training and serving fails here.
+old) with a checkpoint acting through the environment's action space, as in training (a DDQN
+move masked by ``info["action_mask"]``, a DDPG action, or a residual one through
+:class:`policies.residual.ResidualActions`); every step records the report the decision saw,
+where the vehicle was and the target the action became. The same reports then go to a
+:class:`PlacementService` serving the same policy, its link replaying the recorded vehicle
+positions: each decision's target must equal the environment's, to the bit. A difference in the
+observation, the mask, the move rule or the coordinates mapping between training and serving
+fails here.
 
 The link is a replay of recorded telemetry (what the vehicle reported), not a MAVLink link: the
 decision path is what is under test; the real links are tested in ``test_placement.py`` and the
@@ -22,13 +25,14 @@ from typing import Any
 import numpy as np
 import pytest
 
-from policies.agents import TrainedAgent
-from policies.baselines import make_policy
-from policies.evaluation import as_episode_policy
-from service.mavlink_link import LinkState
+from policies.adapters import StaticPolicy
+from policies.checkpoints import load_checkpoint
+from policies.registry import make_placement
+from policies.residual import ResidualActions, residual_radius
 from service.placement import PlacementService, Report
 from service.policy_runtime import SHIPPED_CHECKPOINTS, load_policy
 from service.settings import ServiceSettings
+from service.vehicle_link import LinkState
 from sim.envs import FapContinuousEnv, FapDiscreteEnv
 from sim.observation import UserReports
 from sim.scenarios import generate_scenarios
@@ -74,20 +78,51 @@ class ReplayLink:
         return target  # type: ignore[return-value]
 
 
-def record(agent: Any, env: Any, seed: int) -> list[tuple[UserReports, np.ndarray, np.ndarray]]:
-    """(report seen, vehicle position at the decision, target chosen) for every step."""
-    scenario = generate_scenarios(1, 5, seed=seed, family="hotspots")[0]
-    agent.begin_episode(scenario, WORLD)
-    observation, info = env.reset(seed=seed, options={"scenario": scenario})
+Step = tuple[UserReports, np.ndarray, np.ndarray]
+
+
+def _scenario(seed: int) -> Any:
+    return generate_scenarios(1, 5, seed=seed, family="hotspots")[0]
+
+
+def record_training(checkpoint: Path, seed: int) -> list[Step]:
+    """(report seen, vehicle position at the decision, target chosen) for every step, the
+    checkpoint acting through the environment's action space as in training."""
+    model, metadata = load_checkpoint(checkpoint, WORLD.area, device="cpu")
+    ddqn = metadata["algorithm"] == "ddqn"
+    env: Any = FapDiscreteEnv(world=WORLD) if ddqn else FapContinuousEnv(world=WORLD)
+    radius_m = residual_radius(metadata)
+    if radius_m is not None:
+        env = ResidualActions(env, radius_m)
+    observation, info = env.reset(seed=seed, options={"scenario": _scenario(seed)})
     steps = []
     for _ in range(STEPS):
         seen, vehicle = info["reports"], info["uav_xyz_m"]
-        observation, _, _, _, info = env.step(agent.act(observation, info))
+        if ddqn:
+            action: Any = int(model.masked_predict(observation[None], info["action_mask"][None])[0])
+        else:
+            action = model.predict(observation, deterministic=True)[0]
+        observation, _, _, _, info = env.step(action)
         steps.append((seen, vehicle, info["target_xyz_m"]))
     return steps
 
 
-def replay(spec: str, steps: list[tuple[UserReports, np.ndarray, np.ndarray]]) -> list[Any]:
+def record_placement(name: str, seed: int) -> list[Step]:
+    """The same for a placement re-placed every step, as ``tupa eval`` runs it."""
+    policy = StaticPolicy(make_placement(name, WORLD))
+    env = FapContinuousEnv(world=WORLD)
+    scenario = _scenario(seed)
+    policy.begin_episode(scenario, WORLD)
+    _, info = env.reset(seed=seed, options={"scenario": scenario})
+    steps = []
+    for _ in range(STEPS):
+        seen, vehicle = info["reports"], info["uav_xyz_m"]
+        _, _, _, _, info = env.step_to(policy.decide(seen, vehicle))
+        steps.append((seen, vehicle, info["target_xyz_m"]))
+    return steps
+
+
+def replay(spec: str, steps: list[Step]) -> list[Any]:
     link = ReplayLink()
     settings = ServiceSettings(
         mavlink="tcp:127.0.0.1:1", api_token="t", policy=spec, decision_mode="on-report"
@@ -108,9 +143,7 @@ CHECKPOINTS = sorted(SHIPPED_CHECKPOINTS.glob("*.zip"))
 
 @pytest.mark.parametrize("checkpoint", CHECKPOINTS, ids=[p.stem for p in CHECKPOINTS])
 def test_service_decides_the_environments_targets_for_a_checkpoint(checkpoint: Path) -> None:
-    agent = TrainedAgent.load(checkpoint, WORLD.area, device="cpu")
-    env_class = FapDiscreteEnv if agent.env_kind == "discrete" else FapContinuousEnv
-    steps = record(agent, env_class(world=WORLD), seed=3)
+    steps = record_training(checkpoint, seed=3)
     served = replay(str(checkpoint), steps)
     assert served == [tuple(float(v) for v in target) for _, _, target in steps]
     # The episode went somewhere: a test of "stay" everywhere would prove little.
@@ -119,12 +152,9 @@ def test_service_decides_the_environments_targets_for_a_checkpoint(checkpoint: P
 
 @pytest.mark.parametrize("name", ["min-distance", "load-weighted", "oracle"])
 def test_service_decides_the_environments_targets_for_a_baseline(name: str) -> None:
-    agent = as_episode_policy(make_policy(name, world=WORLD))
-    steps = record(agent, FapContinuousEnv(world=WORLD), seed=5)
+    steps = record_placement(name, seed=5)
     served = replay(name, steps)
-    np.testing.assert_allclose(
-        np.array(served), np.array([t for _, _, t in steps]), rtol=0, atol=1e-9
-    )
+    assert served == [tuple(float(v) for v in target) for _, _, target in steps]
 
 
 def test_the_service_decides_at_its_worlds_period_and_names_a_bad_world() -> None:

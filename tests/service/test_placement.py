@@ -1,6 +1,10 @@
-"""The placement loop's rules, against a real in-process sitl_mock (PX4 flavour, airborne):
-fresh vs stale reports, out-of-order reports, discrete moves from the vehicle's zone, the geofence,
-and the policy runtime (same observation as the environment, valid masked moves)."""
+"""The placement loop's rules: fresh vs stale reports, out-of-order reports, discrete moves from
+the vehicle's zone, a failing policy, and the policy runtime (same observation as the environment,
+valid masked moves).
+
+The rules run on an in-memory vehicle link (:class:`tests.fakes.FakeLink`: no autopilot process);
+the tests of what happens around the link (a report held while no vehicle answers, a restart that
+must not arm) run end to end against a real in-process sitl_mock (PX4 flavour)."""
 
 from __future__ import annotations
 
@@ -11,17 +15,19 @@ from typing import Any
 import numpy as np
 import pytest
 
-from service.mavlink_link import LinkConfig, MavlinkLink
+from service.mavlink_link import MavlinkLink
 from service.placement import OutOfOrderReportError, PlacementService, Report
 from service.policy_runtime import SHIPPED_DDQN, load_policy
 from service.settings import ServiceSettings
+from service.vehicle_link import LinkConfig
 from sim.config import AreaConfig
 from sim.envs import FapDiscreteEnv
 from sim.errors import InputError
+from sim.geometry import MOVES, move_mask, zone_index, zone_position
 from sim.observation import UserReports
-from sim.zones import MOVES, move_mask, zone_index, zone_position
 from sitl_mock.server import MockAutopilot
-from tests.sitl_mock.helpers import wait_for
+from tests.fakes import FakeLink
+from tests.helpers import wait_for
 
 AREA = AreaConfig()
 
@@ -38,21 +44,23 @@ def reports(heavy_xy: tuple[float, float] = (100.0, 120.0)) -> UserReports:
 
 
 @pytest.fixture
-def make_service(
-    start_mock: Callable[..., MockAutopilot],
-) -> Iterator[Callable[..., PlacementService]]:
+def make_service() -> Iterator[Callable[..., PlacementService]]:
+    """Factory: ``make_service(policy, link=None, **settings)``: a started on-report service on
+    ``link`` (default: a :class:`FakeLink` whose vehicle stands at home, the area's corner, as the
+    mock's does), ready; stopped at teardown."""
     services: list[PlacementService] = []
 
-    def _make(policy: str = "load-weighted", **settings: Any) -> PlacementService:
-        mock = start_mock("px4")
+    def _make(
+        policy: str = "load-weighted", link: FakeLink | None = None, **settings: Any
+    ) -> PlacementService:
         config = ServiceSettings(
-            mavlink=f"tcp:127.0.0.1:{mock.port}",
+            mavlink="tcp:127.0.0.1:1",
             api_token="t",
             policy=policy,
             decision_mode="on-report",
             **settings,
         )
-        link = MavlinkLink(LinkConfig(config.mavlink))
+        link = link if link is not None else FakeLink(LinkConfig(config.mavlink, area=AREA))
         service = PlacementService(config, link, load_policy(policy)).start()
         services.append(service)
         wait_for(lambda: service.readiness()[0], 15.0, message="link up with a position")
@@ -111,13 +119,15 @@ def test_ddqn_decides_every_report_from_the_vehicles_zone(
 ) -> None:
     """Moves apply to the zone the vehicle is in, and the next report is decided at once,
     whether or not the vehicle has reached the last target (it flies while the policy acts)."""
-    service = make_service(policy=str(SHIPPED_DDQN))
+    link = FakeLink(LinkConfig("tcp:127.0.0.1:1", area=AREA), position_m=(262.5, 262.5, 50.0))
+    service = make_service(policy=str(SHIPPED_DDQN), link=link)
     for timestamp in (1.0, 2.0):
         decision = service.submit_report(Report(timestamp, ("a", "b", "c"), reports()))
         assert decision is not None and decision.decided_at > 0
         start = zone_index(np.asarray(service.vehicle().position_m), AREA)
         landing = zone_index(np.asarray(decision.target_m), AREA)
         assert any(np.array_equal(start + move, landing) for move in MOVES)
+        link.advance(1.5)  # on its way (15 m at 10 m/s), not there: the next report comes
     assert service.snapshot_counters()["decisions"] == 2
 
 
@@ -142,7 +152,7 @@ def test_serving_sees_the_environments_observation_and_only_valid_moves() -> Non
         )
         uav = info["uav_xyz_m"]
         np.testing.assert_array_equal(policy.observe(served, uav), obs)  # type: ignore[attr-defined]
-        target = policy.decide(served, uav, info["target_xyz_m"])
+        target = policy.decide(served, uav)
         index = zone_index(info["target_xyz_m"], AREA)
         moves = [
             i for i, m in enumerate(MOVES) if np.allclose(zone_position(index + m, AREA), target)

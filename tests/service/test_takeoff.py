@@ -15,10 +15,9 @@ import time
 
 import pytest
 
-from service.mavlink_link import ekf_position_ok, mavlink
-from tests.service.conftest import AREA
-from tests.service.test_mavlink_link import FAST_VEHICLE, tcp_url
-from tests.sitl_mock.helpers import wait_for
+from service.vehicle_link import ekf_position_ok, mavlink
+from tests.helpers import tcp_url, wait_for
+from tests.service.conftest import AREA, FAST_VEHICLE
 
 STRICT_ARDUPILOT = {
     "mode_switch_read_s": 1.2,

@@ -18,9 +18,10 @@ from sim.envs import (
     FapDiscreteEnv,
     position_to_action,
 )
+from sim.geometry import unit_to_m
 from sim.observation import UserReports, build_observation
 from sim.scenarios import Scenario, generate_scenarios
-from sim.world import Flight, World, coordinates_target
+from sim.world import Flight, World
 
 AREA = AreaConfig()
 SCENARIOS = generate_scenarios(5, 3, seed=11)
@@ -125,9 +126,9 @@ def test_bad_actions_raise_clear_errors():
 
 def test_continuous_actions_map_onto_the_volume():
     for action in ([0, 0, 0], [1, 1, 1], [0.25, 0.5, 0.75]):
-        xyz = coordinates_target(np.array(action, dtype=float), AREA)
+        xyz = unit_to_m(np.array(action, dtype=float), AREA)
         np.testing.assert_allclose(position_to_action(xyz, AREA), action, atol=1e-6)
-    np.testing.assert_allclose(coordinates_target(np.array([1.0, 1.0, 1.0]), AREA), [500, 500, 100])
+    np.testing.assert_allclose(unit_to_m(np.array([1.0, 1.0, 1.0]), AREA), [500, 500, 100])
 
 
 def test_speed_limit_makes_moves_take_time():

@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import json
 import os
+import stat
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -18,6 +19,7 @@ from service.cli import main
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.files import (
+    atomic_write_bytes,
     atomic_write_json,
     load_cases,
     load_scenarios,
@@ -420,6 +422,42 @@ def test_atomic_write_keeps_the_mode_of_the_replaced_file(tmp_path: Path) -> Non
     path.chmod(0o600)
     atomic_write_json(path, [])
     assert path.stat().st_mode & 0o777 == 0o600
+
+
+def test_atomic_write_bytes_writes_them_as_given_and_syncs_file_and_directory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "fig" / "x.png"
+    data = b"\x89PNG\r\n\x1a\n\x00\xff line\r\n"  # not UTF-8, CRLF kept as is
+    synced: list[bool] = []  # one entry per fsync: is it a directory?
+    real_fsync = os.fsync
+
+    def recording_fsync(fd: int) -> None:
+        synced.append(stat.S_ISDIR(os.fstat(fd).st_mode))
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", recording_fsync)
+    atomic_write_bytes(path, b"old")
+    atomic_write_bytes(path, data)
+    assert path.read_bytes() == data
+    assert [p.name for p in path.parent.iterdir()] == ["x.png"]
+    assert synced == [False, True, False, True]  # the file, then its directory, each time
+
+
+def test_atomic_write_bytes_failed_rename_keeps_the_old_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "x.png"
+    path.write_bytes(b"old")
+
+    def broken_replace(src: str, dst: Any) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "replace", broken_replace)
+    with pytest.raises(OSError):
+        atomic_write_bytes(path, b"new")
+    assert path.read_bytes() == b"old"
+    assert [p.name for p in tmp_path.iterdir()] == ["x.png"]
 
 
 # --------------------------------------------------------------------------------------------

@@ -11,28 +11,30 @@ from gymnasium.wrappers.vector import RecordEpisodeStatistics
 
 from sim.config import AreaConfig
 from sim.envs import FapContinuousEnv, FapDiscreteEnv
-from sim.scenarios import ScenarioSampler, generate_scenarios
-from sim.vector_env import (
-    FapVectorEnv,
-    coordinates_targets,
-    fly_many,
+from sim.geometry import (
+    MOVES,
+    move_target,
     move_targets,
+    unit_to_m,
+    unit_to_m_many,
+    valid_moves,
     valid_moves_many,
+    zone_index,
     zone_indices,
+    zone_position,
     zone_positions,
 )
+from sim.scenarios import ScenarioSampler, generate_scenarios
+from sim.vector_env import FapVectorEnv
 from sim.world import (
     CLOSED_LOOP,
     CLOSED_LOOP_MOVING,
     PAPER,
     Flight,
     ReportModel,
-    coordinates_target,
     fly,
-    move_target,
-    valid_moves,
+    fly_many,
 )
-from sim.zones import MOVES, zone_index, zone_position
 
 AREA = AreaConfig()
 SCENARIOS = generate_scenarios(5, 3, seed=11)
@@ -63,8 +65,8 @@ def test_batched_targets_and_flight_equal_the_scalar_functions():
     assert np.array_equal(refused, [r for _, r in scalar])
     assert refused.any() and not refused.all()
     actions = rng.uniform(-0.2, 1.2, (len(here), 3))
-    coords = coordinates_targets(actions, AREA)
-    assert np.array_equal(coords, [coordinates_target(a, AREA) for a in actions])
+    coords = unit_to_m_many(actions, AREA)
+    assert np.array_equal(coords, [unit_to_m(a, AREA) for a in actions])
     for flight in (Flight(10.0, 3.0), Flight(None, None), Flight(None, 3.0), Flight(4.0, None)):
         for goal in (there, coords, targets):
             flown = fly_many(here, goal, flight, 1.5)

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from sim.config import AreaConfig
 from sim.envs import FapContinuousEnv, FapDiscreteEnv
 from sim.errors import InputError
+from sim.geometry import MOVES, move_target, valid_moves, zone_index, zone_position
 from sim.observation import build_observation
 from sim.scenarios import Scenario, generate_scenarios
 from sim.users import UserDynamics
@@ -23,11 +24,8 @@ from sim.world import (
     World,
     fly,
     get_world,
-    move_target,
-    valid_moves,
     world_with,
 )
-from sim.zones import MOVES, zone_index, zone_position
 
 AREA = AreaConfig()
 

@@ -1,5 +1,7 @@
-"""Helpers for the sitl_mock tests: a raw-pymavlink ground station, a bounded polling helper (no
-fixed sleeps: every wait is on a condition, with a timeout) and a simulated-time stepper."""
+"""Helpers for the sitl_mock tests: a raw-pymavlink ground station and a simulated-time stepper.
+
+``wait_for`` (the bounded polling helper) lives in ``tests/helpers.py`` and is re-exported here
+for the tests that import it from this module."""
 
 from __future__ import annotations
 
@@ -9,30 +11,14 @@ import select
 import socket
 import time
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sitl_mock.vehicle import Vehicle
+from tests.helpers import wait_for
 
-T = TypeVar("T")
-
-
-def wait_for(
-    condition: Callable[[], T],
-    timeout_s: float = 5.0,
-    interval_s: float = 0.02,
-    message: str = "condition",
-) -> T:
-    """Poll ``condition`` until it returns something truthy (returned) or ``timeout_s`` passes."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = condition()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {message}")
-        time.sleep(interval_s)
+__all__ = ["MavClient", "distance_m", "run_vehicle", "signing_timestamp_now", "wait_for"]
 
 
 def run_vehicle(

@@ -10,7 +10,8 @@ import struct
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from tests.sitl_mock.helpers import MavClient, wait_for
+from tests.helpers import wait_for
+from tests.sitl_mock.helpers import MavClient
 
 KEY = bytes(range(32))
 WRONG_KEY = bytes([7] * 32)

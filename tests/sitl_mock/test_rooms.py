@@ -1,36 +1,15 @@
-"""DESIGN.md's rule for this room: sitl_mock imports pymavlink and the standard library only,
-never the project's own packages, so that tests between the mock and the service's MAVLink link
-catch protocol mistakes on either side instead of sharing them."""
+"""The mock's own tables against MAVLink's. (Its import rule — pymavlink and the standard library
+only, never the project's own packages — is checked with every room's in
+``tests/test_rooms.py``.)"""
 
 from __future__ import annotations
 
-import ast
-import sys
 from pathlib import Path
 
 import sitl_mock
 from sitl_mock.flavours import ARDUPILOT, PX4, MavResult, Severity
 
 PACKAGE_DIR = Path(sitl_mock.__file__).parent
-
-
-def imported_top_level_modules(path: Path) -> set[str]:
-    modules = set()
-    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
-        if isinstance(node, ast.Import):
-            modules.update(alias.name.split(".")[0] for alias in node.names)
-        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            modules.add(node.module.split(".")[0])
-    return modules
-
-
-def test_sitl_mock_imports_only_pymavlink_and_the_standard_library():
-    allowed = set(sys.stdlib_module_names) | {"pymavlink", "sitl_mock", "__future__"}
-    offenders = {
-        path.name: sorted(imported_top_level_modules(path) - allowed)
-        for path in sorted(PACKAGE_DIR.glob("*.py"))
-    }
-    assert {name: bad for name, bad in offenders.items() if bad} == {}
 
 
 def test_enums_match_mavlink():

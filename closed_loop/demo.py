@@ -4,7 +4,7 @@
 2. ``tupa serve`` against it with ``--arm-and-takeoff`` and the chosen policy (the service's
    default by default), on a free port, with a one-time random API token;
 3. the network controller, played here by the embedded simulator
-   (:mod:`service.controller_sim`): every second it reads the vehicle's true position from the
+   (:mod:`closed_loop.controller`): every second it reads the vehicle's true position from the
    autopilot, computes every user's metrics there and POSTs them as a report.
 
 It plays a few scenarios where placement matters (heterogeneous traffic) one after the other,
@@ -30,9 +30,9 @@ from typing import Any
 import httpx
 import numpy as np
 
-from service.controller_sim import SimulatedNetwork, StepRecord, TruePosition, run_scenario
+from closed_loop.controller import SimulatedNetwork, StepRecord, TruePosition, run_scenario
+from closed_loop.processes import start_service, start_sitl_mock
 from service.frames import FrameConfig
-from service.processes import start_service, start_sitl_mock
 from sim.config import AreaConfig, NetworkConfig
 from sim.scenarios import Scenario, generate_scenarios
 from sim.utility import heterogeneity_index
@@ -86,35 +86,20 @@ def compare(
     """The baselines, the tracking oracle and the shipped checkpoints, each flown in ``world``
     from ``start_m`` by the simulator, with the users the loop had (same motion and demand):
     mean utility, and each one's last target."""
-    from policies.agents import TrainedAgent
-    from policies.baselines import make_policy
-    from policies.evaluation import StaticAgent
+    from policies.evaluation import run_episode
+    from policies.registry import resolve_policy
     from service.policy_runtime import SHIPPED_CHECKPOINTS
-    from sim.envs import FapContinuousEnv, FapDiscreteEnv
+    from sim.geometry import clip_to_volume
 
-    area = world.area
-    home = np.clip(start_m, [0, 0, area.z_min_m], [area.size_x_m, area.size_y_m, area.z_max_m])
+    home = clip_to_volume(start_m, world.area)
     flown = replace(world, home=tuple(map(float, home)))
-    agents: dict[str, Any] = {
-        name: StaticAgent(make_policy(name, world=world)) for name in COMPARED
-    }
-    for path in sorted(SHIPPED_CHECKPOINTS.glob("*.zip")):
-        agent = TrainedAgent.load(path, area, device="cpu")
-        agents[agent.name] = agent
-    out: dict[str, Any] = {"checkpoints": [n for n in agents if n not in COMPARED]}
-    for name, agent in agents.items():
-        env_class = FapDiscreteEnv if agent.env_kind == "discrete" else FapContinuousEnv
-        env = env_class([scenario], world=flown)
-        agent.begin_episode(scenario, env.world)
-        observation, info = env.reset(
-            seed=seed, options={"scenario": scenario, "users_seed": users_seed}
-        )
-        rewards = []
-        for _ in range(world.episode_steps):
-            observation, reward, _, _, info = env.step(agent.act(observation, info))
-            rewards.append(reward)
-        out[name] = float(np.mean(rewards))
-        out[f"{name}_target_m"] = [float(v) for v in info["target_xyz_m"]]
+    policies = [resolve_policy(name, world) for name in COMPARED]
+    policies += [resolve_policy(p, world) for p in sorted(SHIPPED_CHECKPOINTS.glob("*.zip"))]
+    out: dict[str, Any] = {"checkpoints": [p.name for p in policies if p.name not in COMPARED]}
+    for policy in policies:
+        episode = run_episode(policy, scenario, flown, seed, users_seed)
+        out[policy.name] = float(np.mean(episode.utility))
+        out[f"{policy.name}_target_m"] = [float(v) for v in episode.final_info["target_xyz_m"]]
     return out
 
 
@@ -237,7 +222,7 @@ def run_demo(cfg: DemoConfig) -> dict[str, Any]:
     loops: dict[str, _Loop] = {}
     try:
         # One after the other, from this thread: the processes die with the thread that started
-        # them (PR_SET_PDEATHSIG, service/processes.py), so not from a worker thread.
+        # them (PR_SET_PDEATHSIG, closed_loop/processes.py), so not from a worker thread.
         for key, spec in specs.items():
             loops[key] = _start_loop(spec, cfg, area)
         served = loops["served"]

@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from sim.config import AreaConfig
-from sim.zones import MOVES, grid_shape, move_mask, zone_index, zone_position
+from sim.geometry import MOVES, grid_shape, move_mask, zone_index, zone_position
 
 AREAS = (
     AreaConfig(),

@@ -68,7 +68,7 @@ def _positive(name: str, value: float) -> None:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from service.demo import DemoConfig, run_demo
+    from closed_loop.demo import DemoConfig, run_demo
 
     _positive("scenarios", args.scenarios)
     _positive("steps", args.steps)
@@ -88,7 +88,7 @@ def _demo(args: argparse.Namespace) -> int:
 def _controller_sim(args: argparse.Namespace) -> int:
     import httpx
 
-    from service.controller_sim import SimulatedNetwork, TruePosition, run_scenario
+    from closed_loop.controller import SimulatedNetwork, TruePosition, run_scenario
     from service.frames import FrameConfig
     from sim.scenarios import generate_scenarios
 

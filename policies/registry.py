@@ -1,0 +1,70 @@
+"""Names and checkpoint paths to policies: the one place that knows what ``--policy`` may say.
+
+* :data:`PLACEMENTS`: the static placements by name — ``min-distance`` (the paper's baseline),
+  ``load-weighted`` (:mod:`policies.baselines`) and ``oracle`` (:mod:`policies.oracle`: the
+  model's own exhaustive search). :func:`make_placement` builds one for a world.
+* :func:`resolve_policy`: a :class:`~policies.interface.Policy` from a spec — a placement's name
+  (re-placed every decision: :class:`~policies.adapters.StaticPolicy`) or a checkpoint path
+  (:class:`~policies.adapters.CheckpointPolicy`). ``tupa eval``, the benchmarks, the demo and
+  the service all resolve through it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from policies.adapters import CheckpointPolicy, StaticPolicy
+from policies.baselines import MinDistancePolicy
+from policies.interface import Placement, Policy
+from sim.world import PAPER, World
+
+
+def _oracle(world: World) -> Placement:
+    from policies.oracle import OracleConfig, OraclePolicy
+
+    config = OracleConfig(episode_steps=world.episode_steps, step_s=world.step_s)
+    return OraclePolicy(world.area, world.network, world.utility, config)
+
+
+PLACEMENTS: dict[str, Callable[[World], Placement]] = {
+    "min-distance": lambda world: MinDistancePolicy(world.area),
+    "load-weighted": lambda world: MinDistancePolicy(world.area, load_weighted=True),
+    "oracle": _oracle,
+}
+"""Each placement's name and its factory (from the world it will place in)."""
+
+
+def make_placement(name: str, world: World = PAPER) -> Placement:
+    """The placement registered as ``name`` (a key of :data:`PLACEMENTS`) for ``world``.
+
+    The world matters to the oracle only: it optimises the utility of an episode of the world's
+    length and step under its network configuration (use the queueing the evaluation runs
+    with). Raises ``ValueError`` naming the choices for an unknown name.
+    """
+    try:
+        factory = PLACEMENTS[name]
+    except KeyError:
+        raise ValueError(f"unknown policy {name!r} (choices: {', '.join(PLACEMENTS)})") from None
+    return factory(world)
+
+
+def resolve_policy(
+    spec: str | Path,
+    world: World = PAPER,
+    device: str = "cpu",
+    allowed_dirs: Sequence[Path] | None = None,
+    max_bytes: int | None = None,
+) -> Policy:
+    """The policy ``spec`` names: a key of :data:`PLACEMENTS`, else a checkpoint path.
+
+    A checkpoint that cannot be used raises :class:`~policies.checkpoints.CheckpointError` (an
+    ``InputError`` naming the file and the problem); ``allowed_dirs`` and ``max_bytes`` restrict
+    which files may be loaded (:func:`policies.checkpoints.read_checkpoint`).
+    """
+    text = str(spec)
+    if text in PLACEMENTS:
+        return StaticPolicy(make_placement(text, world), text)
+    return CheckpointPolicy.load(
+        Path(text), world, device=device, allowed_dirs=allowed_dirs, max_bytes=max_bytes
+    )

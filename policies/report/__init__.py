@@ -1,0 +1,66 @@
+"""The paper's figures and tables from ``tupa eval`` results: ``tupa report``.
+
+:func:`build_report` reads every eval file in a results directory and the learning curve beside
+them (:mod:`.inputs`, :mod:`.curves`), computes the numbers (:mod:`.stats`), renders the figures
+(:mod:`.figures`) and ``results.md`` (:mod:`.markdown`), and only then writes them, each file
+atomically: ``utility_cdf.png``, ``throughput_cdf.png``, ``delay_cdf.png``, ``plr_cdf.png``,
+``metrics_cdf.png`` (the three metric CDFs side by side, as the paper's figure),
+``utility_by_heterogeneity.png``, ``learning_curve.png`` (only with a learning curve) and
+``results.md`` (the tables behind the figures and the paper's two headline numbers as we
+measure them). Summaries are recomputed from the per-scenario rows, not copied from the files.
+
+The trainer writes the learning curve with :func:`policies.report.curves.write_learning_curve`;
+importing this package does not load matplotlib.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from policies.report.figures import render_figures
+from policies.report.inputs import Warn, load_inputs, stderr_warning
+from policies.report.markdown import render_markdown
+from policies.report.stats import headlines, heterogeneity_bins
+from sim.errors import InputError
+from sim.files import atomic_write_bytes, atomic_write_text
+
+__all__ = ["REPORT_FILE", "ReportFiles", "build_report"]
+
+REPORT_FILE = "results.md"
+
+
+@dataclass(frozen=True)
+class ReportFiles:
+    """What :func:`build_report` wrote: the files, and one headline line per compared policy."""
+
+    written: tuple[Path, ...]
+    headlines: tuple[str, ...]
+
+
+def build_report(results_dir: Path, out_dir: Path, warn: Warn = stderr_warning) -> ReportFiles:
+    """Read the eval files (and ``learning_curve.json`` if present) in ``results_dir`` and
+    write the figures and ``results.md`` to ``out_dir`` (created if missing).
+
+    Everything is read, checked and rendered before the first file is written, so bad input
+    (:class:`InputError`) leaves ``out_dir`` untouched. Warnings (skipped files, differing
+    evaluation settings) go to ``warn``.
+    """
+    results_dir, out_dir = Path(results_dir), Path(out_dir)
+    results, learning = load_inputs(results_dir, warn)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"--out: {out_dir}: exists and is not a directory")
+    figures = render_figures(results, learning)
+    markdown = render_markdown(results, learning, results_dir)
+    written = []
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        for name, data in figures.items():
+            atomic_write_bytes(out_dir / name, data)
+            written.append(out_dir / name)
+        atomic_write_text(out_dir / REPORT_FILE, markdown)
+        written.append(out_dir / REPORT_FILE)
+    except OSError as exc:
+        raise InputError(f"--out: {out_dir}: cannot write: {exc.strerror or exc}") from None
+    lines = headlines(results, heterogeneity_bins(results))
+    return ReportFiles(written=tuple(written), headlines=tuple(lines))

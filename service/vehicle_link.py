@@ -1,0 +1,921 @@
+"""The vehicle link, whatever speaks MAVLink for it: its interface, its configuration and state,
+and everything the backends share.
+
+What this module owns:
+
+* :class:`VehicleLink`, the one interface the service drives (``start``, ``close``, ``state``,
+  ``set_target``, ``clear_target``, ``arm_and_takeoff``): an abstract base class, so that "go to
+  definition" finds the contract and ``isinstance`` checks it. Both backends and the tests'
+  in-memory fake (``tests/fakes.py``) derive from it; :mod:`service.links` picks a backend.
+* :class:`LinkConfig` (what a link needs) and :class:`LinkState` (the snapshot it gives).
+* :class:`VehicleLinkBase`, the machinery both MAVLink backends share, so that each backend
+  module keeps only its I/O: the I/O thread's loop (open the transport, back off and reopen it
+  when it dies or the vehicle stays silent), heartbeat supervision (decoding the vehicle's
+  HEARTBEAT, ``link_lost`` after ``heartbeat_timeout_s`` without one), setpoint scheduling (the
+  current target at ``setpoint_rate_hz``, a new one at once but never closer than
+  ``setpoint_min_gap_s`` to the previous setpoint), the guided-mode requests (GUIDED at once on
+  ArduPilot, OFFBOARD on PX4 once the stream has run ``px4_stream_lead_s``, during
+  ``mode_request_window_s`` after a new target only, so that a pilot who took over keeps the
+  vehicle), the geofence, the vehicle's STATUSTEXTs, and the arm-and-takeoff sequence the real
+  autopilots need (:meth:`VehicleLinkBase.arm_and_takeoff` has its steps).
+
+A backend (:mod:`service.mavlink_link` on pymavlink, :mod:`service.mavsdk_link` on MAVSDK)
+implements the hooks listed on :class:`VehicleLinkBase`: open, poll and close its transport,
+send one setpoint, ask for the guided mode, send a command and wait for its answer; it passes
+what the vehicle says to ``_note_heartbeat`` and ``_note_status_text`` and keeps the position
+fields up to date under ``self._cond``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import os
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections import Counter, deque
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Literal, Self
+
+from service import mavlink_commands
+from service.frames import FrameConfig, area_to_ned, ned_to_area
+from service.modes import GUIDED_MODE_NAME, Flavour, flavour_of, mode_name, set_mode_numbers
+from sim.config import AreaConfig
+from sim.geometry import clamp_point
+
+# MAVLink 2 is needed for signing; pymavlink picks the wire version from this variable when its
+# dialect module is first loaded (it would also switch on the first MAVLink 2 packet it sees).
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+log = logging.getLogger(__name__)
+
+LinkHealth = Literal["connecting", "up", "link_lost"]
+
+TAKEOFF_TIMEOUT_S = 300.0
+"""How long the take-off sequence keeps trying by default: a real autopilot needs a GPS lock and
+its pre-arm checks first (ArduCopter SITL ~40 s from boot, a real vehicle minutes)."""
+STEP_TIMEOUT_S = 10.0
+"""How long one step of an attempt (an ACK, a mode seen in HEARTBEAT, armed) may take."""
+MODE_SETTLE_S = 1.0
+"""ArduPilot: GUIDED must hold this long in HEARTBEAT before the vehicle is armed (a mode switch
+read at start-up changed it back 0.2 s after it was granted on a real ArduCopter SITL)."""
+CLIMB_START_S = 10.0
+"""After an accepted take-off the vehicle must leave the ground within this (PX4 accepts a
+take-off it then does not fly, and disarms it ~10 s later)."""
+CLIMB_MIN_MPS = 0.5
+"""Slowest average climb accepted on the way to the take-off altitude."""
+IN_AIR_ALT_M = 1.0
+"""Armed and this high above home: flying (a vehicle found flying is taken over, not armed)."""
+LIFTOFF_ALT_M = 0.3
+LIFTOFF_WAIT_S = 3.0
+"""A refused take-off is still a take-off if the vehicle is this high within this time."""
+RETRY_MIN_S = 1.0
+RETRY_MAX_S = 10.0
+"""Backoff between take-off attempts: doubles from min to max."""
+POSITION_FRESH_S = 2.0
+"""LOCAL_POSITION_NED older than this does not count as a position estimate."""
+REFUSAL_TEXT_WAIT_S = 0.5
+"""How long a refusal waits for the vehicle's STATUSTEXT that explains it."""
+STATUS_TEXTS_KEPT = 8
+"""How many of the vehicle's latest STATUSTEXTs :meth:`VehicleLinkBase.state` shows."""
+IDLE_WAIT_S = 0.05
+"""The I/O loop's longest wait for input, and its pace while no vehicle answers."""
+HEARTBEAT_PERIOD_S = 1.0
+"""Our own HEARTBEAT's period (where the backend sends it)."""
+TELEMETRY_REQUEST_PERIOD_S = 2.0
+"""How often ``_request_telemetry`` is called while the vehicle is up."""
+
+EKF_POSITION_FLAGS = mavlink.EKF_POS_HORIZ_ABS | mavlink.EKF_PRED_POS_HORIZ_ABS
+
+
+def ekf_position_ok(flags: int) -> bool:
+    """ArduPilot's EKF_STATUS_REPORT.flags allow arming in GUIDED: an absolute horizontal position
+    (or its prediction, which is what ArduCopter checks while disarmed) and no constant-position
+    mode (the EKF's "no GPS yet" state)."""
+    return bool(flags & EKF_POSITION_FLAGS) and not flags & mavlink.EKF_CONST_POS_MODE
+
+
+def result_name(result: int | None) -> str:
+    """``ACCEPTED``, ``FAILED``, ... for a MAV_RESULT; ``no answer`` for None."""
+    if result is None:
+        return "no answer"
+    entry = mavlink.enums["MAV_RESULT"].get(result)
+    return entry.name.removeprefix("MAV_RESULT_") if entry is not None else f"result {result}"
+
+
+def signing_key_from_passphrase(passphrase: str) -> bytes:
+    """A 32-byte MAVLink 2 signing key from a passphrase (SHA-256, as MAVProxy does)."""
+    return hashlib.sha256(passphrase.encode()).digest()
+
+
+class TakeoffRefused(Exception):  # noqa: N818 (a refusal, not a programming error)
+    """One take-off attempt failed (a refusal, a mode change, no climb): the sequence restarts."""
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """Everything a vehicle link needs; only ``url`` has no default."""
+
+    url: str
+    """A pymavlink connection string: ``tcp:HOST:PORT``, ``udpin:HOST:PORT``, ``udpout:...``."""
+    area: AreaConfig = AreaConfig()
+    """The area volume: targets are clamped into it (the geofence)."""
+    frames: FrameConfig = FrameConfig()  # noqa: RUF009 (frozen, so sharing it is safe)
+    """Where the area frame sits in the vehicle's local NED frame."""
+    setpoint_rate_hz: float = 10.0
+    """How often the current target is sent (PX4 needs more than 2 Hz)."""
+    setpoint_min_gap_s: float = 0.02
+    """A new target is sent at once, but never sooner than this after the previous setpoint."""
+    telemetry_rate_hz: float = 10.0
+    """Rate asked for GLOBAL_POSITION_INT and LOCAL_POSITION_NED."""
+    heartbeat_timeout_s: float = 3.0
+    """No vehicle HEARTBEAT for this long: the link is lost."""
+    reconnect_min_s: float = 0.2
+    reconnect_max_s: float = 3.0
+    """Backoff between attempts to recreate the connection: doubles from min to max."""
+    px4_stream_lead_s: float = 1.2
+    """PX4: how long the setpoint stream runs before OFFBOARD is asked for."""
+    mode_retry_s: float = 0.5
+    mode_request_window_s: float = 15.0
+    """After a target is set, the guided mode is asked for (every ``mode_retry_s``) this long."""
+    signing_key: bytes | None = None
+    """Optional 32-byte MAVLink 2 signing key, the same as the vehicle's."""
+    source_system: int = 255
+    source_component: int = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER
+    heartbeat_type: int = mavlink.MAV_TYPE_ONBOARD_CONTROLLER
+    """Our HEARTBEAT type: MAV_TYPE_ONBOARD_CONTROLLER (companion computer) or MAV_TYPE_GCS."""
+
+    def __post_init__(self) -> None:
+        for name in (
+            "setpoint_rate_hz",
+            "telemetry_rate_hz",
+            "heartbeat_timeout_s",
+            "reconnect_min_s",
+            "reconnect_max_s",
+            "mode_retry_s",
+        ):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name}: must be a positive number, got {value!r}")
+        if self.signing_key is not None and len(self.signing_key) != 32:
+            raise ValueError(f"signing_key: must be 32 bytes, got {len(self.signing_key)}")
+
+
+@dataclass(frozen=True)
+class LinkState:
+    """A snapshot of the link and the vehicle, as :meth:`VehicleLink.state` returns it."""
+
+    link: LinkHealth
+    """``connecting`` (never heard the vehicle), ``up``, or ``link_lost``."""
+    flavour: Flavour | None
+    """From the vehicle's HEARTBEAT; None before the first one."""
+    mode: str | None
+    armed: bool
+    position_m: tuple[float, float, float] | None
+    """Vehicle position in the area frame (x east, y north, z up), metres."""
+    relative_alt_m: float | None
+    """Altitude above home, metres (GLOBAL_POSITION_INT)."""
+    heartbeat_age_s: float | None
+    """Seconds since the vehicle's last HEARTBEAT; None before the first one."""
+    target_m: tuple[float, float, float] | None
+    """The (geofenced) target being streamed, area frame."""
+    streaming: bool
+    takeoff: str
+    """``idle``, ``running``, ``airborne`` or ``failed: <reason>``."""
+    counters: dict[str, int] = field(default_factory=dict)
+    takeoff_phase: str | None = None
+    """While the take-off runs: the step it is at (``waiting for a position estimate``, ...)."""
+    takeoff_attempts: int = 0
+    """How many times the take-off sequence has started (it starts again after a refusal)."""
+    takeoff_last_refusal: str | None = None
+    """Why the last attempt failed, with what the vehicle said about it (its STATUSTEXT)."""
+    status_texts: tuple[str, ...] = ()
+    """The vehicle's latest STATUSTEXT messages, oldest first, as ``SEVERITY: text``."""
+
+
+class VehicleLink(ABC):
+    """What the service needs from a vehicle link: the one interface, whichever backend (or
+    test fake) implements it. Every method returns at once; the I/O runs in the background."""
+
+    config: LinkConfig
+
+    @abstractmethod
+    def start(self) -> Self:
+        """Start the background I/O; returns at once (the link comes up in the background)."""
+
+    @abstractmethod
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Stop everything and drop the connection (safe to call twice)."""
+
+    @abstractmethod
+    def state(self) -> LinkState:
+        """A consistent snapshot of the link and the vehicle; never blocks on I/O."""
+
+    @abstractmethod
+    def set_target(self, target_m: Sequence[float]) -> tuple[float, float, float]:
+        """Stream ``target_m`` (area frame, metres) from now on; returns it clamped to the
+        geofence. NaN or infinite coordinates raise ValueError and change nothing."""
+
+    @abstractmethod
+    def clear_target(self) -> None:
+        """Stop streaming (the vehicle's own failsafe for a lost stream then acts)."""
+
+    @abstractmethod
+    def arm_and_takeoff(
+        self, z_m: float | None = None, timeout_s: float = TAKEOFF_TIMEOUT_S
+    ) -> Future[None]:
+        """Arm and climb to ``z_m`` (area frame; default the area's ``z_min_m``), only when
+        asked, retrying refusals until ``timeout_s``; the Future completes when airborne."""
+
+    def __enter__(self) -> Self:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+@dataclass
+class _LoopTimes:
+    """The I/O loop's schedule (monotonic seconds), kept by the loop's thread only."""
+
+    backoff_s: float
+    next_open: float = 0.0
+    opened_at: float = 0.0
+    ever_opened: bool = False
+    next_heartbeat: float = 0.0
+    next_telemetry_request: float = 0.0
+    next_setpoint: float = 0.0
+    last_setpoint: float = -math.inf
+    next_mode_request: float = 0.0
+    wait_s: float = 0.0
+    """How long the next poll may wait for input (until the next thing due)."""
+
+
+class VehicleLinkBase(VehicleLink):
+    """What both MAVLink backends share (see the module docstring): the I/O loop, heartbeat
+    supervision, setpoint scheduling, the geofence, the vehicle state it exposes and the
+    take-off sequence.
+
+    A backend implements the hooks (``_open_transport``, ``_transport_open``, ``_poll``,
+    ``_close_transport``, ``_send_setpoint``, ``_send_guided_mode_request``, ``_ask``,
+    ``_ask_arm``; optionally ``_send_heartbeat``, ``_request_telemetry``, ``_ready_to_command``,
+    ``_stop_stream``, ``_on_link_up``), decodes the vehicle's HEARTBEATs through
+    :meth:`_note_heartbeat` and its STATUSTEXTs through :meth:`_note_status_text`, and keeps the
+    position fields below up to date under ``self._cond``.
+    """
+
+    _thread_name = "vehicle-link"
+    _silence_is_connect_failure = False
+    """A transport that never heard the vehicle counts in ``connect_failures`` when it is dropped
+    (for backends whose ``_open_transport`` accepts any address, such as MAVSDK)."""
+
+    def __init__(self, config: LinkConfig) -> None:
+        self.config = config
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._workers: list[threading.Thread] = []
+        self._transport_dead = False  # set by the backend: the transport must be recreated
+        self.counters: Counter[str] = Counter(
+            dict.fromkeys(
+                ("setpoints_sent", "geofence_clamps", "reconnects", "connect_failures"), 0
+            )
+        )
+        # Vehicle state (under self._cond).
+        self._health: LinkHealth = "connecting"
+        self._flavour: Flavour | None = None
+        self._custom_mode: int | None = None
+        self._armed = False
+        self._last_hb: float | None = None
+        self._up_since = 0.0
+        self._ned: tuple[float, float, float] | None = None
+        self._position_at: float | None = None
+        self._relative_alt_m: float | None = None
+        self._home_amsl_m: float | None = None
+        self._ekf_flags: int | None = None  # ArduPilot's EKF_STATUS_REPORT.flags, when it sends it
+        self._status_texts: deque[tuple[float, str]] = deque(maxlen=STATUS_TEXTS_KEPT)
+        # Streaming state.
+        self._target_m: tuple[float, float, float] | None = None
+        self._target_dirty = False  # a new target not sent yet: send it at once
+        self._hold_setpoints = False
+        self._stream_since: float | None = None
+        self._mode_wanted_until = 0.0
+        # Take-off bookkeeping (under self._cond).
+        self._takeoff = "idle"
+        self._takeoff_phase: str | None = None
+        self._takeoff_attempts = 0
+        self._takeoff_last_refusal: str | None = None
+
+    # ------------------------------------------------------------------ backend hooks
+
+    @abstractmethod
+    def _open_transport(self, now: float) -> bool:
+        """Open the connection to the vehicle; False when it cannot be opened (counted in
+        ``connect_failures`` and tried again with backoff)."""
+
+    @abstractmethod
+    def _transport_open(self) -> bool:
+        """A connection is open (it may not have heard the vehicle yet)."""
+
+    @abstractmethod
+    def _poll(self, wait_s: float) -> None:
+        """Take in what the vehicle sent, waiting up to ``wait_s`` for it. Raising drops the
+        connection (it is opened anew with backoff)."""
+
+    @abstractmethod
+    def _close_transport(self) -> None:
+        """Drop the connection (safe to call twice, and from :meth:`close`)."""
+
+    @abstractmethod
+    def _send_setpoint(self, ned_m: tuple[float, float, float], now: float, new: bool) -> bool:
+        """Send one position setpoint (local NED, metres); ``new`` for the first of a stream.
+        True when it went out."""
+
+    @abstractmethod
+    def _send_guided_mode_request(self, flavour: Flavour) -> None:
+        """Ask (once, without waiting) for the flavour's guided mode (GUIDED / OFFBOARD)."""
+
+    @abstractmethod
+    def _ask(self, command: int, params: Sequence[float], timeout_s: float) -> int | None:
+        """Send a COMMAND_LONG (again, while unanswered) and wait up to ``timeout_s`` for its
+        final COMMAND_ACK: the MAV_RESULT, or None when no answer came."""
+
+    @abstractmethod
+    def _ask_arm(self, timeout_s: float) -> int | None:
+        """Ask the vehicle to arm (never forced), once: MAV_RESULT_ACCEPTED, another MAV_RESULT
+        for a refusal, or None when no answer came."""
+
+    def _send_heartbeat(self) -> None:
+        """Send our own HEARTBEAT (every ``HEARTBEAT_PERIOD_S``; none where the library does)."""
+
+    def _request_telemetry(self, now: float) -> None:
+        """Ask for the telemetry the link needs (every ``TELEMETRY_REQUEST_PERIOD_S`` while the
+        vehicle is up; a backend that asks once per connection leaves this empty)."""
+
+    def _ready_to_command(self) -> bool:
+        """The transport can address the vehicle (beyond hearing its HEARTBEAT)."""
+        return True
+
+    def _stop_stream(self) -> None:
+        """A setpoint was due but nothing streams (no target, link down, held for take-off)."""
+
+    def _on_link_up(self, now: float) -> None:
+        """The vehicle's HEARTBEAT is back (called under ``self._cond``): reset per-session
+        bookkeeping."""
+
+    # ------------------------------------------------------------------ public API
+
+    def start(self) -> Self:
+        """Start the I/O thread (returns at once; the link comes up in the background)."""
+        if self._thread is not None:
+            raise RuntimeError("already started")
+        self._thread = threading.Thread(target=self._run, name=self._thread_name, daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Stop every thread and drop the connection (safe to call twice)."""
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        for thread in [self._thread, *self._workers]:
+            if thread is not None:
+                thread.join(timeout_s)
+        self._thread = None
+        self._close_transport()
+
+    def state(self) -> LinkState:
+        """A consistent snapshot (never blocks on I/O)."""
+        now = time.monotonic()
+        with self._cond:
+            position = ned_to_area(*self._ned, self.config.frames) if self._ned else None
+            return LinkState(
+                link=self._health,
+                flavour=self._flavour,
+                mode=self._mode_locked(),
+                armed=self._armed,
+                position_m=position,
+                relative_alt_m=self._relative_alt_m,
+                heartbeat_age_s=None if self._last_hb is None else now - self._last_hb,
+                target_m=self._target_m,
+                streaming=self._streaming_now(),
+                takeoff=self._takeoff,
+                counters=dict(self.counters),
+                takeoff_phase=self._takeoff_phase,
+                takeoff_attempts=self._takeoff_attempts,
+                takeoff_last_refusal=self._takeoff_last_refusal,
+                status_texts=tuple(text for _, text in self._status_texts),
+            )
+
+    def set_target(self, target_m: Sequence[float]) -> tuple[float, float, float]:
+        """Stream ``target_m`` (area frame, metres) from now on; returns the geofenced target.
+
+        A target outside the area volume is clamped to it (logged and counted); NaN or infinite
+        coordinates raise ValueError and change nothing. A new target goes out at the I/O loop's
+        next iteration, and asks for the guided mode for ``mode_request_window_s``.
+        """
+        try:
+            clamped, was_clamped = clamp_point(target_m, self.config.area)
+        except ValueError:
+            with self._cond:
+                self.counters["targets_rejected"] += 1
+            raise
+        with self._cond:
+            if was_clamped:
+                self.counters["geofence_clamps"] += 1
+                log.warning("target %s outside the geofence: clamped to %s", target_m, clamped)
+            if clamped != self._target_m:
+                self._target_dirty = True
+                self._cond.notify_all()  # wakes an I/O loop waiting on it: out at once
+            self._target_m = clamped
+            self._mode_wanted_until = time.monotonic() + self.config.mode_request_window_s
+        return clamped
+
+    def clear_target(self) -> None:
+        """Stop streaming setpoints (the vehicle keeps its own behaviour for a lost stream)."""
+        with self._cond:
+            self._target_m = None
+            self._stream_since = None
+
+    def arm_and_takeoff(
+        self, z_m: float | None = None, timeout_s: float = TAKEOFF_TIMEOUT_S
+    ) -> Future[None]:
+        """Arm and climb to ``z_m`` (area frame; default the area's ``z_min_m``), in a worker.
+
+        The sequence the real autopilots need, started again with backoff after any refusal
+        until ``timeout_s`` (a real GPS lock takes minutes, not seconds):
+
+        1. the vehicle's HEARTBEAT; a vehicle already armed and in the air is taken over as it
+           is (a restart), without arming;
+        2. a usable position estimate: LOCAL_POSITION_NED arriving, and on ArduPilot its
+           EKF_STATUS_REPORT showing an absolute horizontal position out of constant-position
+           mode (ArduCopter refuses to arm in GUIDED before that, "Need Position Estimate");
+        3. ArduPilot: GUIDED asked for and *seen in HEARTBEAT*, held for ``MODE_SETTLE_S``; the
+           vehicle is never armed in another mode (an RC mode switch can change it at any time);
+        4. arm, then MAV_CMD_NAV_TAKEOFF at once (both autopilots disarm a vehicle left armed on
+           the ground for ~10 s): altitude above home on ArduPilot, AMSL on PX4, position and yaw
+           NaN (:mod:`service.mavlink_commands`);
+        5. the climb confirmed: the vehicle leaves the ground within ``CLIMB_START_S`` and reaches
+           90 % of the altitude; disarming or (ArduPilot) leaving GUIDED on the way is a failure.
+
+        Position setpoints are held back until the vehicle is airborne (on ArduPilot a setpoint
+        while the take-off is still on the ground cancels it). Progress, the attempt count, the
+        last refusal and the vehicle's STATUSTEXTs are in :meth:`state`. The Future completes when
+        airborne, or with the reason it gave up.
+        """
+        if not (math.isfinite(timeout_s) and timeout_s > 0):
+            raise ValueError(f"timeout_s: must be a positive number, got {timeout_s!r}")
+        area = self.config.area
+        z_m = area.z_min_m if z_m is None else min(max(float(z_m), area.z_min_m), area.z_max_m)
+        future: Future[None] = Future()
+        worker = threading.Thread(
+            target=self._takeoff_worker,
+            args=(z_m, timeout_s, future),
+            name=f"{self._thread_name}-takeoff",
+            daemon=True,
+        )
+        with self._cond:
+            self._takeoff = "running"
+            self._takeoff_phase = "starting"
+            self._takeoff_attempts = 0
+            self._takeoff_last_refusal = None
+            self._hold_setpoints = True
+        self._workers.append(worker)
+        worker.start()
+        return future
+
+    # ------------------------------------------------------------------ the I/O loop
+
+    def _run(self) -> None:
+        """The I/O thread: (re)open the transport, take in telemetry, send what is due."""
+        times = _LoopTimes(backoff_s=self.config.reconnect_min_s)
+        try:
+            while not self._stop.is_set():
+                now = time.monotonic()
+                self._check_heartbeat(now)
+                if not self._transport_open():
+                    self._open_when_due(times, now)
+                    continue
+                try:
+                    self._poll(times.wait_s)
+                except Exception:  # a broken transport or a parser surprise: recreate it
+                    log.exception("vehicle link receive failed; recreating the connection")
+                    self._transport_dead = True
+                self._serve(times, time.monotonic())
+        except Exception:
+            log.exception("%s thread failed", self._thread_name)
+            raise
+        finally:
+            self._close_transport()
+
+    def _open_when_due(self, times: _LoopTimes, now: float) -> None:
+        """Open the transport once the backoff allows it; back off further when it fails."""
+        if now < times.next_open:
+            self._stop.wait(min(IDLE_WAIT_S, times.next_open - now))
+            return
+        if self._open_transport(now):
+            if times.ever_opened:
+                self.counters["reconnects"] += 1
+            times.ever_opened = True
+            times.opened_at = now
+            times.next_heartbeat = 0.0
+            times.backoff_s = self.config.reconnect_min_s
+            self._transport_dead = False
+        else:
+            self.counters["connect_failures"] += 1
+            self._back_off(times, now)
+
+    def _back_off(self, times: _LoopTimes, now: float) -> None:
+        times.next_open = now + times.backoff_s
+        times.backoff_s = min(times.backoff_s * 2, self.config.reconnect_max_s)
+
+    def _serve(self, times: _LoopTimes, now: float) -> None:
+        """One pass with the transport open: drop it if it died or the vehicle stays silent;
+        otherwise send what is due (our HEARTBEAT, telemetry requests, setpoints, mode requests)
+        and work out how long the next poll may wait."""
+        config = self.config
+        health = self._check_heartbeat(now)
+        with self._cond:
+            silent_since = max(times.opened_at, self._last_hb or 0.0)
+        if self._transport_dead or (
+            health != "up" and now - silent_since > config.heartbeat_timeout_s
+        ):
+            if not self._transport_dead:
+                if self._silence_is_connect_failure and silent_since == times.opened_at:
+                    # Such a backend accepts a connection it cannot make yet (it retries by
+                    # itself), so a connection that never heard the vehicle is the failure.
+                    self.counters["connect_failures"] += 1
+                log.info("no vehicle on %s: opening the connection anew", config.url)
+            self._close_transport()
+            self._back_off(times, now)
+            return
+        if now >= times.next_heartbeat:
+            times.next_heartbeat = now + HEARTBEAT_PERIOD_S
+            self._send_heartbeat()
+        times.wait_s = IDLE_WAIT_S
+        if health != "up" or not self._ready_to_command():
+            return
+        if now >= times.next_telemetry_request:
+            times.next_telemetry_request = now + TELEMETRY_REQUEST_PERIOD_S
+            self._request_telemetry(now)
+        period_s = 1.0 / config.setpoint_rate_hz
+        with self._cond:
+            dirty = self._target_dirty
+        if dirty and now - times.last_setpoint >= config.setpoint_min_gap_s:
+            # A new target: on the wire now, and the steady schedule restarts from here.
+            times.next_setpoint = now + period_s
+            times.last_setpoint = now
+            self._stream_setpoint(now)
+        elif now >= times.next_setpoint:
+            times.next_setpoint = max(times.next_setpoint + period_s, now - period_s)
+            times.last_setpoint = now
+            self._stream_setpoint(now)
+        if now >= times.next_mode_request:
+            times.next_mode_request = now + config.mode_retry_s
+            flavour = self._guided_mode_due(now)
+            if flavour is not None:
+                self._send_guided_mode_request(flavour)
+        wake_at = min(times.next_setpoint, times.next_mode_request)
+        with self._cond:
+            if self._target_dirty:  # set_target notifies self._cond: a new target wakes a poll
+                wake_at = min(wake_at, times.last_setpoint + config.setpoint_min_gap_s)
+        times.wait_s = min(max(wake_at - time.monotonic(), 0.001), IDLE_WAIT_S)
+
+    def _check_heartbeat(self, now: float) -> LinkHealth:
+        """Declare the link lost after ``heartbeat_timeout_s`` without a vehicle HEARTBEAT."""
+        with self._cond:
+            last_hb = self._last_hb
+            timeout_s = self.config.heartbeat_timeout_s
+            if self._health == "up" and last_hb is not None and now - last_hb > timeout_s:
+                self._health = "link_lost"
+                self._stream_since = None
+                log.warning("no HEARTBEAT for %.1f s: link lost", now - last_hb)
+            return self._health
+
+    def _note_heartbeat(
+        self, autopilot: int, vehicle_type: int, base_mode: int, custom_mode: int
+    ) -> bool:
+        """A HEARTBEAT heard on the link. False, and nothing changes, when it is not the
+        vehicle's (a ground station or a companion computer: autopilot INVALID, or type GCS or
+        ONBOARD_CONTROLLER). Otherwise the flavour, mode and armed state are the vehicle's, and
+        the link is up; telemetry from before a loss no longer counts as fresh."""
+        if autopilot == mavlink.MAV_AUTOPILOT_INVALID or vehicle_type in (
+            mavlink.MAV_TYPE_GCS,
+            mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
+        ):
+            return False
+        now = time.monotonic()
+        with self._cond:
+            self._flavour = flavour = flavour_of(autopilot)
+            self._custom_mode = custom_mode
+            self._armed = bool(base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            self._last_hb = now
+            if self._health != "up":
+                log.info("vehicle HEARTBEAT (%s): link up", flavour)
+                self._health = "up"
+                self._up_since = now
+                self._position_at = None
+                self._ekf_flags = None
+                self._on_link_up(now)
+            self._cond.notify_all()
+        return True
+
+    def _stream_setpoint(self, now: float) -> None:
+        """The current target as one setpoint, if one streams; counted when it went out."""
+        with self._cond:
+            self._target_dirty = False
+            streaming = self._streaming_now()
+            new = False
+            if not streaming:
+                self._stream_since = None
+            else:
+                assert self._target_m is not None
+                ned_m = area_to_ned(*self._target_m, self.config.frames)
+                new = self._stream_since is None
+                if new:
+                    self._stream_since = now
+        if not streaming:
+            self._stop_stream()
+            return
+        if self._send_setpoint(ned_m, now, new):
+            with self._cond:
+                self.counters["setpoints_sent"] += 1
+
+    def _streaming_now(self) -> bool:
+        return self._health == "up" and self._target_m is not None and not self._hold_setpoints
+
+    def _guided_mode_due(self, now: float) -> Flavour | None:
+        """The flavour when the guided mode (GUIDED / OFFBOARD) should be asked for now, counted
+        as a mode request; None when not: no target streams, the request window is closed, the
+        vehicle is already in it, or (PX4) the stream has not run ``px4_stream_lead_s`` yet."""
+        with self._cond:
+            flavour = self._flavour
+            if (
+                flavour not in GUIDED_MODE_NAME
+                or not self._streaming_now()
+                or now > self._mode_wanted_until
+                or self._custom_mode is None
+                or mode_name(flavour, self._custom_mode) == GUIDED_MODE_NAME[flavour]
+            ):
+                return None
+            if flavour == "px4" and (
+                self._stream_since is None
+                or now - self._stream_since < self.config.px4_stream_lead_s
+            ):
+                return None
+            self.counters["mode_requests"] += 1
+            return flavour
+
+    def _note_status_text(self, severity: int, text: str) -> None:
+        """A STATUSTEXT from the vehicle: logged and kept for :meth:`state` (call under no lock)."""
+        text = text.strip()
+        if not text:
+            return
+        entry = mavlink.enums["MAV_SEVERITY"].get(severity)
+        name = entry.name.removeprefix("MAV_SEVERITY_") if entry is not None else str(severity)
+        with self._cond:
+            self._status_texts.append((time.monotonic(), f"{name}: {text}"))
+            self._cond.notify_all()
+        level = logging.WARNING if severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO
+        log.log(level, "vehicle says: %s", text)
+
+    # ------------------------------------------------------------------ the take-off sequence
+
+    def _texts_since(self, since: float) -> str:
+        """The vehicle's STATUSTEXTs since ``since`` (monotonic), for a refusal's reason; waits
+        up to ``REFUSAL_TEXT_WAIT_S`` for one (a refusal's text may come just after its ACK)."""
+        until = time.monotonic() + REFUSAL_TEXT_WAIT_S
+        with self._cond:
+            while True:
+                texts = [text for at, text in self._status_texts if at >= since]
+                remaining = until - time.monotonic()
+                if texts or remaining <= 0 or self._stop.is_set():
+                    break
+                self._cond.wait(remaining)
+        return "; vehicle said: " + " | ".join(texts) if texts else ""
+
+    def _set_phase(self, phase: str) -> None:
+        with self._cond:
+            self._takeoff_phase = phase
+        log.info("take-off: %s", phase)
+
+    def _in_air(self) -> bool:
+        """Armed and at least ``IN_AIR_ALT_M`` above home (call under ``self._cond``)."""
+        return self._armed and (self._relative_alt_m or 0.0) >= IN_AIR_ALT_M
+
+    def _position_estimate_ok(self) -> bool:
+        """A usable position estimate (call under ``self._cond``): LOCAL_POSITION_NED arriving
+        (neither autopilot sends it without a local origin), a home altitude, and, where the
+        vehicle sends EKF_STATUS_REPORT (ArduPilot), its flags as ArduCopter needs them to arm in
+        GUIDED: an absolute horizontal position (or its prediction), not constant-position mode."""
+        now = time.monotonic()
+        if self._position_at is None or now - self._position_at > POSITION_FRESH_S:
+            return False
+        if self._home_amsl_m is None:
+            return False
+        if self._flavour == "ardupilot" and self._ekf_flags is not None:
+            return ekf_position_ok(self._ekf_flags)
+        return True
+
+    def _mode_locked(self) -> str | None:
+        """The mode the vehicle's HEARTBEAT shows, None before one (call under ``self._cond``)."""
+        if self._flavour is None or self._custom_mode is None:
+            return None
+        return mode_name(self._flavour, self._custom_mode)
+
+    def _mode_is(self, name: str) -> bool:
+        """The vehicle's HEARTBEAT shows mode ``name`` (call under ``self._cond``)."""
+        return self._mode_locked() == name
+
+    def _mode_now(self) -> str:
+        with self._cond:
+            return self._mode_locked() or "unknown"
+
+    def _wait_for(self, condition: Callable[[], bool], deadline: float, what: str) -> None:
+        """Wait (under ``self._cond``) until ``condition()``; TimeoutError at ``deadline``."""
+        with self._cond:
+            while not condition():
+                remaining = deadline - time.monotonic()
+                if self._stop.is_set():
+                    raise RuntimeError("link closed")
+                if remaining <= 0:
+                    raise TimeoutError(f"timed out waiting for {what}")
+                self._cond.wait(min(remaining, 0.2))
+
+    def _step(self, condition: Callable[[], bool], deadline: float, what: str) -> None:
+        """Wait for one step of an attempt: up to ``STEP_TIMEOUT_S`` (a failed attempt), never
+        past the sequence's ``deadline`` (the end)."""
+        step_deadline = min(deadline, time.monotonic() + STEP_TIMEOUT_S)
+        try:
+            self._wait_for(condition, step_deadline, what)
+        except TimeoutError:
+            if time.monotonic() >= deadline:
+                raise
+            raise TakeoffRefused(f"timed out waiting for {what}") from None
+
+    def _takeoff_worker(self, z_m: float, timeout_s: float, future: Future[None]) -> None:
+        deadline = time.monotonic() + timeout_s
+        alt_rel_m = z_m - self.config.frames.area_origin_down_m
+        backoff_s = RETRY_MIN_S
+        try:
+            while True:
+                try:
+                    self._takeoff_attempt(alt_rel_m, deadline)
+                    break
+                except TakeoffRefused as refusal:
+                    reason = str(refusal)
+                    with self._cond:
+                        self._takeoff_last_refusal = reason
+                        self.counters["takeoff_refusals"] += 1
+                    log.warning("take-off attempt failed: %s", reason)
+                    if time.monotonic() + backoff_s >= deadline:
+                        raise TimeoutError(
+                            f"not airborne after {timeout_s:.0f} s; last refusal: {reason}"
+                        ) from None
+                    self._set_phase(f"retrying in {backoff_s:.0f} s")
+                    if self._stop.wait(backoff_s):
+                        raise RuntimeError("link closed") from None
+                    backoff_s = min(backoff_s * 2, RETRY_MAX_S)
+            with self._cond:
+                self._takeoff = "airborne"
+                self._takeoff_phase = None
+                self._hold_setpoints = False
+                self._mode_wanted_until = time.monotonic() + self.config.mode_request_window_s
+                alt_now_m = self._relative_alt_m or 0.0
+            log.info("airborne at %.1f m above home", alt_now_m)
+            future.set_result(None)
+        except Exception as exc:
+            with self._cond:
+                self._takeoff = f"failed: {exc}"
+                self._takeoff_phase = None
+                self._hold_setpoints = False
+            log.warning("arm and takeoff failed: %s", exc)
+            future.set_exception(exc)
+
+    def _takeoff_attempt(self, alt_rel_m: float, deadline: float) -> None:
+        """One pass of the sequence (see :meth:`arm_and_takeoff`); TakeoffRefused to retry."""
+        with self._cond:
+            self._takeoff_attempts += 1
+        self._set_phase("waiting for the vehicle")
+        self._wait_for(lambda: self._health == "up", deadline, "the vehicle's HEARTBEAT")
+        with self._cond:
+            if self._in_air():
+                log.info("the vehicle is already flying: taken over without arming")
+                return
+        self._set_phase("waiting for a position estimate")
+        self._wait_for(self._position_estimate_ok, deadline, "a position estimate")
+        with self._cond:
+            flavour = self._flavour
+        if flavour == "ardupilot":
+            self._ensure_mode("ardupilot", "GUIDED", deadline)
+        with self._cond:
+            armed = self._armed
+        if not armed:
+            if flavour == "ardupilot" and not self._mode_stays("GUIDED", 0.0):
+                raise TakeoffRefused(f"left GUIDED before arming (now {self._mode_now()})")
+            self._set_phase("arming")
+            asked_at = time.monotonic()
+            result = self._ask_arm(STEP_TIMEOUT_S)
+            if result != mavlink.MAV_RESULT_ACCEPTED:
+                raise TakeoffRefused(
+                    f"arming refused ({result_name(result)}){self._texts_since(asked_at)}"
+                )
+            self._step(lambda: self._armed, deadline, "the vehicle to report armed")
+        if flavour == "ardupilot" and not self._mode_stays("GUIDED", 0.0):
+            raise TakeoffRefused(f"left GUIDED before the take-off (now {self._mode_now()})")
+        with self._cond:
+            if self._in_air():
+                return  # armed in the air: the setpoints take it from here
+            home_amsl_m = self._home_amsl_m or 0.0
+        alt_param = alt_rel_m + home_amsl_m if flavour == "px4" else alt_rel_m
+        self._set_phase("taking off")
+        asked_at = time.monotonic()
+        result = self._ask(
+            mavlink.MAV_CMD_NAV_TAKEOFF, mavlink_commands.takeoff(alt_param), STEP_TIMEOUT_S
+        )
+        if result != mavlink.MAV_RESULT_ACCEPTED and not self._leaving_the_ground():
+            raise TakeoffRefused(
+                f"take-off refused ({result_name(result)}){self._texts_since(asked_at)}"
+            )
+        self._confirm_climb(flavour, alt_rel_m, deadline, asked_at)
+
+    def _leaving_the_ground(self) -> bool:
+        """Armed and climbing within ``LIFTOFF_WAIT_S``: a take-off whose ACCEPTED was lost is
+        refused when sent again (ArduCopter takes off only from the ground), yet it flies."""
+        try:
+            self._wait_for(
+                lambda: self._armed and (self._relative_alt_m or 0.0) >= LIFTOFF_ALT_M,
+                time.monotonic() + LIFTOFF_WAIT_S,
+                "lift-off",
+            )
+        except TimeoutError:
+            return False
+        return True
+
+    def _ensure_mode(self, flavour: Flavour, name: str, deadline: float) -> None:
+        """Ask for mode ``name`` until HEARTBEAT shows it, held for ``MODE_SETTLE_S``."""
+        with self._cond:
+            already = self._mode_is(name)
+        if not already:
+            self._set_phase(f"asking for {name}")
+            asked_at = time.monotonic()
+            params = mavlink_commands.set_mode(*set_mode_numbers(flavour, name))
+            result = self._ask(mavlink.MAV_CMD_DO_SET_MODE, params, STEP_TIMEOUT_S)
+            if result != mavlink.MAV_RESULT_ACCEPTED:
+                raise TakeoffRefused(
+                    f"{name} refused ({result_name(result)}){self._texts_since(asked_at)}"
+                )
+            self._step(lambda: self._mode_is(name), deadline, f"HEARTBEAT to show {name}")
+        self._set_phase(f"confirming {name}")
+        if not self._mode_stays(name, MODE_SETTLE_S):
+            raise TakeoffRefused(f"{name} did not hold (now {self._mode_now()})")
+
+    def _mode_stays(self, name: str, hold_s: float) -> bool:
+        """The vehicle is in mode ``name`` and still is ``hold_s`` later."""
+        until = time.monotonic() + hold_s
+        with self._cond:
+            while True:
+                if not self._mode_is(name) or self._health != "up":
+                    return False
+                remaining = until - time.monotonic()
+                if remaining <= 0 or self._stop.is_set():
+                    return True
+                self._cond.wait(min(remaining, 0.2))
+
+    def _confirm_climb(
+        self, flavour: Flavour | None, alt_rel_m: float, deadline: float, asked_at: float
+    ) -> None:
+        """Wait until 90 % of ``alt_rel_m``: leaving the ground within ``CLIMB_START_S``, at no
+        less than ``CLIMB_MIN_MPS`` on average, armed (and in GUIDED on ArduPilot) all along."""
+        self._set_phase("climbing")
+        airborne_alt_m = max(alt_rel_m * 0.9, alt_rel_m - 1.0)
+        started = time.monotonic()
+        climb_by = min(deadline, started + CLIMB_START_S + alt_rel_m / CLIMB_MIN_MPS)
+        with self._cond:
+            while True:
+                alt_m = self._relative_alt_m or 0.0
+                if alt_m >= airborne_alt_m and self._armed:
+                    return
+                now = time.monotonic()
+                why = ""
+                if self._stop.is_set():
+                    raise RuntimeError("link closed")
+                if not self._armed:
+                    why = "disarmed during the take-off"
+                elif flavour == "ardupilot" and not self._mode_is("GUIDED"):
+                    why = "left GUIDED during the take-off"
+                elif now - started > CLIMB_START_S and alt_m < IN_AIR_ALT_M:
+                    why = f"on the ground {CLIMB_START_S:.0f} s after an accepted take-off"
+                elif now > climb_by:
+                    if now >= deadline:
+                        raise TimeoutError(f"timed out waiting for {airborne_alt_m:.1f} m")
+                    why = f"climb too slow: {alt_m:.1f} m after {now - started:.0f} s"
+                if why:
+                    break
+                self._cond.wait(0.2)
+        raise TakeoffRefused(why + self._texts_since(asked_at))

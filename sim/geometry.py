@@ -1,0 +1,292 @@
+"""The area's geometry, one home for it: the flight volume, the unit cube of the coordinates
+action, the zone grid and the discrete moves. Pure functions shared by the environments, the
+baselines, the evaluation and the service (its geofence and its decisions).
+
+**The volume** is ``x in [0, size_x_m]``, ``y in [0, size_y_m]``, ``z in [z_min_m, z_max_m]``
+(area frame, metres; :class:`sim.config.AreaConfig`). :func:`clip_to_volume` clips arrays of
+points into it; :func:`clamp_point` is the geofence's one-point form, which also refuses
+non-finite targets.
+
+**The coordinates action** (DDPG) is a point of ``[0, 1]³`` mapped linearly onto the volume
+(:func:`unit_to_m`, inverse :func:`m_to_unit`, which maps every altitude to 0 when the
+height range is zero).
+
+**The zone grid**: the area is cut into ``zone_m`` squares (20 × 20 for the paper's 500 m area
+and 25 m zones) and ``n_levels_z`` altitude levels ``zone_m`` apart from ``z_min_m``. A grid
+index ``(ix, iy, iz)`` stands for the point at the centre of zone ``(ix, iy)``, at altitude
+``z_min_m + iz · zone_m``.
+The 13 discrete moves (:data:`MOVES`) step the index by ±1 or ±5 along one axis, or stay.
+
+**Actions become targets here** (:func:`move_target`, :func:`unit_to_m`). A discrete move applies
+to the zone the vehicle is *in now*, not to the previous target: the policy sees the vehicle where
+it is (the observation is built at the vehicle's position), so "east 1" must mean one zone east of
+*that*. Each decision replaces the target while the vehicle chases it; a policy that keeps
+choosing "east" flies east at full speed, "stay" stops it at the centre of its zone. Under the
+paper's protocol the vehicle is always at its target zone's centre, so this is exactly the
+paper's move.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from functools import lru_cache
+
+import numpy as np
+
+from sim.config import AreaConfig
+
+# (dx, dy, dz) in zones for each discrete action; index 0 is "stay".
+MOVES: np.ndarray = np.array(
+    [
+        (0, 0, 0),
+        (1, 0, 0),
+        (-1, 0, 0),
+        (0, 1, 0),
+        (0, -1, 0),
+        (0, 0, 1),
+        (0, 0, -1),
+        (5, 0, 0),
+        (-5, 0, 0),
+        (0, 5, 0),
+        (0, -5, 0),
+        (0, 0, 5),
+        (0, 0, -5),
+    ],
+    dtype=np.int64,
+)
+MOVE_NAMES: tuple[str, ...] = (
+    "stay",
+    "east 1",
+    "west 1",
+    "north 1",
+    "south 1",
+    "up 1",
+    "down 1",
+    "east 5",
+    "west 5",
+    "north 5",
+    "south 5",
+    "up 5",
+    "down 5",
+)
+
+
+def grid_shape(area: AreaConfig) -> np.ndarray:
+    """``(n_zones_x, n_zones_y, n_levels_z)`` as an int array."""
+    return np.array([area.n_zones_x, area.n_zones_y, area.n_levels_z], dtype=np.int64)
+
+
+def zone_index(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
+    """The grid index of the zone holding ``xyz_m`` (nearest level in z), clipped to the grid."""
+    if type(xyz_m) is np.ndarray and xyz_m.dtype == np.float64 and xyz_m.shape == (3,):
+        x, y, z = xyz_m.tolist()  # Python floats: the same arithmetic, less overhead
+        qx, qy, qz = x / area.zone_m, y / area.zone_m, (z - area.z_min_m) / area.zone_m
+        if abs(qx) + abs(qy) + abs(qz) < _EXACT:  # finite, and int64 holds the index
+            n_x, n_y, n_z = _grid_dims(area)
+            ix, iy, iz = math.floor(qx), math.floor(qy), round(qz)  # round: half to even
+            return np.array(
+                [min(max(ix, 0), n_x - 1), min(max(iy, 0), n_y - 1), min(max(iz, 0), n_z - 1)],
+                dtype=np.int64,
+            )
+    raw = np.array(
+        [
+            np.floor(xyz_m[0] / area.zone_m),
+            np.floor(xyz_m[1] / area.zone_m),
+            np.rint((xyz_m[2] - area.z_min_m) / area.zone_m),
+        ]
+    ).astype(np.int64)
+    return np.clip(raw, 0, grid_shape(area) - 1)
+
+
+def zone_position(index: np.ndarray, area: AreaConfig) -> np.ndarray:
+    """The point a grid index stands for (zone centre, level altitude), metres."""
+    if type(index) is np.ndarray and index.ndim == 1 and index.dtype.kind in "iu":
+        index = index.tolist()  # Python ints: the same arithmetic, less overhead
+    return np.array(
+        [
+            (index[0] + 0.5) * area.zone_m,
+            (index[1] + 0.5) * area.zone_m,
+            area.z_min_m + index[2] * area.zone_m,
+        ]
+    )
+
+
+def move_mask(index: np.ndarray, area: AreaConfig) -> np.ndarray:
+    """Boolean (13,): the moves from ``index`` that stay on the grid (``stay`` always)."""
+    if type(index) is np.ndarray and index.shape == (3,) and index.dtype.kind == "i":
+        ix, iy, iz = index.tolist()
+        n_x, n_y, n_z = _grid_dims(area)
+        if 0 <= ix < n_x and 0 <= iy < n_y and 0 <= iz < n_z:
+            return _mask_table(area)[ix, iy, iz].copy()
+    landing = np.asarray(index) + MOVES
+    return np.all((landing >= 0) & (landing < grid_shape(area)), axis=1)
+
+
+# Grid coordinates below this (sum of magnitudes) floor and round the same in Python and numpy.
+_EXACT = 2.0**52
+
+
+@lru_cache(maxsize=16)
+def _grid_dims(area: AreaConfig) -> tuple[int, int, int]:
+    return area.n_zones_x, area.n_zones_y, area.n_levels_z
+
+
+@lru_cache(maxsize=8)
+def _mask_table(area: AreaConfig) -> np.ndarray:
+    """Bool (n_x, n_y, n_z, 13): the moves that stay on the grid from every zone index."""
+    shape = grid_shape(area)
+    index = np.stack(np.meshgrid(*(np.arange(n) for n in shape), indexing="ij"), axis=-1)
+    landing = index[..., None, :] + MOVES
+    table = np.all((landing >= 0) & (landing < shape), axis=-1)
+    table.setflags(write=False)  # cached: callers get copies
+    return table
+
+
+# --------------------------------------------------------------------------------------------
+# The volume
+
+
+def volume_bounds(area: AreaConfig) -> tuple[np.ndarray, np.ndarray]:
+    """``(lower, upper)`` corners of the UAV's volume of ``area``, metres."""
+    return (
+        np.array([0.0, 0.0, area.z_min_m]),
+        np.array([area.size_x_m, area.size_y_m, area.z_max_m]),
+    )
+
+
+def clip_to_volume(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
+    """``xyz_m`` (…, 3) clipped into the UAV's volume of ``area``."""
+    lower, upper = volume_bounds(area)
+    return np.clip(np.asarray(xyz_m, dtype=float), lower, upper)
+
+
+def clamp_point(
+    target_m: Sequence[float], area: AreaConfig
+) -> tuple[tuple[float, float, float], bool]:
+    """The geofence: an area-frame target ``(x_m, y_m, z_m)`` clamped into the volume.
+
+    Returns ``(clamped, was_clamped)``. Raises ValueError for a target that is not three finite
+    numbers (it has no nearest point inside).
+    """
+    if len(target_m) != 3:
+        raise ValueError(f"target must be (x_m, y_m, z_m), got {target_m!r}")
+    x_m, y_m, z_m = (float(v) for v in target_m)
+    if not all(math.isfinite(v) for v in (x_m, y_m, z_m)):
+        raise ValueError(f"target must be finite, got {(x_m, y_m, z_m)!r}")
+    clamped = (
+        min(max(x_m, 0.0), area.size_x_m),
+        min(max(y_m, 0.0), area.size_y_m),
+        min(max(z_m, area.z_min_m), area.z_max_m),
+    )
+    return clamped, clamped != (x_m, y_m, z_m)
+
+
+# --------------------------------------------------------------------------------------------
+# The coordinates action and the discrete moves: actions become targets
+
+
+def move_target(
+    move: int, vehicle_xyz_m: np.ndarray, area: AreaConfig, index: np.ndarray | None = None
+) -> tuple[np.ndarray, bool]:
+    """The target of discrete ``move`` taken where the vehicle is: ``(target, refused)``.
+
+    The move steps the index of the zone holding the vehicle (:func:`zone_index`;
+    ``index`` when the caller has it already); a move that would leave the volume is refused
+    and the target is that zone's centre (as "stay"). See the module doc for why moves apply to the
+    vehicle's zone.
+    """
+    if index is None:
+        index = zone_index(np.asarray(vehicle_xyz_m, dtype=float), area)
+    refused = not bool(move_mask(index, area)[move])
+    if refused:
+        return zone_position(index, area), True
+    return zone_position(index + MOVES[move], area), False
+
+
+def valid_moves(vehicle_xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
+    """Boolean (13,): the moves :func:`move_target` accepts from where the vehicle is."""
+    return move_mask(zone_index(np.asarray(vehicle_xyz_m, dtype=float), area), area)
+
+
+def unit_to_m(action: np.ndarray, area: AreaConfig) -> np.ndarray:
+    """The target of an absolute-coordinates action (x, y, z) in [0, 1]³, metres."""
+    a = np.clip(np.asarray(action, dtype=float).reshape(3), 0.0, 1.0)
+    return np.array(
+        [
+            a[0] * area.size_x_m,
+            a[1] * area.size_y_m,
+            area.z_min_m + a[2] * (area.z_max_m - area.z_min_m),
+        ]
+    )
+
+
+def m_to_unit(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
+    """Inverse of :func:`unit_to_m` (float64, clipped to [0, 1])."""
+    span_z = area.z_max_m - area.z_min_m
+    action = np.array(
+        [
+            xyz_m[0] / area.size_x_m,
+            xyz_m[1] / area.size_y_m,
+            (xyz_m[2] - area.z_min_m) / span_z if span_z > 0 else 0.0,
+        ]
+    )
+    return np.clip(action, 0.0, 1.0)
+
+
+# --------------------------------------------------------------------------------------------
+# The same over (E, 3) arrays, for the vectorised environment: row e is the scalar function's
+# result exactly
+
+
+def zone_indices(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
+    """:func:`zone_index` of each row of ``xyz_m`` (E, 3): int64 (E, 3)."""
+    xyz = np.asarray(xyz_m, dtype=float)
+    raw = np.empty(xyz.shape, dtype=np.int64)
+    raw[:, 0] = np.floor(xyz[:, 0] / area.zone_m)
+    raw[:, 1] = np.floor(xyz[:, 1] / area.zone_m)
+    raw[:, 2] = np.rint((xyz[:, 2] - area.z_min_m) / area.zone_m)  # half to even, as round()
+    return np.clip(raw, 0, grid_shape(area) - 1)
+
+
+def zone_positions(index: np.ndarray, area: AreaConfig) -> np.ndarray:
+    """:func:`zone_position` of each row of ``index`` (E, 3): metres (E, 3)."""
+    out = np.empty(index.shape, dtype=float)
+    out[:, 0] = (index[:, 0] + 0.5) * area.zone_m
+    out[:, 1] = (index[:, 1] + 0.5) * area.zone_m
+    out[:, 2] = area.z_min_m + index[:, 2] * area.zone_m
+    return out
+
+
+def move_masks(index: np.ndarray, area: AreaConfig) -> np.ndarray:
+    """Bool (E, 13) move masks of zone indices (E, 3), looked up in the grid's table."""
+    return _mask_table(area)[index[:, 0], index[:, 1], index[:, 2]]
+
+
+def valid_moves_many(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
+    """:func:`valid_moves` of each row of ``xyz_m`` (E, 3): bool (E, 13)."""
+    return move_masks(zone_indices(xyz_m, area), area)
+
+
+def move_targets(
+    moves: np.ndarray, xyz_m: np.ndarray, area: AreaConfig, index: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`move_target` of each environment: targets (E, 3), refused (E,).
+
+    ``moves`` (E,) are valid move numbers; ``index`` the vehicles' zone indices when known."""
+    if index is None:
+        index = zone_indices(xyz_m, area)
+    landing = index + MOVES[moves]
+    allowed = np.all((landing >= 0) & (landing < grid_shape(area)), axis=1)
+    landing[~allowed] = index[~allowed]
+    return zone_positions(landing, area), ~allowed
+
+
+def unit_to_m_many(actions: np.ndarray, area: AreaConfig) -> np.ndarray:
+    """:func:`unit_to_m` of each row of ``actions`` (E, 3): metres (E, 3)."""
+    a = np.clip(np.asarray(actions, dtype=float), 0.0, 1.0)
+    out = np.empty(a.shape)
+    out[:, 0] = a[:, 0] * area.size_x_m
+    out[:, 1] = a[:, 1] * area.size_y_m
+    out[:, 2] = area.z_min_m + a[:, 2] * (area.z_max_m - area.z_min_m)
+    return out
