@@ -22,10 +22,12 @@ from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from api.auth import BearerGuard
+from api.live import end_streams, live
 from api.metrics import HttpMetrics, HttpMetricsMiddleware, ServiceCollector
 from api.ratelimit import RateLimit
 from api.responses import send_error
 from api.routes import RATE_LIMITED, probes, v1
+from api.ui import ui
 from service.placement import PlacementService
 from service.settings import ServiceSettings
 
@@ -187,16 +189,16 @@ def create_app(
         app.add_middleware(ProxyHeadersMiddleware, trusted_hosts=list(settings.trusted_proxies))
     app.add_middleware(HeaderLimit, max_headers=settings.http_max_headers)
     app.include_router(v1, responses=RATE_LIMITED)
+    app.include_router(live, responses=RATE_LIMITED)
     app.include_router(probes)
+    app.include_router(ui)  # the operator view's page (no token: its data comes from /v1)
     return app
 
 
 def run(settings: ServiceSettings, **uvicorn_options: Any) -> None:
     """Serve ``settings`` with uvicorn (and the limits of :mod:`api.server`) until interrupted."""
-    import uvicorn
-
-    from api.server import server_config
+    from api.server import Server, server_config
 
     app = create_app(settings)
     config = server_config(app, settings, host=settings.host, port=settings.port, **uvicorn_options)
-    uvicorn.Server(config).run()
+    Server(config, before_shutdown=lambda: end_streams(app)).run()

@@ -33,8 +33,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--policy",
         metavar="PATH|NAME",
-        help="checkpoint, or min-distance, load-weighted, oracle (default: oracle, the tracking "
-        "oracle; see service/policy_runtime.py)",
+        help="checkpoint, or min-distance, load-weighted, min-distance-env, oracle (default: "
+        "oracle, the tracking oracle; see service/policy_runtime.py)",
     )
     parser.add_argument(
         "--arm-and-takeoff",
@@ -61,6 +61,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--world",
         help="the world the policy was trained for (default closed-loop): its decision period",
+    )
+    parser.add_argument(
+        "--environment",
+        help="what stands on the ground: open (default, the paper's), suburban, urban, "
+        "dense-urban, highrise-urban (the channel the policy and the oracle assume)",
     )
     parser.add_argument(
         "--step-s", type=float, help="decision period in seconds (default: the world's, 1)"
@@ -96,6 +101,7 @@ _SETTING_ARGS = (
     "insecure",
     "decision_mode",
     "world",
+    "environment",
     "step_s",
     "report_max_age_s",
     "state_file",
@@ -131,6 +137,7 @@ def _serve(args: argparse.Namespace) -> int:
     import logging
 
     from api.app import create_app
+    from api.live import end_streams
     from api.server import server_config
     from service.errors import InputError
     from service.placement import PlacementService
@@ -167,22 +174,25 @@ def _serve(args: argparse.Namespace) -> int:
         access_log=args.log_level == "debug",
         lifespan="on",
     )
-    _announcing_server(config, f"http://{settings.host}:{port}").run(sockets=[sock])
+    server = _announcing_server(config, f"http://{settings.host}:{port}")
+    server.before_shutdown = lambda: end_streams(app)  # the live streams would hold it up
+    server.run(sockets=[sock])
     return 0
 
 
 def _announcing_server(config: Any, url: str) -> Any:
-    """uvicorn's server, printing one line on stdout once it accepts requests (scripts and tests
-    read it to learn the port)."""
-    import uvicorn
+    """The server of :mod:`api.server`, printing where it listens on stdout once it accepts
+    requests (scripts and tests read the first line to learn the port), and the operator view's
+    address."""
+    from api.server import Server
 
-    class AnnouncingServer(uvicorn.Server):
+    class AnnouncingServer(Server):
         async def startup(self, sockets: list[Any] | None = None) -> None:
             await super().startup(sockets=sockets)
             if not self.should_exit:
                 # One write, newline included: print() writes the text and the newline
                 # separately, and a log line from another thread can land between them.
-                sys.stdout.write(f"tupa serve listening on {url}\n")
+                sys.stdout.write(f"tupa serve listening on {url}\noperator view: {url}/\n")
                 sys.stdout.flush()
 
     return AnnouncingServer(config)

@@ -77,6 +77,15 @@ class ServiceCollector(Collector):
             "Setpoints being streamed (1) or not (0)",
             value=float(state.streaming),
         )
+        hub = service.live.hub
+        yield GaugeMetricFamily(
+            "tupa_live_streams", "Operator-view streams open", value=float(len(hub))
+        )
+        yield CounterMetricFamily(
+            "tupa_live_frames_dropped",
+            "Operator-view frames a slow client lost (its queue was full)",
+            value=hub.dropped,
+        )
 
 
 class HttpMetrics:

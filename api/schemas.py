@@ -203,7 +203,7 @@ class PolicyIn(_Strict):
         min_length=1,
         max_length=4096,
         description="A checkpoint path on the service's machine, or min-distance, "
-        "load-weighted, oracle",
+        "load-weighted, min-distance-env, oracle",
     )
 
 

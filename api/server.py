@@ -17,12 +17,22 @@ address. :func:`server_config` builds the one configuration both ``tupa serve`` 
   ``http_max_connections`` connections or requests at once (503 beyond, at once);
 * no proxy headers from uvicorn: the app honours ``X-Forwarded-For`` only from
   ``trusted_proxies`` (:func:`api.app.create_app`).
+
+Long-lived responses (the operator view's streams, :mod:`api.live`) and these limits: the read
+deadline ends once a request is in (a stream's ``GET`` has no body), and the keep-alive timeout
+applies only between requests, so neither cuts an open stream. Each stream holds one of the
+``http_max_connections`` for as long as it is open: the app caps streams at
+``live_max_streams`` (503 beyond), well below it, so that the network controller always finds a
+place. uvicorn waits at shutdown until every response is complete, which a stream never is:
+:class:`Server` ends the streams first.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import socket
+from collections.abc import Callable
 from typing import Any
 
 import h11
@@ -113,3 +123,23 @@ def server_config(app: Any, settings: ServiceSettings, **options: Any) -> uvicor
         proxy_headers=False,
         **options,
     )
+
+
+class Server(uvicorn.Server):
+    """uvicorn's server, calling ``before_shutdown`` (ending the live streams:
+    :func:`api.live.end_streams`) as it starts shutting down, since it waits for every response
+    to complete before it stops."""
+
+    def __init__(
+        self, config: uvicorn.Config, before_shutdown: Callable[[], None] | None = None
+    ) -> None:
+        super().__init__(config)
+        self.before_shutdown = before_shutdown
+
+    async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
+        if self.before_shutdown is not None:
+            try:
+                self.before_shutdown()
+            except Exception:  # shutting down all the same
+                log.exception("before shutdown")
+        await super().shutdown(sockets=sockets)

@@ -12,6 +12,8 @@ Measures, and writes to benchmarks/results/sim_speed.json:
 - single-environment steps per second of ``sim.envs.FapDiscreteEnv`` itself (no gymnasium
   wrappers) in the paper world and the closed-loop world (flight, report age 1), 3 users,
   stochastic, observation included, random valid moves;
+- the same in the closed-loop world in every channel environment (``open`` and the urban
+  classes of :mod:`sim.channel`; target >= 10,000 each);
 - vectorised-environment steps per second of ``sim.vector_env.FapVectorEnv`` (discrete,
   closed-loop world, stochastic, 3 users, random valid moves, autoresets included), E = 64 and
   256: the whole environment step (targets, flight, model, utility, observations, infos),
@@ -38,14 +40,14 @@ import gymnasium as gym
 import numpy as np
 
 import sim.envs  # noqa: F401  (registers the environments)
-from sim.config import AreaConfig
+from sim.config import ENVIRONMENTS, AreaConfig
 from sim.envs import DISCRETE_ENV_ID, FapDiscreteEnv, ScenarioCycle
 from sim.network import NetworkModel
 from sim.observation import UserReports, build_observation, build_observations
 from sim.scenarios import generate_scenarios
 from sim.utility import network_utility
 from sim.vector_env import FapVectorEnv
-from sim.world import World, get_world
+from sim.world import World, get_world, world_with
 
 RESULTS = Path(__file__).parent / "results" / "sim_speed.json"
 
@@ -232,6 +234,14 @@ def main() -> None:
     for name in ("paper", "closed-loop"):
         single[name] = round(single_env_steps_per_s(get_world(name), steps, repeats))
         print(f"FapDiscreteEnv steps/s ({name}, 3 users): {single[name]:>8,}")
+    environments = {}
+    for environment in ENVIRONMENTS:
+        world = world_with(get_world("closed-loop"), [f"environment={environment}"])
+        environments[environment] = round(single_env_steps_per_s(world, steps, repeats))
+        print(
+            f"FapDiscreteEnv steps/s (closed-loop, {environment}, 3 users): "
+            f"{environments[environment]:>8,}"
+        )
     vector = {}
     for n_envs in (64, 256):
         calls = max(steps // n_envs, 100)  # at least one autoreset (100-step episodes)
@@ -258,6 +268,12 @@ def main() -> None:
             "stochastic": True,
             "worlds": single,
         },
+        "single_env_steps_per_s_3_users_by_environment": {
+            "env": "sim.envs.FapDiscreteEnv",
+            "world": "closed-loop",
+            "stochastic": True,
+            "environments": environments,
+        },
         "vector_env_steps_per_s_3_users": {
             "env": "sim.vector_env.FapVectorEnv",
             "kind": "discrete",
@@ -272,12 +288,15 @@ def main() -> None:
             "model_loop_steps_per_s_3_users": 30_000,
             "batch_evaluations_per_s": 1_000_000,
             "oracle_search_ms": 50,
+            "single_env_steps_per_s_3_users_every_environment": 10_000,
         },
         "met": {
             "env_steps_per_s_3_users": scaling["3"] >= 20_000,
             "model_loop_steps_per_s_3_users": loop >= 30_000,
             "batch_evaluations_per_s": evals >= 1_000_000,
             "oracle_search_ms": oracle_s * 1e3 < 50,
+            "single_env_steps_per_s_3_users_every_environment": min(environments.values())
+            >= 10_000,
         },
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

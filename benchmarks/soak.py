@@ -19,12 +19,17 @@ the time each request was due (so queueing in the generator is not hidden), and 
 p99 latency and setpoint rate at the vehicle (min/max). Overall: RSS at the start of the soak and
 at the end (flat: within 10 %), OFFBOARD failsafes at the vehicle (must be 0).
 
+With ``--pages N`` (default 10; issue 18) N operator pages stay open through both phases: each
+a ``GET /v1/live/events`` stream read as frames come (benchmarks/live_pages.py); the frames each
+received are counted (one per decision period expected), and the memory check covers them.
+
 Every report of a phase carries the same timestamp (concurrent requests never count as out of
 order); the service decides once a second (paced) from the latest one. The generator, the
 service and the mock share the machine: say what else ran on it when quoting the figures.
 
     .venv/bin/python benchmarks/soak.py            # 60 s + 10 min -> benchmarks/results/soak.json
     .venv/bin/python benchmarks/soak.py --quick    # 10 s + 20 s, to check the script
+    .venv/bin/python benchmarks/soak.py --soak-s 120 --out /tmp/soak.json   # a shorter soak
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))  # tests.faults.mock_process is not an installed package
 
+from live_pages import LivePages  # noqa: E402
 from loadgen import load_phase  # noqa: E402
 
 from closed_loop.processes import start_service  # noqa: E402
@@ -144,8 +150,16 @@ def main() -> None:
     parser.add_argument("--sample-s", type=float, default=5.0, help="sampling period (default 5)")
     parser.add_argument("--policy", default=None, help="tupa serve --policy (default: shipped)")
     parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument(
+        "--pages", type=int, default=10, help="operator pages open throughout (default 10)"
+    )
+    parser.add_argument(
+        "--soak-s", type=float, default=None, help="length of the 200 requests/s phase"
+    )
     args = parser.parse_args()
     phases = [(1000.0, 10.0), (200.0, 20.0)] if args.quick else [(1000.0, 60.0), (200.0, 600.0)]
+    if args.soak_s is not None:
+        phases[-1] = (200.0, args.soak_s)
     sample_s = min(args.sample_s, 2.0) if args.quick else args.sample_s
     token = secrets.token_urlsafe(24)
     out: dict[str, Any] = {
@@ -156,12 +170,14 @@ def main() -> None:
         },
         "quick": args.quick,
         "sample_s": sample_s,
+        "pages": args.pages,
     }
     mock = start_mock_process(
         ["--listen", "tcp:127.0.0.1:0", "--flavour", "px4", "--ready-delay-s", "1",
          "--climb-speed-mps", "8", "--battery-capacity-mah", "1000000"]
     )  # fmt: skip
     proc = None
+    pages = None
     try:
         serve_args = [
             "--mavlink",
@@ -192,6 +208,10 @@ def main() -> None:
             wait_for(lambda: mock.state()["mode"] == "OFFBOARD", 15, 0.2, "OFFBOARD")
             out["policy"] = client.get("/v1/policy").json()["name"]
         pid = proc.proc.pid
+        if args.pages:
+            pages = LivePages("127.0.0.1", port, token, args.pages).start()
+            pages_opened = time.monotonic()
+            print(f"{args.pages} operator pages open", flush=True)
         sampler = Sampler(pid, mock, sample_s)
         sampler.start()
         first = wait_for(lambda: sampler.samples and sampler.samples[0], 10, 0.2, "a first sample")
@@ -217,6 +237,19 @@ def main() -> None:
                 flush=True,
             )
         sampler.stop()
+        if pages is not None:
+            pages.stop()
+            open_s = time.monotonic() - pages_opened
+            expected = open_s / 1.0  # one frame per decision period (1 s)
+            out["pages"] = {
+                "open_s": round(open_s, 1),
+                "frames_min": min(pages.frames),
+                "frames_max": max(pages.frames),
+                "frames_expected": round(expected),
+                "bytes_per_page_min": min(pages.bytes),
+                "errors": pages.errors,
+            }
+            pages = None
         out["phases"] = results
         soak = results[-1]
         soak_start = soak["windows"][0]["rss_kb"] if soak["windows"] else first[1]
@@ -244,7 +277,14 @@ def main() -> None:
             > 2.0,
             "no_offboard_failsafe": stats["failsafe_offboard"] == 0,
         }
+        if "pages" in out:  # every page kept getting its frame each period
+            out["checks"]["pages_live_throughout"] = (
+                not out["pages"]["errors"]
+                and out["pages"]["frames_min"] >= 0.9 * out["pages"]["frames_expected"]
+            )
     finally:
+        if pages is not None:
+            pages.stop()
         if proc is not None:
             proc.stop()
         mock.stop()

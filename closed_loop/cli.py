@@ -6,6 +6,8 @@ import argparse
 import os
 from pathlib import Path
 
+from sim.config import ENVIRONMENTS
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     demo = subparsers.add_parser(
@@ -24,6 +26,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     demo.add_argument("--steps", type=int, default=40, help="1-s steps per scenario (default 40)")
     demo.add_argument("--seed", type=int, default=7)
     demo.add_argument("--flavour", choices=("px4", "ardupilot"), default="px4")
+    demo.add_argument(
+        "--environment",
+        choices=ENVIRONMENTS,
+        default="open",
+        help="what stands on the ground: the simulated network's channel and the service's "
+        "(default open, the paper's)",
+    )
     demo.add_argument("--out", type=Path, default=Path("runs/demo"), metavar="DIR")
     demo.set_defaults(handler=_demo)
 
@@ -36,6 +45,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "or generated ones, one after the other.",
     )
     ctl.add_argument("--api", default="http://127.0.0.1:8080", help="the service's base URL")
+    ctl.add_argument(
+        "--environment",
+        choices=ENVIRONMENTS,
+        default="open",
+        help="the channel of generated scenarios (a --scenarios file says its own)",
+    )
     ctl.add_argument(
         "--mavlink", default="tcp:127.0.0.1:5760", help="the autopilot (true position)"
     )
@@ -80,6 +95,7 @@ def _demo(args: argparse.Namespace) -> int:
             seed=args.seed,
             flavour=args.flavour,
             out_dir=args.out,
+            environment=args.environment,
         )
     )
     return 0
@@ -90,14 +106,16 @@ def _controller_sim(args: argparse.Namespace) -> int:
 
     from closed_loop.controller import SimulatedNetwork, TruePosition, run_scenario
     from service.frames import FrameConfig
+    from sim.config import AreaConfig
     from sim.scenarios import generate_scenarios
 
     _positive("steps", args.steps)
     _positive("step-s", args.step_s)
+    area = AreaConfig(environment=args.environment)
     if args.scenarios is not None:
         from sim.files import load_scenarios
 
-        _, scenarios = load_scenarios(args.scenarios)
+        area, scenarios = load_scenarios(args.scenarios)  # the file's environment
     else:
         _positive("count", args.count)
         scenarios = generate_scenarios(args.count, args.users, seed=args.seed)
@@ -108,7 +126,7 @@ def _controller_sim(args: argparse.Namespace) -> int:
     try:
         with httpx.Client(base_url=args.api, headers=headers, timeout=10.0) as client:
             for i, scenario in enumerate(scenarios):
-                network = SimulatedNetwork(scenario, seed=args.seed + i)
+                network = SimulatedNetwork(scenario, area=area, seed=args.seed + i)
                 records = run_scenario(network, vehicle, client, args.steps, args.step_s)
                 mean = sum(r.utility for r in records) / len(records)
                 print(f"scenario {scenario.id}: mean utility {mean:.3f}", flush=True)

@@ -18,6 +18,7 @@ protocol of ``tupa eval --world closed-loop``. A PNG shows each scenario's users
 
 from __future__ import annotations
 
+import os
 import secrets
 import sys
 import time
@@ -51,6 +52,7 @@ class DemoConfig:
     out_dir: Path = Path("runs/demo")
     queueing: str = "fq-codel"
     world: str = "closed-loop"
+    environment: str = "open"
 
 
 COMPARED = ("min-distance", "load-weighted", "oracle")
@@ -73,6 +75,7 @@ def demo_world(index: int, cfg: DemoConfig) -> World:
     network = NetworkConfig().with_queueing(cfg.queueing)  # type: ignore[arg-type]
     return replace(
         world,
+        area=replace(world.area, environment=cfg.environment),
         network=network,
         episode_steps=cfg.steps,
         step_s=cfg.step_s,
@@ -139,6 +142,7 @@ def _start_loop(policy: str | None, cfg: DemoConfig, area: AreaConfig) -> _Loop:
         serve_args = [
             *("--mavlink", f"tcp:127.0.0.1:{mock_port}", "--port", "0", "--arm-and-takeoff"),
             *("--step-s", str(cfg.step_s), "--log-level", "warning"),
+            *("--environment", cfg.environment),
         ]
         if policy:
             serve_args += ["--policy", policy]
@@ -215,7 +219,7 @@ def run_demo(cfg: DemoConfig) -> dict[str, Any]:
     """Fly the served policy and the loop baselines side by side (one autopilot simulator and
     one service each), every scenario from home, and compare them with the simulator-flown
     tracking oracle and shipped checkpoints."""
-    area = AreaConfig()
+    area = AreaConfig(environment=cfg.environment)
     scenarios = pick_scenarios(cfg.scenarios, cfg.seed, area)
     home_xy = (area.size_x_m / 2, area.size_y_m / 2)
     specs = {"served": cfg.policy, **{name: name for name in LOOP_BASELINES}}
@@ -226,6 +230,7 @@ def run_demo(cfg: DemoConfig) -> dict[str, Any]:
         for key, spec in specs.items():
             loops[key] = _start_loop(spec, cfg, area)
         served = loops["served"]
+        _announce_operator_view(served, cfg.out_dir)
         policy_name = served.name
         for key in LOOP_BASELINES:
             if loops[key].name == policy_name:  # the served policy is one of the baselines
@@ -393,6 +398,21 @@ def _print_step(record: StepRecord) -> None:
         f"  step {record.step + 1:>3}  utility {record.utility:.3f}  "
         f"vehicle ({x:6.1f}, {y:6.1f}, {z:5.1f})  target {target}"
     )
+
+
+def _announce_operator_view(loop: _Loop, out_dir: Path) -> None:
+    """Print the served policy's operator view (``tupa serve``'s page, live while the demo
+    runs) and where its one-time token is: in a file only its owner may read, not on the
+    terminal (which may be logged) and never in the address."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    token_file = out_dir / "api-token"
+    token = str(loop.client.headers["Authorization"]).removeprefix("Bearer ")
+    fd = os.open(token_file, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    os.fchmod(fd, 0o600)  # also when the file was there before
+    with os.fdopen(fd, "w") as f:
+        f.write(token + "\n")
+    url = str(loop.client.base_url).rstrip("/") + "/"
+    _say(f"operator view: {url} (the page asks for the token: it is in {token_file})")
 
 
 def _say(text: str) -> None:

@@ -14,6 +14,10 @@ never sees network metrics.
   2-D geometric median instead (the two differ by metres at most in the paper's area).
 * ``load-weighted``: the same, each user's distance weighted by its offered load, so the UAV
   leans toward the heavy users. Traffic-aware, but still blind to the MAC (airtime, queues).
+* ``min-distance-env``: min-distance's ground point, at the altitude that maximises the users'
+  mean SNR under the area's channel environment (:func:`sim.channel.mean_path_loss_db`): still
+  traffic-blind, but it knows that over a town climbing buys line of sight. In the ``open``
+  environment it is min-distance.
 
 The ``oracle`` (:mod:`policies.oracle`: exhaustive search with the network model itself) is the
 third placement; :mod:`policies.registry` builds any of them by name.
@@ -27,10 +31,14 @@ from typing import Literal
 import numpy as np
 
 from policies.interface import UsersLike
-from sim.config import AreaConfig
+from sim.channel import mean_path_loss_db
+from sim.config import AreaConfig, RadioConfig
 from sim.geometry import clip_to_volume
 
 DistanceMetric = Literal["3d", "ground"]
+AltitudeRule = Literal["lowest", "best-snr"]
+ALTITUDE_STEP_M = 1.0
+"""The altitude grid ``best-snr`` searches (metres)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -169,19 +177,28 @@ class MinDistancePolicy:
     ``load_weighted=True`` weights each user's distance by its offered load (``load-weighted``).
     ``metric="3d"`` (default) minimises the 3-D distance from the UAV at ``z_min_m`` to users at
     ``user_height_m``; ``"ground"`` the ground distance (plain geometric median).
+    ``altitude="best-snr"`` then flies at the altitude (on a 1 m grid) with the highest mean SNR
+    over the users under the area's environment, ``frequency_hz`` its carrier
+    (``min-distance-env``); ``"lowest"`` (default) at ``z_min_m``.
     """
 
     area: AreaConfig = field(default_factory=AreaConfig)
     load_weighted: bool = False
     metric: DistanceMetric = "3d"
     median: MedianConfig = field(default_factory=MedianConfig)
+    altitude: AltitudeRule = "lowest"
+    frequency_hz: float = RadioConfig().frequency_hz
 
     def __post_init__(self) -> None:
         if self.metric not in ("3d", "ground"):
             raise ValueError(f"metric: must be '3d' or 'ground', got {self.metric!r}")
+        if self.altitude not in ("lowest", "best-snr"):
+            raise ValueError(f"altitude: must be 'lowest' or 'best-snr', got {self.altitude!r}")
 
     @property
     def name(self) -> str:
+        if self.altitude == "best-snr":
+            return "load-weighted-env" if self.load_weighted else "min-distance-env"
         return "load-weighted" if self.load_weighted else "min-distance"
 
     def place(self, scenario: UsersLike) -> np.ndarray:
@@ -189,4 +206,24 @@ class MinDistancePolicy:
         height_m = area.z_min_m - area.user_height_m if self.metric == "3d" else 0.0
         weights = np.asarray(scenario.load_bps, dtype=float) if self.load_weighted else None
         xy_m = geometric_median(scenario.users_xy_m, weights, max(height_m, 0.0), self.median)
-        return clip_to_volume(np.array([xy_m[0], xy_m[1], area.z_min_m]), area)
+        z_m = area.z_min_m
+        if self.altitude == "best-snr" and area.environment != "open":
+            z_m = best_snr_altitude_m(scenario.users_xy_m, xy_m, area, self.frequency_hz)
+        return clip_to_volume(np.array([xy_m[0], xy_m[1], z_m]), area)
+
+
+def best_snr_altitude_m(
+    users_xy_m: np.ndarray, xy_m: np.ndarray, area: AreaConfig, frequency_hz: float
+) -> float:
+    """The altitude above ``xy_m`` (on the :data:`ALTITUDE_STEP_M` grid of the altitude band)
+    with the highest mean SNR over the users, i.e. the lowest mean path loss in dB."""
+    steps = round((area.z_max_m - area.z_min_m) / ALTITUDE_STEP_M)
+    heights_m = np.linspace(area.z_min_m, area.z_max_m, steps + 1)
+    ground_m = np.hypot(users_xy_m[:, 0] - xy_m[0], users_xy_m[:, 1] - xy_m[1])
+    loss_db = mean_path_loss_db(
+        area.environment,
+        ground_m[None, :],
+        (heights_m - area.user_height_m)[:, None],
+        frequency_hz,
+    )
+    return float(heights_m[int(np.argmin(loss_db.mean(axis=1)))])

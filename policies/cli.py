@@ -57,8 +57,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="NAME",
         help=(
             "policy to evaluate, repeat for several: min-distance (the paper's baseline), "
-            "load-weighted, oracle (best static position found with the model: the upper "
-            "bound), or a trained checkpoint (a model.zip or a tupa train output directory)"
+            "load-weighted, min-distance-env (min-distance at the altitude of best mean SNR in "
+            "the area's environment), oracle (best static position found with the model: the "
+            "upper bound), or a trained checkpoint (a model.zip or a tupa train output directory)"
         ),
     )
     evaluate.add_argument(
@@ -119,6 +120,13 @@ def add_world_arguments(parser: argparse.ArgumentParser) -> None:
             "mobility.model=group, demand.quiet_rate_per_s=0.01, reports.age_steps=2, home=random"
         ),
     )
+    parser.add_argument(
+        "--environment",
+        default=None,
+        metavar="NAME",
+        help="what stands on the ground: open, suburban, urban, dense-urban, highrise-urban "
+        "(default: the scenario file's, open when it says none)",
+    )
 
 
 def world_from_args(args: argparse.Namespace, default: str, area: object = None) -> object:
@@ -143,7 +151,10 @@ def world_from_args(args: argparse.Namespace, default: str, area: object = None)
         overrides["episode_steps"] = steps
     if overrides:
         world = replace(world, **overrides)
-    return world_with(world, args.world_set)
+    settings = list(args.world_set)
+    if getattr(args, "environment", None) is not None:
+        settings.append(f"environment={args.environment}")
+    return world_with(world, settings)
 
 
 def _eval(args: argparse.Namespace) -> int:

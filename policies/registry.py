@@ -1,8 +1,9 @@
 """Names and checkpoint paths to policies: the one place that knows what ``--policy`` may say.
 
 * :data:`PLACEMENTS`: the static placements by name — ``min-distance`` (the paper's baseline),
-  ``load-weighted`` (:mod:`policies.baselines`) and ``oracle`` (:mod:`policies.oracle`: the
-  model's own exhaustive search). :func:`make_placement` builds one for a world.
+  ``load-weighted``, ``min-distance-env`` (:mod:`policies.baselines`) and ``oracle``
+  (:mod:`policies.oracle`: the model's own exhaustive search). :func:`make_placement` builds
+  one for a world.
 * :func:`resolve_policy`: a :class:`~policies.interface.Policy` from a spec — a placement's name
   (re-placed every decision: :class:`~policies.adapters.StaticPolicy`) or a checkpoint path
   (:class:`~policies.adapters.CheckpointPolicy`). ``tupa eval``, the benchmarks, the demo and
@@ -30,6 +31,9 @@ def _oracle(world: World) -> Placement:
 PLACEMENTS: dict[str, Callable[[World], Placement]] = {
     "min-distance": lambda world: MinDistancePolicy(world.area),
     "load-weighted": lambda world: MinDistancePolicy(world.area, load_weighted=True),
+    "min-distance-env": lambda world: MinDistancePolicy(
+        world.area, altitude="best-snr", frequency_hz=world.network.radio.frequency_hz
+    ),
     "oracle": _oracle,
 }
 """Each placement's name and its factory (from the world it will place in)."""

@@ -178,6 +178,8 @@ class MavlinkLink(VehicleLinkBase):
             elif kind == "GLOBAL_POSITION_INT":
                 self._relative_alt_m = message.relative_alt / 1000.0
                 self._home_amsl_m = (message.alt - message.relative_alt) / 1000.0
+                # UINT16_MAX: the vehicle does not know its heading.
+                self._heading_deg = None if message.hdg == 65535 else message.hdg / 100.0
             elif kind == "EXTENDED_SYS_STATE":
                 self._landed_state = message.landed_state
             elif kind == "EKF_STATUS_REPORT":

@@ -34,6 +34,11 @@ restart nothing is sent to the vehicle until a fresh report leads to a decision,
 that is what makes a start a restart), so a restart never arms or moves the vehicle by surprise.
 Meanwhile the vehicle does what its own failsafe for a lost setpoint stream does (PX4: hold;
 ArduPilot GUIDED: hold the last target).
+
+The operator view: once per decision period (after the decision in ``paced`` mode; from the
+link watcher in ``on-report`` mode) the loop hands what it knows to :attr:`PlacementService.live`
+(:mod:`service.live_view`), which keeps the track and the utility history and publishes a frame
+to the open pages without ever waiting for them (:mod:`service.pubsub`).
 """
 
 from __future__ import annotations
@@ -51,6 +56,7 @@ import numpy as np
 
 from policies.interface import Policy
 from service.frames import FrameConfig
+from service.live_view import LiveFrame, LiveView, Moment
 from service.policy_runtime import load_policy
 from service.settings import ServiceSettings
 from service.vehicle_link import LinkConfig, LinkState, VehicleLink
@@ -138,6 +144,8 @@ class PlacementService:
         self._decision: Decision | None = None
         self.counters: Counter[str] = Counter()
         self._takeoff_deferred = False
+        self.live = LiveView(self.world.area, self.world.utility, settings.live_max_streams)
+        """The operator view's track, utility history and frames (published each period)."""
 
     @property
     def area(self) -> AreaConfig:
@@ -197,6 +205,7 @@ class PlacementService:
 
     def stop(self, timeout_s: float = 5.0) -> None:
         self._stop.set()
+        self.live.hub.close_all()  # ends the open pages' streams
         self._waiting_for_link.set()  # wakes the on-report watcher
         if self._thread is not None:
             self._thread.join(timeout_s)
@@ -316,6 +325,41 @@ class PlacementService:
         with self._lock:
             return dict(self.counters)
 
+    # ------------------------------------------------------------------ the operator view
+
+    def live_frame(self) -> LiveFrame:
+        """The operator view's frame for now (``GET /v1/live``; the start of each stream)."""
+        return self.live.frame(self._moment())
+
+    def _moment(self) -> Moment:
+        with self._lock:
+            report, received, decision, policy = (
+                self._report,
+                self._report_received,
+                self._decision,
+                self._policy,
+            )
+        return Moment(
+            time_s=time.time(),
+            link=self.link.state(),
+            policy_name=policy.name,
+            policy_spec=policy.spec,
+            decision_period_s=self.settings.decision_period_s,
+            decision=decision,
+            report=report,
+            report_age_s=None if received is None else time.monotonic() - received,
+            report_max_age_s=self.settings.report_max_age_s,
+        )
+
+    def _tick_live(self) -> None:
+        """Once per decision period: the view records and publishes (never blocks; a failure
+        is counted and logged, and never stops the loop)."""
+        try:
+            self.live.record(self._moment())
+        except Exception:
+            self._count("live_errors")
+            log.exception("operator view: could not record this period")
+
     # ------------------------------------------------------------------ deciding
 
     def decide_once(self) -> Decision | None:
@@ -372,9 +416,17 @@ class PlacementService:
     def _decide_when_link_returns(self) -> None:
         """``on-report`` mode: a report held because the link was down is decided once the link
         is up again (if still fresh: :meth:`decide_once` holds a stale one), not only when the
-        next report happens to arrive."""
+        next report happens to arrive. It also gives the operator view its period."""
+        period_s = self.settings.decision_period_s
+        next_tick = time.monotonic()
         while not self._stop.is_set():
-            if not self._waiting_for_link.wait(0.5):
+            now = time.monotonic()
+            if now >= next_tick:  # the operator view's period (decisions come with reports)
+                self._tick_live()
+                next_tick += period_s
+                if next_tick <= now:  # fell behind: the next period from now
+                    next_tick = now + period_s
+            if not self._waiting_for_link.wait(min(0.5, max(0.0, next_tick - now))):
                 continue
             if _vehicle_known(self.link.state()) and not self._stop.is_set():
                 self._waiting_for_link.clear()
@@ -387,6 +439,7 @@ class PlacementService:
         next_at = time.monotonic()
         while not self._stop.is_set():
             self._decide_guarded()
+            self._tick_live()
             next_at += step_s
             delay = next_at - time.monotonic()
             if delay < 0:  # fell behind (slow policy): skip the missed steps

@@ -51,6 +51,10 @@ class ServiceSettings(BaseSettings):
     world: str = "closed-loop"
     """The world the policy was trained for (:mod:`sim.world`): its decision period is the
     service's, unless ``step_s`` is given."""
+    environment: str = "open"
+    """What stands on the ground (:data:`sim.config.ENVIRONMENTS`): the channel the policy's
+    observations come from and the oracle optimises for; the network controller reports
+    measured metrics whatever it is."""
     step_s: float | None = Field(default=None, gt=0, le=3600)
     """The decision period (the paper's time step S); default: the world's."""
     report_max_age_s: float = Field(default=5.0, gt=0)
@@ -96,6 +100,13 @@ class ServiceSettings(BaseSettings):
     """How long an idle keep-alive connection is kept open between requests."""
     http_max_connections: int = Field(default=512, ge=8)
     """Connections (and requests in progress) at once; beyond: 503 at once."""
+    live_max_streams: int = Field(default=16, ge=1, le=1000)
+    """Operator-view streams (``GET /v1/live/events``, one per open page) at once; beyond: 503
+    with ``Retry-After``. Each holds one of the ``http_max_connections`` for as long as it is
+    open, so this keeps most of them for the network controller."""
+    live_stall_s: float = Field(default=30.0, gt=0, le=3600, allow_inf_nan=False)
+    """A stream whose client has not taken a frame for this long (it stopped reading, and the
+    connection's buffers are full) is closed, freeing its place."""
 
     @field_validator("world")
     @classmethod
@@ -104,6 +115,15 @@ class ServiceSettings(BaseSettings):
 
         if value not in WORLDS:
             raise ValueError(f"must be one of {', '.join(WORLDS)}, got {value!r}")
+        return value
+
+    @field_validator("environment")
+    @classmethod
+    def _known_environment(cls, value: str) -> str:
+        from sim.config import ENVIRONMENTS
+
+        if value not in ENVIRONMENTS:
+            raise ValueError(f"must be one of {', '.join(ENVIRONMENTS)}, got {value!r}")
         return value
 
     @property
@@ -123,8 +143,13 @@ class ServiceSettings(BaseSettings):
         from sim.config import NetworkConfig
         from sim.world import get_world
 
-        network = NetworkConfig().with_queueing(self.queueing)
-        return replace(get_world(self.world), network=network, step_s=self.decision_period_s)
+        world = get_world(self.world)
+        return replace(
+            world,
+            area=replace(world.area, environment=self.environment),
+            network=NetworkConfig().with_queueing(self.queueing),
+            step_s=self.decision_period_s,
+        )
 
     @field_validator("area_origin_north_m", "area_origin_east_m", "area_origin_down_m")
     @classmethod

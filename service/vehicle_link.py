@@ -196,6 +196,8 @@ class LinkState:
     """Why the last attempt failed, with what the vehicle said about it (its STATUSTEXT)."""
     status_texts: tuple[str, ...] = ()
     """The vehicle's latest STATUSTEXT messages, oldest first, as ``SEVERITY: text``."""
+    heading_deg: float | None = None
+    """Where the vehicle's nose points, degrees clockwise from north (None: not reported)."""
 
 
 class VehicleLink(ABC):
@@ -296,6 +298,7 @@ class VehicleLinkBase(VehicleLink):
         self._ned: tuple[float, float, float] | None = None
         self._position_at: float | None = None
         self._relative_alt_m: float | None = None
+        self._heading_deg: float | None = None  # GLOBAL_POSITION_INT.hdg (MAVSDK: its heading)
         self._home_amsl_m: float | None = None
         self._ekf_flags: int | None = None  # ArduPilot's EKF_STATUS_REPORT.flags, when it sends it
         self._status_texts: deque[tuple[float, str]] = deque(maxlen=STATUS_TEXTS_KEPT)
@@ -410,6 +413,7 @@ class VehicleLinkBase(VehicleLink):
                 takeoff_attempts=self._takeoff_attempts,
                 takeoff_last_refusal=self._takeoff_last_refusal,
                 status_texts=tuple(text for _, text in self._status_texts),
+                heading_deg=self._heading_deg,
             )
 
     def set_target(self, target_m: Sequence[float]) -> tuple[float, float, float]:

@@ -1,15 +1,174 @@
-"""Radio channel: geometry, Friis path loss, noise, and Rician fast fading."""
+"""Radio channel: geometry, path loss in open and urban environments, noise, fast fading.
+
+**Environments** (:data:`ENVIRONMENTS`). ``open`` is the paper's channel: Friis free-space loss,
+every link in line of sight, Rician fading with K = 13 dB. The four urban classes of ITU-R
+Rec. P.1410 — ``suburban``, ``urban``, ``dense-urban``, ``highrise-urban`` — use the
+air-to-ground model of A. Al-Hourani, S. Kandeepan and S. Lardner, "Optimal LAP Altitude for
+Maximum Coverage", IEEE Wireless Communications Letters 3(6):569–572, 2014:
+
+* a link is in line of sight (LoS) with probability ``P_LoS(θ) = 1 / (1 + a·exp(−b(θ − a)))``,
+  θ the elevation angle from the user to the UAV in degrees, (a, b) the environment's S-curve
+  (their Table I: suburban 4.88, 0.43; urban 9.61, 0.16; dense urban 12.08, 0.11; highrise
+  urban 27.23, 0.08);
+* a LoS link loses free-space loss plus η_LoS dB, a non-LoS one free-space loss plus η_NLoS dB
+  (their Table I at 700 MHz, 2 GHz and 5.8 GHz; between and beyond those frequencies η is
+  interpolated linearly in log-frequency and held at the end values, which the letter does not
+  cover: it is an assumption of ours);
+* the mean path loss is ``FSPL(d) + P_LoS·η_LoS + (1 − P_LoS)·η_NLoS``
+  (:func:`mean_path_loss_db`): climbing raises P_LoS but lengthens d, so each environment has
+  a best elevation angle (:func:`optimal_elevation_deg`).
+
+Fading: Rician with the configured K on LoS links, Rayleigh on non-LoS ones. In the model's
+stochastic mode each link's LoS state is drawn afresh every step (a Bernoulli of ``P_LoS`` at
+the step's geometry; :func:`draw_link_channel`), like the step's fading draws: the simplest model
+that has the right mean, chosen over spatially consistent states because a decision period of
+1 s moves the UAV up to 10 m, and because the policy acts on the step's report, not on a
+link's history. Its cost: a hovering UAV's links flip state from step to step more often than
+3GPP TR 38.901's LoS-state correlation distance (~50 m outdoors) would have them. The expected
+mode uses the mean path loss.
+"""
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
 from numba import njit
 
-from sim.config import RadioConfig
+from sim.config import ENVIRONMENTS, RadioConfig
+from sim.errors import InputError
 
 SPEED_OF_LIGHT_MPS = 299_792_458.0
+MIN_FREQUENCY_HZ = 1e9
+MAX_FREQUENCY_HZ = 7e9
+
+
+@dataclass(frozen=True)
+class AirToGround:
+    """One environment's parameters (Al-Hourani et al. 2014, Table I)."""
+
+    a: float
+    b: float
+    eta_los_db: tuple[float, float, float]  # at TABLE_FREQUENCIES_HZ
+    eta_nlos_db: tuple[float, float, float]
+
+    def excess_db(self, frequency_hz: float) -> tuple[float, float]:
+        """(η_LoS, η_NLoS) at ``frequency_hz``: interpolated in log-frequency, held at the ends."""
+        x = np.log10(TABLE_FREQUENCIES_HZ)
+        f = math.log10(frequency_hz)
+        return float(np.interp(f, x, self.eta_los_db)), float(np.interp(f, x, self.eta_nlos_db))
+
+
+TABLE_FREQUENCIES_HZ = (700e6, 2e9, 5.8e9)
+AIR_TO_GROUND: dict[str, AirToGround | None] = {
+    "open": None,
+    "suburban": AirToGround(4.88, 0.43, (0.0, 0.1, 0.2), (18.0, 21.0, 24.0)),
+    "urban": AirToGround(9.61, 0.16, (0.6, 1.0, 1.2), (17.0, 20.0, 23.0)),
+    "dense-urban": AirToGround(12.08, 0.11, (1.0, 1.6, 1.8), (20.0, 23.0, 26.0)),
+    "highrise-urban": AirToGround(27.23, 0.08, (1.5, 2.3, 2.5), (29.0, 34.0, 41.0)),
+}
+assert tuple(AIR_TO_GROUND) == ENVIRONMENTS
+
+
+def air_to_ground(environment: str) -> AirToGround | None:
+    """The environment's parameters (``None`` for ``open``); InputError for an unknown name."""
+    try:
+        return AIR_TO_GROUND[environment]
+    except (KeyError, TypeError):
+        raise InputError(
+            f"environment: must be one of {', '.join(ENVIRONMENTS)}, got {environment!r}"
+        ) from None
+
+
+def elevation_deg(ground_distance_m: np.ndarray, height_m: np.ndarray) -> np.ndarray:
+    """The elevation angle from the user to the UAV, degrees (90 straight overhead)."""
+    return np.degrees(np.arctan2(height_m, ground_distance_m))
+
+
+def los_probability(environment: str, elevation: np.ndarray) -> np.ndarray:
+    """``P_LoS`` at elevation angles in degrees (1 everywhere in ``open``)."""
+    params = air_to_ground(environment)
+    theta = np.asarray(elevation, dtype=float)
+    if params is None:
+        return np.ones_like(theta)
+    return 1.0 / (1.0 + params.a * np.exp(-params.b * (theta - params.a)))
+
+
+def mean_path_loss_db(
+    environment: str,
+    ground_distance_m: np.ndarray | float,
+    height_m: np.ndarray | float,
+    frequency_hz: float,
+) -> np.ndarray:
+    """Mean path loss (dB) from a UAV ``height_m`` above the user and ``ground_distance_m``
+    away: free-space loss plus the environment's expected excess loss (module doc). Arrays
+    broadcast. InputError naming the argument for an unknown environment, a frequency outside
+    1–7 GHz, negative or non-finite distances and heights."""
+    params = air_to_ground(environment)
+    if not (MIN_FREQUENCY_HZ <= frequency_hz <= MAX_FREQUENCY_HZ):
+        raise InputError(f"frequency_hz: must lie in 1–7 GHz, got {frequency_hz!r}")
+    ground = np.asarray(ground_distance_m, dtype=float)
+    height = np.asarray(height_m, dtype=float)
+    for name, values in (("ground_distance_m", ground), ("height_m", height)):
+        if not np.all(np.isfinite(values)) or np.any(values < 0):
+            raise InputError(f"{name}: must be finite and non-negative")
+    loss = friis_path_loss_db(np.hypot(ground, height), frequency_hz)
+    if params is None:
+        return loss
+    eta_los, eta_nlos = params.excess_db(frequency_hz)
+    p_los = los_probability(environment, elevation_deg(ground, height))
+    return loss + p_los * eta_los + (1.0 - p_los) * eta_nlos
+
+
+def optimal_elevation_deg(environment: str, frequency_hz: float) -> float:
+    """The elevation angle that maximises the coverage radius for any fixed maximum path loss:
+    the root of Al-Hourani et al.'s eq. (13),
+    ``π/(9 ln 10)·tan θ + a·b·(η_LoS − η_NLoS)·e^(−b(θ−a)) / (a·e^(−b(θ−a)) + 1)² = 0``."""
+    params = air_to_ground(environment)
+    if params is None:
+        raise InputError("environment: 'open' has no optimal elevation (lowest flies best)")
+    eta_los, eta_nlos = params.excess_db(frequency_hz)
+    a, b, excess = params.a, params.b, eta_los - eta_nlos
+
+    def slope(theta: float) -> float:
+        e = math.exp(-b * (theta - a))
+        return math.pi / (9.0 * math.log(10.0)) * math.tan(math.radians(theta)) + (
+            a * b * excess * e / (a * e + 1.0) ** 2
+        )
+
+    low, high = 0.01, 89.9  # slope(low) < 0 < slope(high): bisect
+    for _ in range(80):
+        mid = 0.5 * (low + high)
+        if slope(mid) < 0:
+            low = mid
+        else:
+            high = mid
+    return 0.5 * (low + high)
+
+
+def draw_link_channel(
+    rng: np.random.Generator,
+    p_los: np.ndarray,
+    k_db: float,
+    draws: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One step's channel of every link in an urban environment, stochastic mode.
+
+    ``p_los`` (N, U): each link's LoS probability now. Returns (LoS state (N, U) bool, power
+    gains (N, U, draws)): Rician with factor ``k_db`` on LoS links, Rayleigh on the others.
+    Draw order: N·U uniforms for the states, then the normals :func:`rician_power_gain`
+    draws for shape (N, U, draws), shared by both fading laws.
+    """
+    los = rng.random(p_los.shape) < p_los
+    normals = rng.standard_normal((2, *p_los.shape, draws))
+    rician = normals.copy()
+    los_amplitude, sigma = _rician_parameters(k_db)
+    _combine_parts(rician.reshape(2, -1), los_amplitude, sigma)
+    rayleigh = normals
+    _combine_parts(rayleigh.reshape(2, -1), 0.0, math.sqrt(0.5))
+    return los, np.where(los[..., None], rician[0], rayleigh[0])
 
 
 def distances_m(uav_xyz_m: np.ndarray, users_xy_m: np.ndarray, user_height_m: float) -> np.ndarray:

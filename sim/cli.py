@@ -6,7 +6,7 @@ import argparse
 import math
 from pathlib import Path
 
-from sim.config import QUEUEING_CHOICES
+from sim.config import ENVIRONMENTS, QUEUEING_CHOICES
 from sim.scenarios import FAMILIES
 
 
@@ -34,6 +34,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=float,
         default=40.0,
         help="sum of the users' offered loads in Mbit/s (default 40, the paper's Λ)",
+    )
+    generate.add_argument(
+        "--environment",
+        choices=ENVIRONMENTS,
+        default="open",
+        help="what stands on the ground, recorded in the file (default open, the paper's)",
     )
     generate.add_argument("--out", type=Path, required=True, help="output file (JSON)")
     generate.set_defaults(handler=_generate)
@@ -80,7 +86,7 @@ def _generate(args: argparse.Namespace) -> int:
         )
     if not math.isfinite(args.total_load_mbps) or not args.total_load_mbps > 0:
         raise InputError(f"--total-load-mbps: must be positive, got {args.total_load_mbps}")
-    area = AreaConfig()
+    area = AreaConfig(environment=args.environment)
     total_load_bps = args.total_load_mbps * 1e6
     scenarios = generate_scenarios(
         args.n,

@@ -11,7 +11,12 @@ from typing import Literal
 
 import numpy as np
 
+from sim.errors import InputError
+
 Queueing = Literal["fq-codel", "mac-only"]
+ENVIRONMENTS: tuple[str, ...] = ("open", "suburban", "urban", "dense-urban", "highrise-urban")
+"""The channel environments (:mod:`sim.channel`): the paper's free space, and ITU-R's urban
+classes with the air-to-ground model of Al-Hourani et al. (2014)."""
 QUEUEING_CHOICES: tuple[str, ...] = ("fq-codel", "mac-only")
 
 
@@ -21,7 +26,9 @@ class AreaConfig:
 
     Area frame: origin at the south-west corner, x east, y north, z up, metres.
     Altitude levels are spaced one zone apart (25, 50, 75, 100 m by default), the grid the discrete
-    actions move on.
+    actions move on. ``environment`` is what stands on the ground (:data:`ENVIRONMENTS`): the
+    paper's ``open`` field, or one of ITU-R's urban classes, whose buildings block the line of
+    sight (:mod:`sim.channel`).
     """
 
     size_x_m: float = 500.0
@@ -30,8 +37,13 @@ class AreaConfig:
     z_min_m: float = 25.0
     z_max_m: float = 100.0
     user_height_m: float = 1.5
+    environment: str = "open"
 
     def __post_init__(self) -> None:
+        if self.environment not in ENVIRONMENTS:
+            raise InputError(
+                f"environment: must be one of {', '.join(ENVIRONMENTS)}, got {self.environment!r}"
+            )
         for name in ("size_x_m", "size_y_m", "zone_m"):
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0:
@@ -103,7 +115,9 @@ class AreaConfig:
 
 @dataclass(frozen=True)
 class RadioConfig:
-    """Channel: Friis path loss, Rician fast fading, thermal noise plus a receiver noise figure."""
+    """Channel: path loss (Friis in the paper's ``open`` environment, the air-to-ground model of
+    :mod:`sim.channel` in the area's urban ones), Rician fast fading (Rayleigh on
+    non-line-of-sight links), thermal noise plus a receiver noise figure."""
 
     frequency_hz: float = 5.18e9  # channel 36
     bandwidth_hz: float = 20e6

@@ -10,6 +10,10 @@ Two formats, both a JSON object with a ``format`` field and the area they live i
     {"format": "tupa-cases/1", "area": {...},
      "cases": [{"id": "c0", "uav": {"x_m": 250, "y_m": 250, "z_m": 25}, "users": [...]}, ...]}
 
+An optional top-level ``"environment"`` (``open`` when absent: the paper's free space; or
+``suburban``, ``urban``, ``dense-urban``, ``highrise-urban``, :mod:`sim.channel`) says what
+stands on the ground; it becomes the area's ``environment``.
+
 Coordinates are in the area frame (origin at the south-west corner, x east, y north, z up,
 metres); loads are uplink offered loads in bit/s. Users must lie in the closed area
 [0, size_x_m] × [0, size_y_m], a UAV in [0, size_x_m] × [0, size_y_m] × [z_min_m, z_max_m].
@@ -37,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from sim.config import AreaConfig
+from sim.config import ENVIRONMENTS, AreaConfig
 from sim.errors import InputError
 from sim.scenarios import Case, Scenario
 
@@ -131,6 +135,12 @@ def _area_dict(area: AreaConfig) -> dict[str, float]:
     return {name: _number(value) for name, value in area.to_dict().items()}
 
 
+def _environment_field(area: AreaConfig) -> dict[str, str]:
+    """The optional top-level ``environment`` field: written only when not ``open``, so the
+    paper's files (and their hashes) stay as they were."""
+    return {} if area.environment == "open" else {"environment": area.environment}
+
+
 def _users_list(users_xy_m: np.ndarray, load_bps: np.ndarray) -> list[dict[str, float]]:
     return [
         {"x_m": _number(x), "y_m": _number(y), "load_bps": _number(load)}
@@ -143,6 +153,7 @@ def scenarios_document(area: AreaConfig, scenarios: Sequence[Scenario]) -> dict[
     return {
         "format": SCENARIOS_FORMAT,
         "area": _area_dict(area),
+        **_environment_field(area),
         "scenarios": [
             {"id": s.id, "users": _users_list(s.users_xy_m, s.load_bps)} for s in scenarios
         ],
@@ -154,6 +165,7 @@ def cases_document(area: AreaConfig, cases: Sequence[Case]) -> dict[str, Any]:
     return {
         "format": CASES_FORMAT,
         "area": _area_dict(area),
+        **_environment_field(area),
         "cases": [
             {
                 "id": c.id,
@@ -298,8 +310,13 @@ def _parse_area(doc: dict[str, Any], where: _Where) -> AreaConfig:
     raw = _expect_object(doc["area"], where, "area")
     _check_keys(raw, _AREA_FIELDS, where, "area")
     values = {name: _finite(raw[name], where, f"area.{name}") for name in _AREA_FIELDS}
+    environment = doc.get("environment", "open")
+    if environment not in ENVIRONMENTS:
+        raise where.error(
+            "environment", f"must be one of {', '.join(ENVIRONMENTS)}, got {_show(environment)}"
+        )
     try:
-        return AreaConfig(**values)
+        return AreaConfig(**values, environment=environment)
     except ValueError as exc:
         # AreaConfig's messages already name the field ("area.zone_m: ...").
         raise where.error(None, str(exc)) from None

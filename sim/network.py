@@ -4,9 +4,11 @@
 offered loads) and returns each user's throughput, mean delay and packet loss over the step, for
 every position at once. For each position and user the pipeline is:
 
-1. ``channel``: 3-D distance, Friis path loss, noise → mean SNR; users under the minimum preamble
-   RSSI are disconnected and lose everything they send.
-2. ``phy``: ideal rate selection under Rician fading → the user's link (TXOP overhead, subframe
+1. ``channel``: 3-D distance, path loss (Friis in the ``open`` environment; free space plus the
+   air-to-ground excess loss of a line-of-sight or non-line-of-sight link in the urban ones,
+   :mod:`sim.channel`), noise → SNR; users under the minimum preamble RSSI are disconnected and
+   lose everything they send.
+2. ``phy``: ideal rate selection under fast fading → the user's link (TXOP overhead, subframe
    airtime, A-MPDU size limit, subframe success).
 3. ``mac``: fair sharing of transmit opportunities among stations with traffic, solved exactly,
    with contention and collisions folded into the TXOP overhead (two passes: the number of
@@ -31,7 +33,18 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from sim.channel import SPEED_OF_LIGHT_MPS, rician_power_gain
+from sim.channel import (
+    MAX_FREQUENCY_HZ,
+    MIN_FREQUENCY_HZ,
+    SPEED_OF_LIGHT_MPS,
+    air_to_ground,
+    draw_link_channel,
+    elevation_deg,
+    friis_path_loss_db,
+    los_probability,
+    mean_path_loss_db,
+    rician_power_gain,
+)
 from sim.config import AreaConfig, NetworkConfig
 from sim.errors import InputError
 from sim.mac import (
@@ -152,6 +165,12 @@ class NetworkModel:
         )
         # The kernel takes a plain tuple: numba types it much faster than a named tuple.
         self._kt = tuple(self._k)
+        self._urban = air_to_ground(self.area.environment) is not None
+        if self._urban and not (MIN_FREQUENCY_HZ <= c.radio.frequency_hz <= MAX_FREQUENCY_HZ):
+            raise InputError(
+                f"frequency_hz: the urban environments' model covers 1–7 GHz, got "
+                f"{c.radio.frequency_hz!r}"
+            )
 
     def initial_state(self, batch: int, n_users: int) -> QueueState:
         return QueueState.empty(batch, n_users)
@@ -256,12 +275,16 @@ class NetworkModel:
         else:
             backlog = np.ascontiguousarray(state.backlog_pkts, dtype=float)
             codel = np.ascontiguousarray(state.codel_count, dtype=float)
-        if rng is None:
+        path_loss = _FREE_SPACE
+        if self._urban:
+            path_loss, log_gains = self._urban_channel(uav, users, rng, batch, n_users)
+        elif rng is None:
             log_gains = _NO_DRAWS
         else:
             log_gains = rician_power_gain(
                 rng, self.config.radio.rician_k_db, (batch, n_users, RATE_DRAWS_PER_STEP)
             )
+        if rng is not None:
             np.log10(log_gains, out=log_gains)  # the kernel scales by 10: gains in dB
         out = np.empty((6, batch, n_users))
         connected = np.empty((batch, n_users), dtype=np.bool_)
@@ -274,6 +297,7 @@ class NetworkModel:
             backlog,
             codel,
             log_gains,
+            path_loss,
             float(step_s),
             out,
             connected,
@@ -288,9 +312,37 @@ class NetworkModel:
             connected=connected,
         )
 
+    def _urban_channel(
+        self,
+        uav: np.ndarray,
+        users: np.ndarray,
+        rng: np.random.Generator | None,
+        batch: int,
+        n_users: int,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Path loss (N, U) and fading gains (N, U, draws) in an urban environment: the mean
+        path loss in expected mode (no draws); a drawn LoS state and its fading otherwise."""
+        radio = self.config.radio
+        ground = np.hypot(uav[:, None, 0] - users[:, :, 0], uav[:, None, 1] - users[:, :, 1])
+        height = np.broadcast_to(
+            np.maximum(uav[:, 2:3] - self.area.user_height_m, 0.0), (batch, n_users)
+        )
+        if rng is None:
+            loss = mean_path_loss_db(self.area.environment, ground, height, radio.frequency_hz)
+            return np.ascontiguousarray(loss), _NO_DRAWS
+        p_los = los_probability(self.area.environment, elevation_deg(ground, height))
+        los, gains = draw_link_channel(rng, p_los, radio.rician_k_db, RATE_DRAWS_PER_STEP)
+        params = air_to_ground(self.area.environment)
+        assert params is not None
+        eta_los, eta_nlos = params.excess_db(radio.frequency_hz)
+        free_space = friis_path_loss_db(np.hypot(ground, height), radio.frequency_hz)
+        return np.ascontiguousarray(free_space + np.where(los, eta_los, eta_nlos)), gains
+
 
 # No fading draws: expected mode (the kernel tells the modes apart by the last axis).
 _NO_DRAWS = np.empty((0, 0, 0))
+# No path loss given: the kernel computes free-space loss itself (the open environment).
+_FREE_SPACE = np.empty((0, 0))
 
 
 def _check_step_shapes(uav: np.ndarray, users: np.ndarray, load: np.ndarray) -> tuple[int, int]:
@@ -378,6 +430,7 @@ def _simulate(
     backlog_in: np.ndarray,
     codel_in: np.ndarray,
     log_gains: np.ndarray,
+    path_loss_db: np.ndarray,
     step_s: float,
     out: np.ndarray,
     connected_out: np.ndarray,
@@ -387,12 +440,15 @@ def _simulate(
     ``users`` (S, U, 2) and ``load_bps`` (S, U) hold one scenario shared by every row (S = 1,
     :meth:`NetworkModel.step`) or one per row (S = N, :meth:`NetworkModel.step_many`).
     ``log_gains`` (N, U, draws) are log10 of the fading power gains, or (0, 0, 0) in expected
-    mode. ``out`` rows: throughput (bit/s), delay (s), loss ratio, backlog, CoDel count, SNR.
+    mode. ``path_loss_db`` (N, U) is each link's path loss (urban environments), or (0, 0): the
+    kernel computes free-space loss. ``out`` rows: throughput (bit/s), delay (s), loss ratio,
+    backlog, CoDel count, SNR.
     """
     k = _Constants(*kt)
     batch, n_users = uav.shape[0], users.shape[1]
     shared = users.shape[0] == 1
     n_draws = log_gains.shape[2]
+    given_loss = path_loss_db.shape[0] > 0
     gains_db = np.empty(n_draws)
     arrival_pps = np.empty(n_users)
     phy_overhead = np.empty(n_users)
@@ -414,11 +470,14 @@ def _simulate(
         # Channel and link of every user.
         for u in range(n_users):
             arrival_pps[u] = load_bps[s, u] / packet_bits
-            dx = uav[b, 0] - users[s, u, 0]
-            dy = uav[b, 1] - users[s, u, 1]
-            dz = uav[b, 2] - k.user_height_m
-            distance = max(np.sqrt(dx * dx + dy * dy + dz * dz), 1.0)
-            rssi = k.tx_power_dbm - k.path_loss_1m_db - 20.0 * np.log10(distance)
+            if given_loss:
+                rssi = k.tx_power_dbm - path_loss_db[b, u]
+            else:
+                dx = uav[b, 0] - users[s, u, 0]
+                dy = uav[b, 1] - users[s, u, 1]
+                dz = uav[b, 2] - k.user_height_m
+                distance = max(np.sqrt(dx * dx + dy * dy + dz * dz), 1.0)
+                rssi = k.tx_power_dbm - k.path_loss_1m_db - 20.0 * np.log10(distance)
             snr = rssi - k.noise_dbm
             out[5, b, u] = snr
             connected = rssi >= k.min_rssi_dbm

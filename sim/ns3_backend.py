@@ -520,7 +520,14 @@ def evaluate_cases_file_ns3(
     output; the others are written all the same). InputError if ns-3 is not installed.
     """
     require_ns3()
-    _, cases = load_cases(cases_path)
+    area, cases = load_cases(cases_path)
+    if area.environment != "open":
+        # Not yet: ns-3 would need the same per-link air-to-ground loss (a propagation loss
+        # model set from sim.channel.mean_path_loss_db), or it would compare another channel.
+        raise InputError(
+            f"{cases_path}: environment: the ns-3 backend models only 'open' so far, "
+            f"got {area.environment!r}"
+        )
     settings = Ns3Settings(queueing=queueing, warmup_s=warmup_s, measure_s=measure_s, seed=seed)
     with Ns3Runner() as runner:
         results = evaluate_cases_ns3(cases, settings, runner)

@@ -221,6 +221,11 @@ class World:
             return zone_position(rng.integers(0, shape), area)
         return zone_position(np.array([area.n_zones_x // 2, area.n_zones_y // 2, 0]), area)
 
+    @property
+    def environment(self) -> str:
+        """What stands on the ground (the area's channel environment, :mod:`sim.channel`)."""
+        return self.area.environment
+
     def fly(self, position_m: np.ndarray, target_m: np.ndarray) -> np.ndarray:
         """Where the vehicle is one decision period after heading for ``target_m``."""
         return fly(position_m, target_m, self.flight, self.step_s)
@@ -348,7 +353,7 @@ def _split(setting: str) -> tuple[str, str]:
 
 
 _NESTED = ("flight", "mobility", "demand", "reports")
-_SETTABLE_TOP = ("step_s", "episode_steps", "home", "static_start", "stochastic")
+_SETTABLE_TOP = ("step_s", "episode_steps", "home", "static_start", "stochastic", "environment")
 
 
 def _set(world: World, key: str, raw: Any) -> World:
@@ -362,6 +367,11 @@ def _set(world: World, key: str, raw: Any) -> World:
             )
         value = _parse(f"world.{key}", raw, getattr(part, rest))
         return replace(world, **{head: _replace(part, key, rest, value)})
+    if key == "environment" and not rest:
+        try:
+            return replace(world, area=replace(world.area, environment=str(raw).strip()))
+        except InputError as exc:
+            raise InputError(f"world.{exc}") from None
     if key in _SETTABLE_TOP and not rest:
         value = raw
         if key == "home" and isinstance(raw, str) and raw not in HOMES:

@@ -132,12 +132,12 @@ def test_baseline_positions_lie_in_the_volume_at_minimum_altitude(points, data, 
 
 
 def test_registry_and_unknown_name() -> None:
-    assert list(PLACEMENTS) == ["min-distance", "load-weighted", "oracle"]
+    assert list(PLACEMENTS) == ["min-distance", "load-weighted", "min-distance-env", "oracle"]
     for name in PLACEMENTS:
         policy = make_placement(name, replace(PAPER, episode_steps=5))
         assert policy.name == name
         assert isinstance(policy, Placement)
-    with pytest.raises(ValueError, match="min-distance, load-weighted, oracle"):
+    with pytest.raises(ValueError, match="min-distance, load-weighted, min-distance-env, oracle"):
         make_placement("nearest")
 
 

@@ -62,7 +62,7 @@ def test_unknown_policy_is_an_input_error(scenario_file: Path, tmp_path: Path, c
     assert main(eval_args(scenario_file, out, "min-distance", "nearest")) == 2
     err = capsys.readouterr().err
     assert "--policy" in err and "nearest" in err
-    assert "min-distance, load-weighted, oracle" in err
+    assert "min-distance, load-weighted, min-distance-env, oracle" in err
     assert len(err.strip().splitlines()) == 1
     assert not out.exists()
 

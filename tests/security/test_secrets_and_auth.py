@@ -29,6 +29,8 @@ V1_ROUTES = [
     ("get", "/v1/vehicle"),
     ("get", "/v1/policy"),
     ("put", "/v1/policy"),
+    ("get", "/v1/live"),  # the operator view's data: a frame, and the stream of them
+    ("get", "/v1/live/events"),
 ]
 
 

@@ -138,6 +138,12 @@ def test_link_comes_up_and_reports_flavour_mode_and_position(
     assert not state.armed
     assert state.heartbeat_age_s is not None and state.heartbeat_age_s < 1.5
     assert math.dist(state.position_m, HOME_AREA_M) < 0.1
+    (heading,) = wait_for(
+        lambda: (h := link.state().heading_deg) is not None and [h],
+        EXPECT[backend].up_s,
+        message="the vehicle's heading",
+    )
+    assert 0.0 <= heading < 360.0
     wait_for(lambda: mock.stats["gcs_heartbeats"] >= 1, 3.0, message="our HEARTBEAT at the mock")
     assert mock.stats["handler_errors"] == 0
 

@@ -1,0 +1,248 @@
+"""What the operator view shows, kept by the placement service: one JSON frame per decision period.
+
+:class:`LiveView` keeps the vehicle's recent track and the utility of recent reports, and turns
+a :class:`Moment` (what the service knows at one instant: link state, latest report, current
+decision, policy) into a :class:`LiveFrame`. The placement loop calls :meth:`LiveView.record`
+once per decision period: the track and the history grow (bounded), and when anyone watches a
+frame is published through :attr:`LiveView.hub` (:mod:`service.pubsub`: never blocks the loop).
+``GET /v1/live`` and the start of each stream use :meth:`LiveView.frame`.
+
+A frame (``format: tupa-live/1``, JSON; metres in the area frame: x east, y north, z up)::
+
+    {"format", "seq", "time_s", "decision_period_s",
+     "area": {size_x_m, size_y_m, zone_m, z_min_m, z_max_m},
+     "geofence": {"x_m": [lo, hi], "y_m": [..], "z_m": [..]},
+     "policy": {"name", "spec"},
+     "vehicles": [{"id", "link", "mode", "armed", "flavour", "streaming", "heartbeat_age_s",
+                   "position_m", "heading_deg", "target_m", "track_m": [[x, y, z], ...],
+                   "decision": {"source", "policy", "decided_at", "age_s"} | null}],
+     "users": [{"id", "x_m", "y_m", "offered_bps", "throughput_bps", "delay_s", "plr",
+                "served"}],                       # served: throughput / offered, in [0, 1]
+     "report": {"timestamp", "age_s", "stale"} | null,
+     "utility": {"t_s", "value", "throughput", "delay", "loss", "delay_ref_s"} | null,
+     "utility_history": [[t_s, value, throughput, delay, loss], ...]}
+
+The utility is the paper's (``sim.utility.network_utility``) of the latest report, and its three
+parts are the weighted terms ``0.6·T``, ``0.3·(1 − D)`` and ``0.1·(1 − P)`` (each the same
+function with the other two weights set to zero), so they add up to it. ``vehicles`` is a list
+for the fleet to come; today it holds one vehicle, ``uav-1``. ``heading_deg`` is the vehicle's
+own (telemetry; degrees clockwise from north), or null when it sends none.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+from collections import deque
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from service.pubsub import Hub
+from service.vehicle_link import LinkState
+from sim.config import AreaConfig, UtilityConfig
+from sim.utility import network_utility
+
+if TYPE_CHECKING:
+    from service.placement import Decision, Report
+
+FORMAT = "tupa-live/1"
+VEHICLE_ID = "uav-1"
+TRACK_POINTS = 300
+"""Positions kept per vehicle (a new one when it has moved ``TRACK_STEP_M`` from the last)."""
+TRACK_STEP_M = 0.5
+HISTORY_POINTS = 600
+"""Utility points kept: ten minutes at one report a second."""
+
+
+@dataclass(frozen=True)
+class LiveFrame:
+    """One frame: its sequence number and its JSON (UTF-8), encoded once for every reader."""
+
+    seq: int
+    data: bytes
+
+
+@dataclass(frozen=True)
+class Moment:
+    """What the service knows at one instant, as the operator view shows it."""
+
+    time_s: float
+    """Unix time, seconds."""
+    link: LinkState
+    policy_name: str
+    policy_spec: str
+    decision_period_s: float
+    decision: Decision | None
+    report: Report | None
+    report_age_s: float | None
+    """Seconds since the report arrived."""
+    report_max_age_s: float
+
+
+class LiveView:
+    """The track, the utility history and the frames (see the module docstring)."""
+
+    def __init__(
+        self,
+        area: AreaConfig,
+        utility: UtilityConfig,
+        max_streams: int = 16,
+        max_frames: int = 4,
+    ) -> None:
+        self.area = area
+        self.utility_config = utility
+        self.hub: Hub[LiveFrame] = Hub(max_streams, max_frames)
+        """Where frames go out; each stream subscribes here."""
+        self._parts = {
+            "throughput": replace(utility, weight_delay=0.0, weight_loss=0.0),
+            "delay": replace(utility, weight_throughput=0.0, weight_loss=0.0),
+            "loss": replace(utility, weight_throughput=0.0, weight_delay=0.0),
+        }
+        self._lock = threading.Lock()  # the state below (the loop writes, requests read)
+        self._track: deque[tuple[float, float, float]] = deque(maxlen=TRACK_POINTS)
+        self._history: deque[tuple[float, float, float, float, float]] = deque(
+            maxlen=HISTORY_POINTS
+        )
+        self._utility: dict[str, float] | None = None
+        self._report_seen: Report | None = None
+        self._seq = 0
+
+    def record(self, moment: Moment) -> None:
+        """Once per decision period: extend the track and the history, and publish a frame
+        when anyone watches (building it only then)."""
+        with self._lock:
+            position = moment.link.position_m
+            if position is not None and all(math.isfinite(v) for v in position):
+                last = self._track[-1] if self._track else None
+                if last is None or math.dist(last, position) >= TRACK_STEP_M:
+                    self._track.append(tuple(round(float(v), 1) for v in position))  # type: ignore[arg-type]
+            report = moment.report
+            if report is not None and report is not self._report_seen:
+                self._report_seen = report
+                self._utility = {"t_s": round(moment.time_s, 3), **self.utility_parts(report)}
+                u = self._utility
+                self._history.append((u["t_s"], u["value"], u["throughput"], u["delay"], u["loss"]))
+        if len(self.hub):
+            self.hub.publish(self.frame(moment))
+
+    def utility_parts(self, report: Report) -> dict[str, float]:
+        """The report's utility and its three weighted parts (they add up to it)."""
+        users = report.users
+        args = (users.throughput_bps, users.delay_s, users.plr, users.offered_bps)
+        out = {"value": round(float(network_utility(*args, self.utility_config)), 4)}
+        for name, config in self._parts.items():
+            out[name] = round(float(network_utility(*args, config)), 4)
+        return out
+
+    def frame(self, moment: Moment) -> LiveFrame:
+        """The frame for ``moment`` (with the track and history recorded so far)."""
+        with self._lock:
+            self._seq += 1
+            seq = self._seq
+            track = [list(p) for p in self._track]
+            history = [list(h) for h in self._history]
+            utility = self._utility if moment.report is self._report_seen else None
+        if utility is None and moment.report is not None:  # a report the loop has not seen yet
+            utility = {"t_s": round(moment.time_s, 3), **self.utility_parts(moment.report)}
+        area = self.area
+        body: dict[str, Any] = {
+            "format": FORMAT,
+            "seq": seq,
+            "time_s": round(moment.time_s, 3),
+            "decision_period_s": moment.decision_period_s,
+            "area": {
+                "size_x_m": area.size_x_m,
+                "size_y_m": area.size_y_m,
+                "zone_m": area.zone_m,
+                "z_min_m": area.z_min_m,
+                "z_max_m": area.z_max_m,
+            },
+            "geofence": {  # the volume every target is clamped into (sim.geometry.clamp_point)
+                "x_m": [0.0, area.size_x_m],
+                "y_m": [0.0, area.size_y_m],
+                "z_m": [area.z_min_m, area.z_max_m],
+            },
+            "policy": {"name": moment.policy_name, "spec": moment.policy_spec},
+            "vehicles": [_vehicle(moment, track)],
+            "users": _users(moment.report),
+            "report": _report(moment),
+            "utility": (
+                {**utility, "delay_ref_s": self.utility_config.delay_ref_s} if utility else None
+            ),
+            "utility_history": history,
+        }
+        data = json.dumps(body, separators=(",", ":"), allow_nan=False).encode()
+        return LiveFrame(seq, data)
+
+
+def _number(value: float | None, digits: int = 3) -> float | None:
+    """``value`` rounded, or None when unknown or not finite (JSON has no NaN)."""
+    if value is None or not math.isfinite(value):
+        return None
+    return round(float(value), digits)
+
+
+def _point(point: tuple[float, float, float] | None) -> list[float | None] | None:
+    return None if point is None else [_number(v, 2) for v in point]
+
+
+def _vehicle(moment: Moment, track: list[list[float]]) -> dict[str, Any]:
+    state = moment.link
+    decision = moment.decision
+    return {
+        "id": VEHICLE_ID,
+        "link": state.link,
+        "mode": state.mode,
+        "armed": state.armed,
+        "flavour": state.flavour,
+        "streaming": state.streaming,
+        "heartbeat_age_s": _number(state.heartbeat_age_s),
+        "position_m": _point(state.position_m),
+        "heading_deg": _number(state.heading_deg, 1),
+        "target_m": _point(decision.target_m if decision else state.target_m),
+        "track_m": track,
+        "decision": None
+        if decision is None
+        else {
+            "source": decision.source,
+            "policy": decision.policy,
+            "decided_at": round(decision.decided_at, 3),
+            "age_s": _number(moment.time_s - decision.decided_at),
+        },
+    }
+
+
+def _users(report: Report | None) -> list[dict[str, Any]]:
+    if report is None:
+        return []
+    users = report.users
+    offered = np.asarray(users.offered_bps, dtype=float)
+    throughput = np.asarray(users.throughput_bps, dtype=float)
+    served = np.clip(throughput / np.maximum(offered, 1e-9), 0.0, 1.0)
+    return [
+        {
+            "id": user_id,
+            "x_m": round(float(users.x_m[i]), 2),
+            "y_m": round(float(users.y_m[i]), 2),
+            "offered_bps": round(float(offered[i])),
+            "throughput_bps": round(float(throughput[i])),
+            "delay_s": round(float(users.delay_s[i]), 5),
+            "plr": round(float(users.plr[i]), 4),
+            "served": round(float(served[i]), 4),
+        }
+        for i, user_id in enumerate(report.user_ids)
+    ]
+
+
+def _report(moment: Moment) -> dict[str, Any] | None:
+    if moment.report is None:
+        return None
+    age = moment.report_age_s
+    return {
+        "timestamp": moment.report.timestamp_s,
+        "age_s": _number(age),
+        "stale": age is None or age > moment.report_max_age_s,
+    }
