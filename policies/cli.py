@@ -191,8 +191,8 @@ def _eval(args: argparse.Namespace) -> int:
         raise InputError(f"{args.json}: cannot write: {exc.strerror or exc}") from None
     print(
         f"evaluated {', '.join(names)} on {len(scenarios)} scenarios "
-        f"(world {world.name}, {world.network.queue.queueing}, {world.episode_steps} steps, "
-        f"seed {args.seed}); wrote {args.json}"
+        f"(world {world.name}, environment {world.environment}, {world.network.queue.queueing}, "
+        f"{world.episode_steps} steps, seed {args.seed}); wrote {args.json}"
     )
     print(format_results(results))
     return 0

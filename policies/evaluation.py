@@ -140,7 +140,7 @@ def evaluate_policy(
 ) -> dict[str, Any]:
     """Run one episode per scenario in ``world`` and summarise (see the module doc).
 
-    Returns ``{"policy", "world", "n_scenarios", "mean_utility", "median_utility",
+    Returns ``{"policy", "world", "environment", "n_scenarios", "mean_utility", "median_utility",
     "p25_utility", "mean_time_to_final_s", "seed", "queueing", "episode_steps", "mode",
     "scenarios": [{"id", "utility", "heterogeneity", "throughput_bps", "delay_s", "plr",
     "time_to_final_s", "uav_xyz_m", "trace"}]}`` (``uav_xyz_m``: where the UAV ended the
@@ -174,6 +174,7 @@ def evaluate_policy(
     return {
         "policy": agent.name,
         "world": world.name,
+        "environment": world.environment,
         "n_scenarios": len(rows),
         "mean_utility": float(values.mean()),
         "median_utility": float(np.median(values)),

@@ -12,7 +12,7 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, ValidationInfo, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from service.policy_runtime import SHIPPED_CHECKPOINTS, default_policy_spec
@@ -108,22 +108,15 @@ class ServiceSettings(BaseSettings):
     """A stream whose client has not taken a frame for this long (it stopped reading, and the
     connection's buffers are full) is closed, freeing its place."""
 
-    @field_validator("world")
+    @field_validator("world", "environment")
     @classmethod
-    def _known_world(cls, value: str) -> str:
+    def _known_name(cls, value: str, info: ValidationInfo) -> str:
+        from sim.config import ENVIRONMENTS
         from sim.world import WORLDS
 
-        if value not in WORLDS:
-            raise ValueError(f"must be one of {', '.join(WORLDS)}, got {value!r}")
-        return value
-
-    @field_validator("environment")
-    @classmethod
-    def _known_environment(cls, value: str) -> str:
-        from sim.config import ENVIRONMENTS
-
-        if value not in ENVIRONMENTS:
-            raise ValueError(f"must be one of {', '.join(ENVIRONMENTS)}, got {value!r}")
+        choices = WORLDS if info.field_name == "world" else ENVIRONMENTS
+        if value not in choices:
+            raise ValueError(f"must be one of {', '.join(choices)}, got {value!r}")
         return value
 
     @property

@@ -33,7 +33,7 @@ from sim.errors import InputError
 
 ORACLE_POLICY = "oracle"
 BASELINE_POLICIES = ("min-distance", "load-weighted")  # drawn dashed; the oracle dotted
-SETTINGS = ("seed", "queueing", "episode_steps", "mode")  # an evaluation's settings
+SETTINGS = ("seed", "queueing", "episode_steps", "mode", "environment")  # an evaluation's
 
 _SCENARIO_NUMBERS = ("utility", "heterogeneity", "throughput_bps", "delay_s", "plr")
 _H_TOLERANCE = 1e-9
@@ -65,6 +65,9 @@ class PolicyResult:
     delay_s: np.ndarray
     plr: np.ndarray
     settings: dict[str, Any] = field(default_factory=dict)
+    altitude_m: np.ndarray | None = None
+    """Where the UAV ended each episode, its altitude (``uav_xyz_m[2]``); None when the file
+    does not say (written before ``tupa eval`` recorded it)."""
 
     def reordered(self, ids: Sequence[str]) -> PolicyResult:
         """The same results in the order of ``ids`` (a permutation of ``self.ids``)."""
@@ -75,6 +78,7 @@ class PolicyResult:
             source=self.source,
             ids=tuple(ids),
             settings=self.settings,
+            altitude_m=None if self.altitude_m is None else self.altitude_m[order],
             **{name: getattr(self, name)[order] for name in _SCENARIO_NUMBERS},
         )
 
@@ -114,6 +118,7 @@ def _parse_policy(raw: Any, path: Path, where: str) -> PolicyResult:
         raise fail(label, where, "scenarios: must be a non-empty list")
     ids: list[str] = []
     numbers: dict[str, list[float]] = {key: [] for key in _SCENARIO_NUMBERS}
+    altitudes: list[float] = []
     for i, row in enumerate(rows):
         at = f"scenarios[{i}]"
         if not isinstance(row, dict):
@@ -124,6 +129,11 @@ def _parse_policy(raw: Any, path: Path, where: str) -> PolicyResult:
         ids.append(non_empty_text(row["id"], label, f"{where}: {at}.id"))
         for key in _SCENARIO_NUMBERS:
             numbers[key].append(finite_number(row[key], label, f"{where}: {at}.{key}"))
+        if "uav_xyz_m" in row:
+            xyz = row["uav_xyz_m"]
+            if not isinstance(xyz, list) or len(xyz) != 3:
+                raise fail(label, where, f"{at}.uav_xyz_m", "must be [x, y, z]")
+            altitudes.append(finite_number(xyz[2], label, f"{where}: {at}.uav_xyz_m[2]"))
     if len(set(ids)) != len(ids):
         repeated = sorted({x for x in ids if ids.count(x) > 1})
         raise fail(label, where, "scenarios", f"ids repeated: {', '.join(repeated[:5])}")
@@ -136,6 +146,7 @@ def _parse_policy(raw: Any, path: Path, where: str) -> PolicyResult:
         source=path,
         ids=tuple(ids),
         settings={key: raw[key] for key in SETTINGS if key in raw},
+        altitude_m=np.array(altitudes) if len(altitudes) == len(rows) else None,
         **{key: np.array(values) for key, values in numbers.items()},
     )
 

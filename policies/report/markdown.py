@@ -53,8 +53,33 @@ def _settings_table(results: Sequence[PolicyResult]) -> str:
         [f"`{r.policy}`", *[str(r.settings.get(k, "?")) for k in SETTINGS], f"`{r.source.name}`"]
         for r in results
     ]
-    header = ["policy", "seed", "queueing", "episode steps", "mode", "file"]
+    header = ["policy", "seed", "queueing", "episode steps", "mode", "environment", "file"]
     return _md_table(header, rows, numeric=False)
+
+
+def _altitude_section(results: Sequence[PolicyResult]) -> list[str]:
+    """Where each policy flies: the altitude the UAV ended each episode at."""
+    known = [r for r in results if r.altitude_m is not None]
+    if not known:
+        return []
+    environments = sorted({str(r.settings.get("environment", "open")) for r in results})
+    rows = []
+    for r in known:
+        z = r.altitude_m
+        assert z is not None
+        q25, q50, q75 = np.percentile(z, [25, 50, 75])
+        rows.append([f"`{r.policy}`", f"{z.mean():.1f}", f"{q25:.1f}", f"{q50:.1f}", f"{q75:.1f}"])
+    return [
+        "## Altitude",
+        "",
+        f"Where each policy flies in the `{'`, `'.join(environments)}` environment: the "
+        "altitude (m) the UAV ended each episode at, over the scenarios. Under free space "
+        "(`open`) the lowest altitude is all but always best; over a town, climbing buys line "
+        'of sight (docs/network-model.md, "Channel environments").',
+        "",
+        _md_table(["policy", "mean", "p25", "median", "p75"], rows),
+        "",
+    ]
 
 
 def _bins_table(results: Sequence[PolicyResult], bins: HeterogeneityBins) -> str:
@@ -171,6 +196,7 @@ def render_markdown(
         "![utility by heterogeneity](utility_by_heterogeneity.png)",
         "",
     ]
+    lines += _altitude_section(results)
     if learning is not None:
         lines += _learning_section(learning)
     lines += ["## Evaluation settings", "", _settings_table(results), ""]

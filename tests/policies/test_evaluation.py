@@ -46,6 +46,7 @@ def test_result_shape(scenarios: list[Scenario]) -> None:
     assert list(result) == [
         "policy",
         "world",
+        "environment",
         "n_scenarios",
         "mean_utility",
         "median_utility",

@@ -358,3 +358,42 @@ def test_write_learning_curve_rejects_bad_curves(
 def test_importing_the_module_does_not_load_matplotlib() -> None:
     code = "import sys, policies.report; assert 'matplotlib' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_the_report_shows_where_each_policy_flies_and_in_which_environment(
+    tmp_path: Path,
+) -> None:
+    town = AreaConfig(environment="urban")
+    world = replace(PAPER, area=town, episode_steps=5)
+    scenarios = generate_scenarios(6, 3, seed=8, area=town)
+    directory = tmp_path / "results"
+    for name in ("min-distance", "min-distance-env"):
+        result = evaluate_policy(make_placement(name, world), scenarios, world, progress=False)
+        assert result["environment"] == "urban"
+        atomic_write_json(directory / f"{name}.json", result)
+    build_report(directory, tmp_path / "report", warn=lambda _: None)
+    text = (tmp_path / "report" / "results.md").read_text()
+    section = text.split("## Altitude", 1)[1].split("\n## ", 1)[0]
+    assert "`urban` environment" in section
+    rows = {line.split("|")[1].strip(): line for line in section.splitlines() if "`min" in line}
+    assert rows["`min-distance`"].split("|")[2].strip() == "25.0"  # flies lowest
+    assert float(rows["`min-distance-env`"].split("|")[2]) > 25.0  # climbs for line of sight
+    assert "| urban |" in text.split("## Evaluation settings", 1)[1]
+
+
+def test_an_eval_file_without_positions_has_no_altitude_table_and_a_bad_one_is_named(
+    results_dir: Path, tmp_path: Path
+) -> None:
+    for path in results_dir.glob("*.json"):
+        document = json.loads(path.read_text())
+        for result in document.get("results", [document]):
+            for row in result.get("scenarios", []):
+                row.pop("uav_xyz_m", None)
+        atomic_write_json(path, document)
+    build_report(results_dir, tmp_path / "plain", warn=lambda _: None)
+    assert "## Altitude" not in (tmp_path / "plain" / "results.md").read_text()
+    oracle = json.loads((results_dir / "oracle.json").read_text())
+    oracle["scenarios"][0]["uav_xyz_m"] = [1.0, 2.0]
+    atomic_write_json(results_dir / "oracle.json", oracle)
+    with pytest.raises(InputError, match=r"scenarios\[0\]\.uav_xyz_m: must be \[x, y, z\]"):
+        build_report(results_dir, tmp_path / "bad", warn=lambda _: None)
