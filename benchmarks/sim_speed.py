@@ -62,9 +62,9 @@ def best_of(repeats: int, fn) -> float:
     return min(times)
 
 
-def env_steps_per_s(n_users: int, steps: int, repeats: int) -> float:
-    scenarios = generate_scenarios(20, n_users, seed=1)
-    env = gym.make(DISCRETE_ENV_ID, scenarios=ScenarioCycle(scenarios))
+def random_walk_steps_per_s(env, steps: int, repeats: int) -> float:
+    """Steps per second of ``env`` (a discrete environment) taking random valid moves; one
+    untimed run first (numba kernels load from cache, gymnasium checks run once)."""
     env.reset(seed=0)
     rng = np.random.default_rng(0)
 
@@ -76,26 +76,21 @@ def env_steps_per_s(n_users: int, steps: int, repeats: int) -> float:
             if truncated:
                 _, info = env.reset()
 
-    run()  # warm-up: numba kernels load from cache, gymnasium checks run once
+    run()
     return steps / best_of(repeats, run)
+
+
+def env_steps_per_s(n_users: int, steps: int, repeats: int) -> float:
+    """``tupa/FapDiscrete-v0`` through ``gym.make`` (wrappers included), ``n_users`` users."""
+    scenarios = generate_scenarios(20, n_users, seed=1)
+    env = gym.make(DISCRETE_ENV_ID, scenarios=ScenarioCycle(scenarios))
+    return random_walk_steps_per_s(env, steps, repeats)
 
 
 def single_env_steps_per_s(world: World, steps: int, repeats: int) -> float:
     """``sim.envs.FapDiscreteEnv`` (no wrappers) in ``world``, 3 users, random valid moves."""
     env = FapDiscreteEnv(ScenarioCycle(generate_scenarios(20, 3, seed=1)), world=world)
-    env.reset(seed=0)
-    rng = np.random.default_rng(0)
-
-    def run() -> None:
-        _, info = env.reset()
-        for _ in range(steps):
-            action = int(rng.choice(np.flatnonzero(info["action_mask"])))
-            _, _, _, truncated, info = env.step(action)
-            if truncated:
-                _, info = env.reset()
-
-    run()  # warm-up: numba kernels load from cache
-    return steps / best_of(repeats, run)
+    return random_walk_steps_per_s(env, steps, repeats)
 
 
 def vector_env_steps_per_s(n_envs: int, world: World, calls: int, repeats: int) -> float:

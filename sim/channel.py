@@ -162,13 +162,12 @@ def draw_link_channel(
     draws for shape (N, U, draws), shared by both fading laws.
     """
     los = rng.random(p_los.shape) < p_los
-    normals = rng.standard_normal((2, *p_los.shape, draws))
-    rician = normals.copy()
+    re, im = rng.standard_normal((2, *p_los.shape, draws))
     los_amplitude, sigma = _rician_parameters(k_db)
-    _combine_parts(rician.reshape(2, -1), los_amplitude, sigma)
-    rayleigh = normals
-    _combine_parts(rayleigh.reshape(2, -1), 0.0, math.sqrt(0.5))
-    return los, np.where(los[..., None], rician[0], rayleigh[0])
+    # Per link: the Rician law on LoS links, Rayleigh (no line-of-sight part) on the others.
+    amplitude = np.where(los, los_amplitude, 0.0)[..., None]
+    scatter = np.where(los, sigma, math.sqrt(0.5))[..., None]
+    return los, (amplitude + scatter * re) ** 2 + (scatter * im) ** 2
 
 
 def distances_m(uav_xyz_m: np.ndarray, users_xy_m: np.ndarray, user_height_m: float) -> np.ndarray:

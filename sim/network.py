@@ -165,7 +165,10 @@ class NetworkModel:
         )
         # The kernel takes a plain tuple: numba types it much faster than a named tuple.
         self._kt = tuple(self._k)
-        self._urban = air_to_ground(self.area.environment) is not None
+        params = air_to_ground(self.area.environment)
+        self._urban = params is not None
+        # An urban link's excess loss (dB) in each LoS state, at this carrier: fixed per model.
+        self._excess_db = params.excess_db(c.radio.frequency_hz) if params is not None else None
         if self._urban and not (MIN_FREQUENCY_HZ <= c.radio.frequency_hz <= MAX_FREQUENCY_HZ):
             raise InputError(
                 f"frequency_hz: the urban environments' model covers 1–7 GHz, got "
@@ -332,9 +335,8 @@ class NetworkModel:
             return np.ascontiguousarray(loss), _NO_DRAWS
         p_los = los_probability(self.area.environment, elevation_deg(ground, height))
         los, gains = draw_link_channel(rng, p_los, radio.rician_k_db, RATE_DRAWS_PER_STEP)
-        params = air_to_ground(self.area.environment)
-        assert params is not None
-        eta_los, eta_nlos = params.excess_db(radio.frequency_hz)
+        assert self._excess_db is not None
+        eta_los, eta_nlos = self._excess_db
         free_space = friis_path_loss_db(np.hypot(ground, height), radio.frequency_hz)
         return np.ascontiguousarray(free_space + np.where(los, eta_los, eta_nlos)), gains
 
