@@ -11,9 +11,10 @@ $(BIN)/python:
 	$(BIN)/python -m pip install --upgrade pip
 
 # torch is pinned (CPU build from the machine's local wheel); reinstall when pyproject.toml changes.
+# The ray extra is installed so that the tests of tupa sweep --backend ray run (they skip without).
 $(STAMP): $(BIN)/python pyproject.toml
 	$(BIN)/pip install 'torch==2.13.0'
-	$(BIN)/pip install -e '.[dev]'
+	$(BIN)/pip install -e '.[dev,ray]'
 	touch $(STAMP)
 
 # The closed loop: sitl-mock + tupa serve (default policy) + the simulated network controller.

@@ -12,8 +12,9 @@ min-distance, and the altitudes the policies end at. Writes
     python benchmarks/environments.py                       # 40 scenarios a set, 3 users
     python benchmarks/environments.py --scenarios 10 --world closed-loop
 
-A benchmark, not a test: minutes on 2 cores. The shipped checkpoints were trained in the open
-environment only; they are here to show what that costs in a town.
+A benchmark, not a test: minutes on 2 cores. Of the shipped checkpoints, ``ddqn-dr`` and
+``ddpg-residual-dr`` were trained in the open environment only (they show what that costs in a
+town) and ``ddpg-residual-towns`` in the four urban classes (one drawn per episode).
 """
 
 from __future__ import annotations

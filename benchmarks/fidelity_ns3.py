@@ -24,7 +24,17 @@ The figures:
 * why ns-3 loses packets, from its drop traces: lost packets by cause, and for light users
   beside backlogged ones (the case the fast model misses) their backoffs and longest gaps;
 * the speed anchor: wall time per simulated second, ns-3 (a few cases timed live, same run)
-  vs the fast model on the same cases.
+  vs the fast model on the same cases;
+* ``per_environment``: the held-out target figures per channel environment (issue 15), with the
+  default constants: ``open`` is the calibration set above, each urban class its own set
+  (``sim/calibration/cases_<environment>.json``, ns-3 results ``ns3_<environment>_*.json``),
+  where ns-3 is given the fast model's per-user mean path loss (:mod:`sim.ns3_backend`) and the
+  fast model runs in that environment's expected mode. Besides all users, it reports the
+  *served* users (either backend delivers ≥ 10 kbit/s): users out of range in both agree
+  trivially (0 = 0), and there are many in the towns; and the served users at the *edge* of
+  coverage (mean RSSI within 3 dB of the −90 dBm preamble-detection threshold, where ns-3 loses
+  the frames that fade under it and the model's connection is all or nothing) apart from the
+  *inner* ones.
 
 Run (ns-3 needed only for the live timing; ``--no-live`` uses the calibration's timings)::
 
@@ -42,8 +52,10 @@ from typing import Any
 
 import numpy as np
 
+from sim.calibration.build import cases_path, load_meta, results_path
 from sim.calibration.fit import HAND_SET, load_fitted, make_config
-from sim.config import NetworkConfig
+from sim.channel import mean_path_loss_db
+from sim.config import ENVIRONMENTS, AreaConfig, NetworkConfig, RadioConfig
 from sim.evaluate import CaseMetrics, evaluate_case
 from sim.files import load_cases
 from sim.network import NetworkModel
@@ -533,16 +545,281 @@ def speed(cases: dict[str, Case], live: bool, ns3_docs: dict[str, Any]) -> dict[
     return out
 
 
-def scatter(rows_by_config: dict[str, dict[str, list[dict[str, Any]]]], path: Path) -> None:
-    """Fast vs ns-3 per user: throughput (top) and delay (bottom), log axes, one column per
+EDGE_MARGIN_DB = 3.0  # "edge" users: mean RSSI within this of the -90 dBm preamble threshold
+
+
+def mean_rssi_dbm(case: Case, area: AreaConfig, radio: RadioConfig | None = None) -> np.ndarray:
+    """Each user's mean received power (dBm) in the area's environment: the transmit power less
+    :func:`sim.channel.mean_path_loss_db`, the loss both backends use (default radio)."""
+    radio = radio or RadioConfig()
+    ground_m = np.hypot(*(case.users_xy_m - case.uav_xyz_m[:2]).T)
+    height_m = max(float(case.uav_xyz_m[2]) - area.user_height_m, 0.0)
+    loss_db = mean_path_loss_db(area.environment, ground_m, height_m, radio.frequency_hz)
+    return radio.tx_power_dbm - np.asarray(loss_db, dtype=float)
+
+
+def environment_figures(
+    rows: list[dict[str, Any]],
+    ns3: dict[str, Any],
+    fast: dict[str, CaseMetrics],
+    meta: dict[str, Any],
+    held_out: bool,
+) -> dict[str, Any]:
+    """The target figures over the held-out part (``held_out``) or all of one environment's
+    set, one queueing variant."""
+    held = set(meta["held_out"])
+    rows = [r for r in rows if r["held_out"]] if held_out else rows
+    ids = {r["id"] for r in rows}
+    e = errors(rows, ns3["cases"], fast, ids)
+    if not rows:
+        return {"n_cases": 0}
+    ns3_t = np.array([r["ns3_tput"] for r in rows])
+    fast_t = np.array([r["fast_tput"] for r in rows])
+    rel = np.abs(fast_t - ns3_t) / np.maximum(ns3_t, THROUGHPUT_FLOOR_BPS)
+    served = np.maximum(ns3_t, fast_t) >= THROUGHPUT_FLOOR_BPS
+    congested = np.array([r["ns3_plr"] > CONGESTED_PLR for r in rows])
+    edge_dbm = RadioConfig().min_rssi_dbm + EDGE_MARGIN_DB
+    edge = served & np.array([r["rssi_dbm"] < edge_dbm for r in rows])
+    by_id = {c["id"]: c for c in ns3["cases"]}
+    ratios = []
+    for ids_group in meta["groups"].values():
+        if held_out and ids_group[0] not in held:
+            continue
+        if not all(i in by_id for i in ids_group):
+            continue
+        ns3_u = np.array([by_id[i]["utility"] for i in ids_group])
+        fast_u = np.array([fast[i].utility for i in ids_group])
+        ratios.append(float(ns3_u[int(np.argmax(fast_u))] / ns3_u.max()))
+    t = e["throughput_rel_error"]
+    return {
+        "n_cases": e["n_cases"],
+        "n_users": e["n_users"],
+        "n_served_users": int(served.sum()),
+        "n_congested_users": e["n_congested_users"],
+        "throughput_rel_error_median": t["all_users"]["median"],
+        "throughput_rel_error_p90": t["all_users"]["p90"],
+        "served_throughput_rel_error_median": summary(rel[served]).get("median"),
+        "served_throughput_rel_error_p90": summary(rel[served]).get("p90"),
+        "congested_throughput_rel_error_median": t["congested_users"].get("median"),
+        "served_congested_throughput_rel_error_median": summary(rel[served & congested]).get(
+            "median"
+        ),
+        "n_edge_users": int(edge.sum()),
+        "edge_throughput_rel_error_median": summary(rel[edge]).get("median"),
+        "inner_served_throughput_rel_error_median": summary(rel[served & ~edge]).get("median"),
+        "inner_served_throughput_rel_error_p90": summary(rel[served & ~edge]).get("p90"),
+        "utility_abs_error_median": e["utility_abs_error"]["median"],
+        "utility_bias_fast_minus_ns3_mean": e["utility_bias_fast_minus_ns3_mean"],
+        "n_placement_groups": len(ratios),
+        "placement_agreement_mean": round(float(np.mean(ratios)), 4) if ratios else None,
+        "placement_agreement_min": round(float(np.min(ratios)), 4) if ratios else None,
+    }
+
+
+def per_environment(config: NetworkConfig) -> dict[str, Any]:
+    """Held-out (and all-case) target figures per channel environment and queueing variant,
+    the fast model with ``config`` in the environment's expected mode vs the committed ns-3
+    results of that environment's calibration set."""
+    out: dict[str, Any] = {}
+    for environment in ENVIRONMENTS:
+        source = cases_path(environment)
+        if not source.exists():
+            continue
+        area, case_list = load_cases(source)
+        cases = {c.id: c for c in case_list}
+        meta = load_meta(source)
+        block: dict[str, Any] = {
+            "cases": str(source.relative_to(ROOT)),
+            "n_cases": len(case_list),
+            "n_held_out": len(meta["held_out"]),
+            "coverage_radius_m": meta.get("coverage_radius_m"),
+            "variants": {},
+        }
+        for variant in VARIANTS:
+            path = results_path(environment, variant)
+            if not path.exists():
+                continue
+            ns3 = json.loads(path.read_text(encoding="utf-8"))
+            model = NetworkModel(config.with_queueing(variant), area)
+            fast = {c["id"]: evaluate_case(model, cases[c["id"]], None) for c in ns3["cases"]}
+            rows = user_rows(cases, ns3, fast, meta)
+            rssi = {i: mean_rssi_dbm(c, area) for i, c in cases.items()}
+            by_case: dict[str, int] = {}
+            for row in rows:
+                u = by_case.get(row["id"], 0)
+                row["rssi_dbm"] = float(rssi[row["id"]][u])
+                by_case[row["id"]] = u + 1
+            held = environment_figures(rows, ns3, fast, meta, held_out=True)
+            block["variants"][variant] = {
+                "n_cases_simulated": len(ns3["cases"]),
+                "seeds": ns3.get("seeds"),
+                "held_out": held,
+                "all": environment_figures(rows, ns3, fast, meta, held_out=False),
+                "ns3_seed_vs_seed_held_out": seed_vs_seed(ns3, set(meta["held_out"])),
+                "targets_met_on_held_out": {
+                    "throughput_rel_error_median": held.get("throughput_rel_error_median", 1)
+                    <= TARGETS["throughput_rel_error_median"],
+                    "placement_agreement_mean": (held.get("placement_agreement_mean") or 0)
+                    >= TARGETS["placement_agreement_mean"],
+                },
+            }
+        out[environment] = block
+    return out
+
+
+def refit_check() -> dict[str, Any]:
+    """Do the urban sets ask for other MAC constants? The fit's objective
+    (:func:`sim.calibration.fit.objective_terms`, both variants) on the *fit* part of the urban
+    sets, summed over the four classes, at the default (fitted) constants and at each one-step
+    neighbour (± half of each constant's first search step), beside the same objective on the
+    open set's fit part (:func:`sim.calibration.fit.objective`)."""
+    from sim.calibration import fit
+
+    fitted = load_fitted()["fitted"]
+    candidates: dict[str, dict[str, float]] = {"default": dict(fitted)}
+    for c in fit.FREE:
+        for sign in (-1, 1):
+            value = fitted[c.name] + sign * c.step / 2
+            if c.lo <= value <= c.hi:
+                candidates[f"{c.name}{'+' if sign > 0 else '-'}{c.step / 2:g}"] = {
+                    **fitted,
+                    c.name: value,
+                }
+    urban_sets = []
+    for environment in ENVIRONMENTS[1:]:
+        source = cases_path(environment)
+        area, case_list = load_cases(source)
+        meta = load_meta(source)
+        held = set(meta["held_out"])
+        cases = {c.id: c for c in case_list if c.id not in held}
+        docs = {}
+        for variant in VARIANTS:
+            path = results_path(environment, variant)
+            if path.exists():
+                doc = json.loads(path.read_text(encoding="utf-8"))
+                docs[variant] = {c["id"]: c for c in doc["cases"] if c["id"] in cases}
+        urban_sets.append((area, cases, docs))
+    calib = fit.load_calibration()
+    urban, opened = {}, {}
+    for name, values in candidates.items():
+        config = make_config(values)
+        total = 0.0
+        for area, cases, docs in urban_sets:
+            for variant, entries in docs.items():
+                model = NetworkModel(config.with_queueing(variant), area)
+                fast_t, ns3_t, plr, util = [], [], [], []
+                for case_id, entry in entries.items():
+                    f = evaluate_case(model, cases[case_id], None)
+                    fast_t.extend(f.throughput_bps)
+                    ns3_t.extend(u["throughput_bps"] for u in entry["users"])
+                    plr.extend(u["plr"] for u in entry["users"])
+                    util.append(abs(f.utility - entry["utility"]))
+                ns3_a = np.array(ns3_t)
+                total += fit.objective_terms(
+                    {
+                        "rel": np.abs(np.array(fast_t) - ns3_a)
+                        / np.maximum(ns3_a, THROUGHPUT_FLOOR_BPS),
+                        "congested": np.array(plr) > CONGESTED_PLR,
+                        "utility_err": np.array(util),
+                    }
+                )
+        urban[name] = round(total, 4)
+        open_value = fit.objective(calib, values, calib.ids("fit"))
+        opened[name] = round(open_value, 4) if np.isfinite(open_value) else None
+    allowed = [name for name in urban if opened[name] is not None]
+    best = min(allowed, key=lambda name: urban[name])
+    return {
+        "definition": "sim.calibration.fit's objective on the fit part (never the held-out "
+        "cases), both variants; urban: summed over the four urban classes; neighbours move one "
+        "free constant by half its first search step; open None: rejected by the fit (a slower "
+        "MCS would carry more), not a candidate",
+        "urban_fit_part_objective": urban,
+        "open_fit_part_objective": opened,
+        "best_urban_candidate": best,
+        "urban_improvement_of_best_over_default": round(urban["default"] - urban[best], 4),
+        "open_change_at_that_candidate": round(opened[best] - opened["default"], 4),
+    }
+
+
+def urban_rows(config: NetworkConfig) -> dict[str, list[dict[str, Any]]]:
+    """Per variant, the per-user rows of every urban set (key ``environment`` added)."""
+    out: dict[str, list[dict[str, Any]]] = {v: [] for v in VARIANTS}
+    for environment in ENVIRONMENTS[1:]:
+        source = cases_path(environment)
+        if not source.exists():
+            continue
+        area, case_list = load_cases(source)
+        cases = {c.id: c for c in case_list}
+        meta = load_meta(source)
+        for variant in VARIANTS:
+            path = results_path(environment, variant)
+            if not path.exists():
+                continue
+            ns3 = json.loads(path.read_text(encoding="utf-8"))
+            model = NetworkModel(config.with_queueing(variant), area)
+            fast = {c["id"]: evaluate_case(model, cases[c["id"]], None) for c in ns3["cases"]}
+            for row in user_rows(cases, ns3, fast, meta):
+                out[variant].append({**row, "environment": environment})
+    return out
+
+
+def scatter(
+    rows_by_config: dict[str, dict[str, list[dict[str, Any]]]],
+    path: Path,
+    urban: dict[str, list[dict[str, Any]]] | None = None,
+) -> None:
+    """Fast vs ns-3 per user: throughput (top) and delay (middle), log axes, one column per
     queueing variant and set of constants (default, hand-set); held-out users filled, congested
-    users (ns-3 loss > 1 %) in red."""
+    users (ns-3 loss > 1 %) in red. Bottom row: the urban sets (default constants), throughput
+    and delay per variant, one colour per environment, held-out users filled."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(20, 10), dpi=90)
+    fig = Figure(figsize=(20, 15), dpi=90)
     FigureCanvasAgg(fig)
-    axes = fig.subplots(2, 4)
+    axes = fig.subplots(3, 4)
+    colours = {
+        "suburban": "tab:green",
+        "urban": "tab:orange",
+        "dense-urban": "tab:purple",
+        "highrise-urban": "tab:brown",
+    }
+    urban_columns = [(v, key) for key in ("tput", "delay") for v in VARIANTS]
+    for col, (variant, key) in enumerate(urban_columns):
+        ax = axes[2][col]
+        scale, floor, hi = (1e-6, 1e-2, 100.0) if key == "tput" else (1.0, 1e-4, 10.0)
+        for environment, colour in colours.items():
+            for held, face in ((False, "none"), (True, colour)):
+                sel = [
+                    r
+                    for r in (urban or {}).get(variant, [])
+                    if r["environment"] == environment and r["held_out"] == held
+                ]
+                if not sel:
+                    continue
+                x = np.maximum([r[f"ns3_{key}"] * scale for r in sel], floor)
+                y = np.maximum([r[f"fast_{key}"] * scale for r in sel], floor)
+                ax.scatter(
+                    x,
+                    y,
+                    s=14,
+                    facecolors=face,
+                    edgecolors=colour,
+                    linewidths=0.8,
+                    label=environment + (", held out" if held else ""),
+                )
+        ax.plot([floor, hi], [floor, hi], color="black", lw=0.8)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlim(floor, hi)
+        ax.set_ylim(floor, hi)
+        label = "throughput (Mbit/s)" if key == "tput" else "mean delay (s)"
+        ax.set_xlabel(f"ns-3 {label}")
+        ax.set_ylabel(f"fast model {label}")
+        ax.set_title(f"{variant}, urban sets: per-user {label.split(' (')[0]}")
+        ax.grid(True, which="major", lw=0.3)
+        if col == 0:
+            ax.legend(fontsize=7, loc="upper left")
     columns = [(v, name) for v in VARIANTS for name in rows_by_config]
     for col, (variant, name) in enumerate(columns):
         rows = rows_by_config[name].get(variant, [])
@@ -590,7 +867,10 @@ def scatter(rows_by_config: dict[str, dict[str, list[dict[str, Any]]]], path: Pa
             ax.grid(True, which="major", lw=0.3)
             if row_i == 0 and col == 0:
                 ax.legend(fontsize=8, loc="upper left")
-    fig.suptitle("Fast model vs ns-3 3.44, calibration set (dashed: ±25 %)")
+    fig.suptitle(
+        "Fast model vs ns-3 3.44, calibration set (dashed: ±25 %); bottom: urban sets, "
+        "ns-3 on the model's per-user mean path loss"
+    )
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
@@ -666,6 +946,28 @@ def main(argv: list[str] | None = None) -> int:
                 f"{variant} held-out {figure}: hand-set {entry['hand_set']}, "
                 f"default (fitted) {entry['default']} (target {entry['target']})"
             )
+    result["per_environment"] = per_environment(NetworkConfig())
+    for environment, block in result["per_environment"].items():
+        for variant, figures in block["variants"].items():
+            h = figures["held_out"]
+            print(
+                f"{environment} {variant} held-out ({h['n_cases']} cases, {h['n_users']} users, "
+                f"{h['n_served_users']} served): throughput error median "
+                f"{h['throughput_rel_error_median']} "
+                f"(served {h['served_throughput_rel_error_median']}), "
+                f"p90 {h['throughput_rel_error_p90']}, congested median "
+                f"{h['congested_throughput_rel_error_median']}, utility "
+                f"{h['utility_abs_error_median']}, placement {h['placement_agreement_mean']} "
+                f"({h['n_placement_groups']} groups)"
+            )
+    result["per_environment_refit_check"] = refit_check()
+    check = result["per_environment_refit_check"]
+    print(
+        f"refit check: urban fit-part objective {check['urban_fit_part_objective']['default']} at "
+        f"the default constants, best one-step neighbour {check['best_urban_candidate']} "
+        f"({check['urban_improvement_of_best_over_default']} better there, open fit part "
+        f"{check['open_change_at_that_candidate']:+} there)"
+    )
     result["speed"] = speed(cases, not args.no_live, ns3_docs)
     if "speedup_min" in result["speed"]:
         result["speed"]["target_met"] = (
@@ -674,7 +976,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"speed: fast model {result['speed']['speedup_min']}x+ faster per simulated second")
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
-    scatter(rows_by_config, FIGURE)
+    scatter(rows_by_config, FIGURE, urban_rows(NetworkConfig()))
     print(f"wrote {RESULTS} and {FIGURE}")
     return 0
 

@@ -149,6 +149,17 @@ class CheckpointPolicy:
         }
 
 
+def trained_environments(metadata: dict[str, Any]) -> list[str]:
+    """The channel environments a checkpoint was trained in: the metadata's
+    ``train_environments``, else its world's (``open`` for checkpoints from before towns)."""
+    listed = metadata.get("train_environments")
+    if isinstance(listed, list) and listed:
+        return [str(e) for e in listed]
+    world = metadata.get("world")
+    area = world.get("area", {}) if isinstance(world, dict) else {}
+    return [str(area.get("environment", "open")) if isinstance(area, dict) else "open"]
+
+
 def default_name(metadata: dict[str, Any], path: Path | None) -> str:
     """A checkpoint's name: the metadata's ``name`` when it has one (the shipped checkpoints),
     else ``ddqn-gen10k`` style (algorithm, ``residual`` for residual actions, training

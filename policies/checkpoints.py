@@ -350,8 +350,17 @@ def load_checkpoint(
     return model, meta
 
 
+# What a policy needs only to learn, never to act: DDPG's critic and the target networks.
+_TRAINING_ONLY_NETWORKS = {"ddpg": ("actor_target", "critic", "critic_target"),
+                           "ddqn": ("q_net_target",)}  # fmt: skip
+
+
 def export_checkpoint(
-    source: Path, dest: Path, area: AreaConfig = AreaConfig(), **extra_metadata: Any
+    source: Path,
+    dest: Path,
+    area: AreaConfig = AreaConfig(),
+    serving_only: bool = False,
+    **extra_metadata: Any,
 ) -> dict[str, Any]:
     """Write a serving copy of checkpoint ``source`` to ``dest`` (zip + metadata JSON).
 
@@ -359,7 +368,15 @@ def export_checkpoint(
     the optimizer's running statistics (RMSprop's squared-gradient averages: as large as the
     network itself and only needed to continue training; a copy resumed anyway starts them
     afresh) and without a replay buffer (never in the zip); members deflate-compressed. The
-    metadata is ``source``'s plus ``extra_metadata`` and an ``exported_from`` note.
+    metadata is ``source``'s plus ``extra_metadata`` and an ``exported_from`` note (holding
+    ``source``'s own note as ``earlier`` when it was an export itself).
+
+    ``serving_only``: also zero the networks only learning uses (DDPG's critic and both
+    targets, DDQN's target Q-network; :data:`_TRAINING_ONLY_NETWORKS`). The acting network is
+    untouched, so the copy decides exactly as ``source`` does, and the zip still loads with
+    plain stable-baselines3; deflate stores the zeros in a few kilobytes, so the file is about
+    a quarter (DDPG) or half (DDQN) of the full one. It cannot continue training: the
+    metadata says ``"serving_only": true``.
     """
     model, meta = load_checkpoint(source, area, device="cpu")
     for name in model._get_torch_save_params()[0]:
@@ -368,6 +385,16 @@ def export_checkpoint(
             for part in name.split("."):
                 obj = getattr(obj, part)
             obj.state.clear()
+    dropped = ["optimizer state"]
+    if serving_only:
+        import torch
+
+        names = _TRAINING_ONLY_NETWORKS[meta["algorithm"]]
+        with torch.no_grad():
+            for name in names:
+                for tensor in getattr(model.policy, name).state_dict().values():
+                    tensor.zero_()
+        dropped.append(f"{', '.join(names)} (zeroed: only learning uses them)")
     plain, packed = io.BytesIO(), io.BytesIO()
     model.save(plain)
     with (
@@ -383,9 +410,12 @@ def export_checkpoint(
         "exported_from": {
             "path": str(source),
             "at": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
-            "dropped": ["optimizer state"],
+            "dropped": dropped,
+            **({"earlier": meta["exported_from"]} if "exported_from" in meta else {}),
         },
     }
+    if serving_only:
+        metadata["serving_only"] = True
     atomic_write_json(metadata_path(dest), {"format": CHECKPOINT_FORMAT, **metadata})
     return metadata
 

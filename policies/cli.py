@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from policies.sweep.cli import register as register_sweep
 from policies.train_cli import register as register_train
 
 _EVAL_DESCRIPTION = """\
@@ -35,7 +36,9 @@ Output (--json): with one --policy, the object
    "uav_xyz_m", "trace", "ratio_to_oracle"}]}
 (ratio_to_oracle: the scenario's utility over the oracle's; the oracle is evaluated on the side
 when it is not among the policies)
-with several, {"results": [object, ...]} in the order given. The file is written atomically,
+with several, {"results": [object, ...]} in the order given; --altitude-profiles N adds
+"altitude_profiles": [{"id", "environment", "altitudes_m", "best_utility", "best_xy_m"}] beside
+them (policies/altitude.py). The file is written atomically,
 and not at all on an error. Prints a summary table and the mean utility per heterogeneity bin
 (width 0.05) with each policy's gain over min-distance.
 """
@@ -95,11 +98,35 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="steps per episode (default: the world's, 100 as the paper's T)",
     )
     evaluate.add_argument(
+        "--altitude-profiles",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also record utility against altitude (the best placement at each altitude) for "
+        "the first N scenarios, for tupa report's altitude figure (default 0; a second or so "
+        "per scenario)",
+    )
+    evaluate.add_argument(
         "--no-progress", action="store_true", help="no progress bar (it goes to stderr)"
+    )
+    evaluate.add_argument(
+        "--backend",
+        choices=("local", "ray"),
+        default=None,
+        help="fan the scenarios out in slices: local (one process per slice, --workers at "
+        "once) or ray (tasks on a private Ray instance, or a cluster with --address); the same "
+        "results as in one process (policies/sweep/fanout.py). Default: one process",
+    )
+    evaluate.add_argument(
+        "--workers", type=int, default=None, metavar="N", help="with --backend: slices at once"
+    )
+    evaluate.add_argument(
+        "--address", default=None, metavar="ADDR", help="with --backend ray: a running cluster"
     )
     evaluate.set_defaults(handler=_eval)
     _register_report(subparsers)
     register_train(subparsers)
+    register_sweep(subparsers)
 
 
 def add_world_arguments(parser: argparse.ArgumentParser) -> None:
@@ -172,6 +199,8 @@ def _eval(args: argparse.Namespace) -> int:
             )
     if args.seed < 0:
         raise InputError(f"--seed: must be >= 0, got {args.seed}")
+    if args.altitude_profiles < 0:
+        raise InputError(f"--altitude-profiles: must be >= 0, got {args.altitude_profiles}")
 
     area, scenarios = load_scenarios(args.scenarios)
     if not scenarios:
@@ -179,12 +208,27 @@ def _eval(args: argparse.Namespace) -> int:
     world = world_from_args(args, "paper", area)
     policies = [resolve_policy(name, world) for name in names]
     results = []
-    for policy in policies:
-        results.append(
-            evaluate_policy(policy, scenarios, world, seed=args.seed, progress=not args.no_progress)
-        )
-    _add_ratio_to_oracle(results, scenarios, world, args)
+    if args.backend is not None:  # fanned out in slices (policies/sweep/fanout.py)
+        from policies.sweep.fanout import evaluate_from_args
+
+        results, side = evaluate_from_args(names, len(scenarios), args)
+        _add_ratio_to_oracle(results + side, scenarios, world, args)
+    else:
+        for policy in policies:
+            results.append(
+                evaluate_policy(
+                    policy, scenarios, world, seed=args.seed, progress=not args.no_progress
+                )
+            )
+        _add_ratio_to_oracle(results, scenarios, world, args)
     document = results[0] if len(results) == 1 else {"results": results}
+    if args.altitude_profiles:
+        from policies.altitude import altitude_profile
+
+        document["altitude_profiles"] = [
+            altitude_profile(scenario, world).to_dict()
+            for scenario in scenarios[: args.altitude_profiles]
+        ]
     try:
         atomic_write_json(args.json, document)
     except OSError as exc:
@@ -213,6 +257,11 @@ plr_cdf.png, metrics_cdf.png (the three side by side), utility_by_heterogeneity.
 learning-curve tables, and the paper's two headline numbers, "1.75x at the 25th percentile"
 and "~4x in the most heterogeneous bin", as measured against min-distance). Each file is
 written atomically, and none at all on bad input.
+
+Given a tupa sweep directory (it holds sweep.json), merges the sweep instead: writes
+sweep_learning_curve.png (median and inter-quartile band across seeds per version),
+results.md (the trials, the paper's 4 versions, Gen500 vs Gen10k, the learning-curve table)
+and best/<version>-e<episodes>.zip, the best seed of each cell exported (policies/report/sweep.py).
 """
 
 

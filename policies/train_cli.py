@@ -45,6 +45,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "the first",
     )
     parser.add_argument(
+        "--environment",
+        default=None,
+        metavar="ENV",
+        help="the channel environment (open, suburban, urban, dense-urban, highrise-urban); "
+        "several separated by commas: one drawn per episode (with the world), evaluations in "
+        "the first. Default: the test set's",
+    )
+    parser.add_argument(
         "--action",
         choices=("coordinates", "residual"),
         default="coordinates",
@@ -145,6 +153,7 @@ def _train(args: argparse.Namespace) -> int:
             queueing=args.queueing,
             world=args.world,
             world_set=tuple(args.world_set),
+            environments=tuple(e.strip() for e in (args.environment or "").split(",") if e.strip()),
             families=tuple(f.strip() for f in args.families.split(",")),
             action=args.action,
             envs=args.envs,

@@ -47,7 +47,7 @@ from policies.networks import ZoneMapsCNN
 from policies.presets import NetworkPreset, Preset, get_preset
 from policies.registry import make_placement
 from policies.residual import ResidualActions, residual_metadata
-from sim.config import AreaConfig, NetworkConfig, Queueing
+from sim.config import ENVIRONMENTS, AreaConfig, NetworkConfig, Queueing
 from sim.envs import FapContinuousEnv, FapDiscreteEnv, ScenarioCycle
 from sim.errors import InputError
 from sim.files import atomic_write_json, load_scenarios, scenario_set_hash
@@ -76,6 +76,9 @@ class TrainConfig:
     queueing: Queueing = "fq-codel"
     world: str = "paper"  # one preset, or several separated by commas (one drawn per episode)
     world_set: tuple[str, ...] = ()
+    # Channel environments (sim.config.ENVIRONMENTS) the episodes draw from, one per episode
+    # with the world; empty: the world's own (the test set's, or --world-set environment=).
+    environments: tuple[str, ...] = ()
     families: tuple[str, ...] = ("exponential",)
     users: tuple[int, int] | None = None  # None: the test set's user count
     action: str = "coordinates"  # DDPG: "coordinates" (the paper) or "residual"
@@ -98,9 +101,17 @@ class TrainConfig:
             raise InputError(f"--seed: must be >= 0, got {self.seed}")
         if self.envs < 1:
             raise InputError(f"--envs: must be at least 1, got {self.envs}")
-        if self.envs > 1 and (self.action == "residual" or "," in self.world):
+        unknown = [e for e in self.environments if e not in ENVIRONMENTS]
+        if unknown:
             raise InputError(
-                "--envs: more than 1 needs one world and coordinates or moves (not residual)"
+                f"--environment: must be among {', '.join(ENVIRONMENTS)}, got {unknown[0]!r}"
+            )
+        if self.envs > 1 and (
+            self.action == "residual" or "," in self.world or len(self.environments) > 1
+        ):
+            raise InputError(
+                "--envs: more than 1 needs one world, one environment and coordinates or moves "
+                "(not residual)"
             )
         if self.action not in ("coordinates", "residual") or (
             self.action == "residual" and self.algorithm != "ddpg"
@@ -115,10 +126,13 @@ class TrainConfig:
     def _worlds(self, area: AreaConfig) -> list[World]:
         network = NetworkConfig().with_queueing(self.queueing)
         names = [name.strip() for name in self.world.split(",")]
-        return [
+        worlds = [
             world_with(replace(get_world(name), area=area, network=network), self.world_set)
             for name in names
         ]
+        if not self.environments:
+            return worlds
+        return [world_with(w, {"environment": e}) for w in worlds for e in self.environments]
 
     def eval_world(self, area: AreaConfig) -> World:
         """The run's (first) world over ``area``: where its evaluations run."""
@@ -141,6 +155,7 @@ class TrainConfig:
         d["test_scenarios"] = str(self.test_scenarios)
         d["out_dir"] = str(self.out_dir)
         d["world_set"] = list(self.world_set)
+        d["environments"] = list(self.environments)
         d["families"] = list(self.families)
         d["users"] = list(self.users) if self.users else None
         return d
@@ -155,6 +170,7 @@ class TrainConfig:
         if "critic_hidden" in p:
             p["critic_hidden"] = tuple(p["critic_hidden"])
         d["world_set"] = tuple(d.get("world_set", ()))
+        d["environments"] = tuple(d.get("environments", ()))
         d["families"] = tuple(d.get("families", ("exponential",)))
         d["users"] = tuple(d["users"]) if d.get("users") else None
         return cls(
@@ -370,6 +386,7 @@ class _Run:
             "queueing": c.queueing,
             "world": self.world.to_dict(),
             "train_worlds": [w.name for w in c.train_worlds(self.area)],
+            "train_environments": sorted({w.area.environment for w in c.train_worlds(self.area)}),
             "families": list(c.families),
             "users": list(c.users) if c.users else None,
             "n_users": self.test[0].n_users,

@@ -80,8 +80,25 @@ def load_policy(
         detail = str(exc).replace("\r", "\\r").replace("\n", "\\n")
         log.warning("policy %r refused: %s", spec, detail)
         raise InputError(_public_problem(exc, PLACEMENTS)) from None
+    _warn_on_environment(policy, world)
     _dry_run(policy, world)
     return policy
+
+
+def _warn_on_environment(policy: Policy, world: World) -> None:
+    """A checkpoint served in a channel environment it was not trained in still decides, but
+    the operator should know: one warning."""
+    from policies.adapters import CheckpointPolicy, trained_environments
+
+    if isinstance(policy, CheckpointPolicy):
+        trained = trained_environments(policy.metadata)
+        if world.area.environment not in trained:
+            log.warning(
+                "policy %s was trained in the %s environment(s); serving it in %s",
+                policy.name,
+                ", ".join(trained),
+                world.area.environment,
+            )
 
 
 def _public_problem(error: CheckpointError, baselines: Iterable[str]) -> str:

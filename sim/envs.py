@@ -35,6 +35,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any, Protocol
 
 import gymnasium as gym
@@ -55,7 +56,7 @@ from sim.geometry import (
 from sim.network import NetworkModel, QueueState, StepResult
 from sim.observation import UserReports, build_observation, observation_shape
 from sim.scenarios import Scenario, ScenarioSampler
-from sim.users import UserDynamics
+from sim.users import UserDynamics, episode_users
 from sim.utility import network_utility
 from sim.world import PAPER, World
 
@@ -115,8 +116,14 @@ class _FapEnv(gym.Env, ABC):
         if not worlds:
             raise ValueError("world: the list of worlds is empty")
         area = worlds[0].area
-        if any(w.area != area or w.network != worlds[0].network for w in worlds):
-            raise ValueError("world: the worlds of one environment must share area and network")
+        if any(
+            replace(w.area, environment=area.environment) != area or w.network != worlds[0].network
+            for w in worlds
+        ):
+            raise ValueError(
+                "world: the worlds of one environment must share the area (their channel "
+                "environments may differ) and the network"
+            )
         self.worlds = worlds
         self.world = worlds[0]
         if scenarios is None:
@@ -124,7 +131,12 @@ class _FapEnv(gym.Env, ABC):
         elif not hasattr(scenarios, "sample"):
             scenarios = ScenarioCycle(scenarios)  # type: ignore[arg-type]
         self.scenarios: ScenarioSource = scenarios  # type: ignore[assignment]
-        self.model = model or NetworkModel(self.world.network, area)
+        # One network model per channel environment: an episode runs in its world's.
+        self._models = {area.environment: model or NetworkModel(self.world.network, area)}
+        for w in worlds[1:]:
+            if w.area.environment not in self._models:
+                self._models[w.area.environment] = NetworkModel(w.network, w.area)
+        self.model = self._models[area.environment]
         self.area = area
         self.observation_space = spaces.Box(0.0, 1.0, observation_shape(area), dtype=np.float32)
         self.scenario: Scenario | None = None
@@ -153,18 +165,13 @@ class _FapEnv(gym.Env, ABC):
         rng = self.np_random
         if len(self.worlds) > 1:
             self.world = self.worlds[int(rng.integers(len(self.worlds)))]
+            self.area = self.world.area
+            self.model = self._models[self.area.environment]
         world = self.world
         self.scenario = options.get("scenario") or self.scenarios.sample(rng)
-        # The users draw from their own generator: every policy meets the same user motion and
-        # demand, and a controller outside the environment can replay it (users_seed).
-        # Static users draw nothing (the paper's episodes keep their random streams).
-        users_seed = options.get("users_seed")
-        if users_seed is None:
-            users_seed = int(rng.integers(2**63 - 1)) if world.users_change else 0
-        self._users_rng = np.random.default_rng(users_seed)
-        self.users = UserDynamics(
-            self.scenario.users_xy_m, self.scenario.load_bps, world.mobility, world.demand,
-            self.area, self._users_rng,
+        self.users, self._users_rng = episode_users(
+            self.scenario.users_xy_m, self.scenario.load_bps, world, self.area, rng,
+            options.get("users_seed"),
         )  # fmt: skip
         self._queues = None
         self._steps = 0
@@ -359,10 +366,16 @@ def position_to_action(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
 
 
 def register_envs() -> None:
-    """Register both environments with gymnasium (idempotent)."""
+    """Register the environments with gymnasium (idempotent): both single-UAV ones and the
+    fleet's two joint ones (``n_uavs=`` and the fleet environment's other arguments pass
+    through ``gym.make``)."""
     for env_id, entry in (
         (DISCRETE_ENV_ID, "sim.envs:FapDiscreteEnv"),
         (CONTINUOUS_ENV_ID, "sim.envs:FapContinuousEnv"),
+        # The fleet's joint (centralised) environments; the PettingZoo one is
+        # sim.fleet_env.parallel_env (PettingZoo keeps no registry).
+        ("tupa/FleetDiscrete-v0", "sim.fleet_env:FleetDiscreteGymEnv"),
+        ("tupa/FleetContinuous-v0", "sim.fleet_env:FleetContinuousGymEnv"),
     ):
         if env_id not in gym.registry:
             gym.register(id=env_id, entry_point=entry)

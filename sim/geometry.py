@@ -290,3 +290,162 @@ def unit_to_m_many(actions: np.ndarray, area: AreaConfig) -> np.ndarray:
     out[:, 1] = a[:, 1] * area.size_y_m
     out[:, 2] = area.z_min_m + a[:, 2] * (area.z_max_m - area.z_min_m)
     return out
+
+
+# --------------------------------------------------------------------------------------------
+# Several vehicles: the minimum separation between them, a hard constraint on every set of
+# targets (and on where a fleet's vehicles end a decision period)
+
+# Pushes aim this much past the separation, so that rounding never leaves a pair just short.
+_SEPARATION_MARGIN = 1.0 + 1e-9
+# Directions tried around a conflicting point, in this order: the 26 of a 3 × 3 × 3 cube.
+_PUSH_DIRECTIONS = np.array(
+    [
+        (dx, dy, dz)
+        for dz in (1, 0, -1)
+        for dy in (0, 1, -1)
+        for dx in (0, 1, -1)
+        if (dx, dy, dz) != (0, 0, 0)
+    ],
+    dtype=float,
+)
+_PUSH_DIRECTIONS /= np.linalg.norm(_PUSH_DIRECTIONS, axis=1, keepdims=True)
+
+
+def min_pairwise_distance_m(xyz_m: np.ndarray) -> float:
+    """The smallest 3-D distance between two rows of ``xyz_m`` (K, 3); ``inf`` for K < 2."""
+    points = np.asarray(xyz_m, dtype=float).reshape(-1, 3).tolist()
+    closest = math.inf
+    for i, p in enumerate(points):  # K is small (a fleet): plain floats beat numpy here
+        for q in points[i + 1 :]:
+            closest = min(closest, math.dist(p, q))
+    return closest
+
+
+def enforce_separation(targets_m: np.ndarray, separation_m: float, area: AreaConfig) -> np.ndarray:
+    """Targets (K, 3) moved as little as this simple rule allows so that every two are at
+    least ``separation_m`` apart in 3-D, all inside the volume of ``area``.
+
+    Deterministic, in index order: target 0 is kept (clipped into the volume); each next
+    target is kept if it is far enough from every target already settled, otherwise it moves
+    to the nearest point (to where it wanted to be) among candidates that are: on the sphere
+    of radius ``separation_m`` around each settled target it conflicts with, in its own
+    direction and in 26 fixed directions, and, failing those, on a lattice of spacing
+    ``separation_m`` around it; every candidate is clipped into the volume before it is
+    checked, so no target ever leaves the volume. Lower indices have priority: a fleet lists
+    its vehicles in a fixed order. Raises ``ValueError`` when the volume cannot hold the
+    targets that far apart, and for non-finite targets or a separation that is not > 0.
+    """
+    if not (math.isfinite(separation_m) and separation_m > 0):
+        raise ValueError(f"separation_m: must be > 0, got {separation_m!r}")
+    targets = np.asarray(targets_m, dtype=float)
+    if targets.ndim != 2 or targets.shape[1] != 3 or not np.all(np.isfinite(targets)):
+        raise ValueError(f"targets_m: must be (K, 3) finite positions, got shape {targets.shape}")
+    lower, upper = volume_bounds(area)
+    inside = all(
+        lo <= v <= hi
+        for point in targets.tolist()
+        for v, lo, hi in zip(point, lower.tolist(), upper.tolist(), strict=True)
+    )
+    wanted = targets.copy() if inside else clip_to_volume(targets, area)
+    if min_pairwise_distance_m(wanted) >= separation_m:
+        return wanted
+    out = wanted.copy()
+    reach = separation_m * _SEPARATION_MARGIN
+    for k in range(1, len(out)):
+        settled = out[:k]
+        if _far_enough(wanted[k], settled, separation_m):
+            continue
+        gap = wanted[k] - settled
+        distance = np.sqrt(np.sum(gap * gap, axis=1))
+        conflicts = settled[distance < separation_m]
+        candidates = []
+        for centre in conflicts:
+            own = wanted[k] - centre
+            norm = float(np.sqrt(own @ own))
+            directions = (
+                _PUSH_DIRECTIONS if norm == 0.0 else np.vstack([own / norm, _PUSH_DIRECTIONS])
+            )
+            candidates.append(centre + reach * directions)
+        point = _nearest_free(wanted[k], np.concatenate(candidates), settled, separation_m, area)
+        if point is None:
+            point = _lattice_free(wanted[k], settled, separation_m, area, len(out))
+        if point is None:
+            raise ValueError(
+                f"separation_m: the volume cannot hold {len(out)} vehicles {separation_m} m apart"
+            )
+        out[k] = point
+    return out
+
+
+def _far_enough(point: np.ndarray, others: np.ndarray, separation_m: float) -> bool:
+    gap = others - point
+    return bool(np.all(np.sum(gap * gap, axis=1) >= separation_m * separation_m))
+
+
+def _nearest_free(
+    wanted: np.ndarray,
+    candidates: np.ndarray,
+    settled: np.ndarray,
+    separation_m: float,
+    area: AreaConfig,
+) -> np.ndarray | None:
+    """The candidate (clipped into the volume) nearest ``wanted`` that is at least
+    ``separation_m`` from every settled point; None if none is. Ties: the first."""
+    points = clip_to_volume(candidates, area)
+    gap = points[:, None, :] - settled[None, :, :]
+    free = np.all(np.sum(gap * gap, axis=-1) >= separation_m * separation_m, axis=1)
+    if not free.any():
+        return None
+    points = points[free]
+    cost = np.sum((points - wanted) ** 2, axis=1)
+    return points[int(np.argmin(cost))].copy()
+
+
+def _lattice_free(
+    wanted: np.ndarray, settled: np.ndarray, separation_m: float, area: AreaConfig, n: int
+) -> np.ndarray | None:
+    """A free point on a lattice of spacing ``separation_m`` around ``wanted``, growing rings
+    up to what ``n`` vehicles can need; None if the volume has none."""
+    lower, upper = volume_bounds(area)
+    span = float(np.max(upper - lower))
+    rings = max(n + 1, 2)
+    step = separation_m * _SEPARATION_MARGIN
+    rings = min(rings, int(span / step) + 2)
+    for radius in range(1, rings + 1):
+        axis = np.arange(-radius, radius + 1, dtype=float)
+        grid = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
+        point = _nearest_free(wanted, wanted + step * grid, settled, separation_m, area)
+        if point is not None:
+            return point
+    return None
+
+
+def hold_separation(
+    previous_m: np.ndarray, proposed_m: np.ndarray, separation_m: float
+) -> np.ndarray:
+    """Where K vehicles end a decision period: ``proposed_m`` (K, 3), except that a vehicle
+    that would end closer than ``separation_m`` to another holds at ``previous_m`` instead.
+
+    Flying straight toward separated targets can still bring two vehicles together on the way
+    (crossing paths). The rule is applied until no pair is too close (at most K rounds: each
+    round holds at least one more vehicle); ``previous_m`` must itself be separated, so holding
+    every vehicle always satisfies it. A stand-in for the autopilots' own avoidance, not a
+    planner: two vehicles that keep wanting each other's place wait.
+    """
+    previous = np.asarray(previous_m, dtype=float)
+    out = np.array(proposed_m, dtype=float)
+    if min_pairwise_distance_m(out) >= separation_m:
+        return out
+    held = np.zeros(len(out), dtype=bool)
+    limit = separation_m * separation_m
+    for _ in range(len(out)):
+        gap = out[:, None, :] - out[None, :, :]
+        close = np.sum(gap * gap, axis=-1) < limit
+        np.fill_diagonal(close, False)
+        movers = close.any(axis=1) & ~held
+        if not close.any() or not movers.any():
+            break
+        out[movers] = previous[movers]
+        held |= movers
+    return out

@@ -289,6 +289,21 @@ class NetworkModel:
             )
         if rng is not None:
             np.log10(log_gains, out=log_gains)  # the kernel scales by 10: gains in dB
+        return self._kernel(uav, users, load, backlog, codel, log_gains, path_loss, step_s)
+
+    def _kernel(
+        self,
+        uav: np.ndarray,
+        users: np.ndarray,
+        load: np.ndarray,
+        backlog: np.ndarray,
+        codel: np.ndarray,
+        log_gains: np.ndarray,
+        path_loss: np.ndarray,
+        step_s: float,
+    ) -> StepResult:
+        """The compiled step over (N, U) rows, its outputs as a :class:`StepResult`."""
+        batch, n_users = backlog.shape
         out = np.empty((6, batch, n_users))
         connected = np.empty((batch, n_users), dtype=np.bool_)
         _simulate(
@@ -325,20 +340,70 @@ class NetworkModel:
     ) -> tuple[np.ndarray, np.ndarray]:
         """Path loss (N, U) and fading gains (N, U, draws) in an urban environment: the mean
         path loss in expected mode (no draws); a drawn LoS state and its fading otherwise."""
-        radio = self.config.radio
         ground = np.hypot(uav[:, None, 0] - users[:, :, 0], uav[:, None, 1] - users[:, :, 1])
         height = np.broadcast_to(
             np.maximum(uav[:, 2:3] - self.area.user_height_m, 0.0), (batch, n_users)
         )
-        if rng is None:
-            loss = mean_path_loss_db(self.area.environment, ground, height, radio.frequency_hz)
-            return np.ascontiguousarray(loss), _NO_DRAWS
-        p_los = los_probability(self.area.environment, elevation_deg(ground, height))
+        loss, gains = self.link_channel(ground, height, rng)
+        return np.ascontiguousarray(loss), _NO_DRAWS if gains is None else gains
+
+    def link_channel(
+        self, ground_m: np.ndarray, height_m: np.ndarray, rng: np.random.Generator | None
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The channel of links given by their ground distance and the AP's height above the
+        user (arrays of one shape S): path loss (dB, S) and fading power gains (S + (draws,)),
+        None in expected mode (``rng`` None). Free space with Rician fading in the open; in a
+        town the mean path loss in expected mode, otherwise a line-of-sight state drawn per
+        link (:func:`sim.channel.draw_link_channel`) and its excess loss and fading. The
+        fleet model (:mod:`sim.fleet`) builds its links' channel with it."""
+        radio = self.config.radio
+        environment = self.area.environment
+        if environment == "open" or rng is None:
+            loss = mean_path_loss_db(environment, ground_m, height_m, radio.frequency_hz)
+            if rng is None:
+                return loss, None
+            draws = (*np.shape(ground_m), RATE_DRAWS_PER_STEP)
+            return loss, rician_power_gain(rng, radio.rician_k_db, draws)
+        p_los = los_probability(environment, elevation_deg(ground_m, height_m))
         los, gains = draw_link_channel(rng, p_los, radio.rician_k_db, RATE_DRAWS_PER_STEP)
         assert self._excess_db is not None
         eta_los, eta_nlos = self._excess_db
-        free_space = friis_path_loss_db(np.hypot(ground, height), radio.frequency_hz)
-        return np.ascontiguousarray(free_space + np.where(los, eta_los, eta_nlos)), gains
+        free_space = friis_path_loss_db(np.hypot(ground_m, height_m), radio.frequency_hz)
+        return free_space + np.where(los, eta_los, eta_nlos), gains
+
+    def step_links(
+        self,
+        path_loss_db: np.ndarray,
+        gains: np.ndarray | None,
+        users_xy_m: np.ndarray,
+        load_bps: np.ndarray,
+        state: QueueState,
+        step_s: float = 1.0,
+    ) -> StepResult:
+        """One step of N cells whose links are given rather than computed from a UAV position:
+        ``path_loss_db`` (N, U) and fading ``gains`` (N, U, draws) or None (expected mode), as
+        :meth:`link_channel` returns them, plus any loss of the caller's own (co-channel
+        interference, for instance) already added. ``users_xy_m`` (N, U, 2), ``load_bps`` and
+        ``state`` (N, U). Inputs are not checked here (the caller has); the result is as
+        :meth:`step_many`'s. How the fleet model steps cells whose users hear different APs.
+        """
+        loss = np.ascontiguousarray(path_loss_db, dtype=float)
+        return self._kernel(
+            np.zeros((loss.shape[0], 3)),  # unused: the kernel takes the path loss given
+            np.ascontiguousarray(users_xy_m, dtype=float),
+            np.ascontiguousarray(load_bps, dtype=float),
+            np.ascontiguousarray(state.backlog_pkts, dtype=float),
+            np.ascontiguousarray(state.codel_count, dtype=float),
+            _NO_DRAWS if gains is None else np.log10(gains),
+            loss,
+            step_s,
+        )
+
+    @staticmethod
+    def values_ok(uav: np.ndarray, users: np.ndarray, load: np.ndarray) -> bool:
+        """The model's one-pass input check: every value finite, loads non-negative, nothing
+        too large to simulate (False: the caller names the bad argument)."""
+        return _values_ok(uav, users, load)
 
 
 # No fading draws: expected mode (the kernel tells the modes apart by the last axis).

@@ -16,8 +16,23 @@ Protocol per case, the one :mod:`sim.evaluate` uses for the fast model:
 3. ``measure_s`` (2 s): per-user throughput (payload bits delivered to the AP / window), mean
    one-way delay of the packets received in the window (FlowMonitor), and loss = packets
    dropped anywhere in the window (queue disc, MAC queue, MAC lifetime and Block Ack window,
-   traffic-control layer, ARP) / packets sent in the window. Packets still queued at the end
-   are neither delivered nor lost, as in the fast model's ``plr``.
+   traffic-control layer, ARP, IP) / packets sent in the window. A station that never
+   associated (out of range) loses all it sends, as in the fast model: its packets end in ARP's
+   pending queue. Packets still queued at the end are neither delivered nor lost, as in the fast
+   model's ``plr``.
+
+Channel: in the ``open`` environment ns-3 computes Friis free-space loss itself (the paper's
+channel, unchanged since the calibration). In an urban one (``Ns3Settings.environment``) the
+parent computes each user's loss to the UAV with the fast model's own function,
+:func:`sim.channel.mean_path_loss_db` (free space plus the environment's LoS-probability-weighted
+excess loss, at the user's ground distance and the UAV's height above the user), and the worker
+sets it per pair in ns-3's ``MatrixPropagationLossModel``, followed by the same Nakagami fading
+(m = 10.73, Rician K = 13 dB) as in ``open``: the channel of the fast model's expected mode, so
+that the comparison is about MAC behaviour, not two channels. Between users (who hear each
+other's transmissions for carrier sense and collisions) the loss stays free space, as in
+``open``: the fast model has no hidden stations, and urban ground-to-ground blockage would add
+them to ns-3 alone. The LoS state itself is not drawn in ns-3 (nor in the expected mode): what
+the comparison checks is the MAC on a given mean channel, not the Al-Hourani model.
 
 ``interval_s`` splits the window into equal intervals (e.g. 1 s over a 10 s window, to follow
 how FqCoDel delays grow). A user that sends but receives nothing in a window gets the fast
@@ -48,7 +63,16 @@ from typing import Any
 
 import numpy as np
 
-from sim.config import AreaConfig, QueueConfig, Queueing, RadioConfig, TrafficConfig, UtilityConfig
+from sim.channel import friis_path_loss_db, mean_path_loss_db
+from sim.config import (
+    ENVIRONMENTS,
+    AreaConfig,
+    QueueConfig,
+    Queueing,
+    RadioConfig,
+    TrafficConfig,
+    UtilityConfig,
+)
 from sim.errors import InputError
 from sim.evaluate import RESULTS_FORMAT, CaseMetrics
 from sim.files import atomic_write_json, cases_document, load_cases
@@ -67,6 +91,7 @@ DROP_FIELDS: tuple[str, ...] = (
     "drop_mac_tx",
     "drop_arp",
     "drop_tc",
+    "drop_ip",
 )
 # Counters reported as they are at the end of the window, not as differences.
 _LEVEL_FIELDS = ("backlog_qdisc_pkts", "backlog_mac_pkts", "max_tx_gap_s", "ampdu_max_mpdus")
@@ -104,7 +129,11 @@ def nakagami_m_for_rician(k_db: float) -> float:
 
 @dataclass(frozen=True)
 class Ns3Settings:
-    """How a case is simulated in ns-3 (defaults: the protocol of ``tupa sim evaluate``)."""
+    """How a case is simulated in ns-3 (defaults: the protocol of ``tupa sim evaluate``).
+
+    ``environment``: the channel (module doc): ``open`` (ns-3's Friis) or an urban class of
+    :data:`sim.config.ENVIRONMENTS` (per-user loss from :func:`sim.channel.mean_path_loss_db`).
+    """
 
     queueing: Queueing = "fq-codel"
     warmup_s: float = 0.5
@@ -116,8 +145,13 @@ class Ns3Settings:
     traffic: TrafficConfig = field(default_factory=TrafficConfig)
     user_height_m: float = AreaConfig().user_height_m
     unserved_delay_s: float = QueueConfig().unserved_delay_s
+    environment: str = "open"
 
     def __post_init__(self) -> None:
+        if self.environment not in ENVIRONMENTS:
+            raise InputError(
+                f"environment: must be one of {', '.join(ENVIRONMENTS)}, got {self.environment!r}"
+            )
         if self.queueing not in ("fq-codel", "mac-only"):
             raise InputError(f"queueing: must be fq-codel or mac-only, got {self.queueing!r}")
         if not (math.isfinite(self.warmup_s) and self.warmup_s >= 0):
@@ -146,6 +180,7 @@ class Ns3Settings:
 
     def to_dict(self) -> dict[str, Any]:
         return {
+            "environment": self.environment,
             "queueing": self.queueing,
             "warmup_s": self.warmup_s,
             "measure_s": self.measure_s,
@@ -233,9 +268,28 @@ def _metrics(
     return CaseMetrics(case.id, float(value), throughput_bps, delay_s, plr), detail
 
 
+def link_losses_db(case: Case, settings: Ns3Settings) -> tuple[np.ndarray, np.ndarray]:
+    """The losses the worker sets in an urban environment: each user's mean path loss to the UAV
+    (U,), exactly what the fast model's expected mode uses (:func:`sim.channel.mean_path_loss_db`
+    at the ground distance and the UAV's height above the user, floored at 0 as the model
+    does), and the free-space loss between users (U, U)."""
+    users = case.users_xy_m
+    ground_m = np.hypot(users[:, 0] - case.uav_xyz_m[0], users[:, 1] - case.uav_xyz_m[1])
+    height_m = max(float(case.uav_xyz_m[2]) - settings.user_height_m, 0.0)
+    frequency_hz = settings.radio.frequency_hz
+    to_uav = mean_path_loss_db(settings.environment, ground_m, height_m, frequency_hz)
+    between = np.hypot(users[:, None, 0] - users[None, :, 0], users[:, None, 1] - users[None, :, 1])
+    return np.asarray(to_uav, dtype=float), friis_path_loss_db(between, frequency_hz)
+
+
 def _request(case: Case, settings: Ns3Settings, index: int) -> dict[str, Any]:
     doc = cases_document(AreaConfig(), [case])["cases"][0]
+    losses: dict[str, list[float]] = {}
+    if settings.environment != "open":
+        to_uav, between = link_losses_db(case, settings)
+        losses = {"ap_loss_db": to_uav.tolist(), "sta_loss_db": between.ravel().tolist()}
     return {
+        **losses,
         "case": doc,
         "queueing": settings.queueing,
         "snapshot_times_s": settings.snapshot_times_s(),
@@ -495,6 +549,7 @@ def results_document(
         "source": source,
         "backend": "ns3",
         "ns3_version": version,
+        "environment": settings.environment,
         "mode": "stochastic",
         "seed": settings.seed,
         "queueing": settings.queueing,
@@ -520,15 +575,15 @@ def evaluate_cases_file_ns3(
     output; the others are written all the same). InputError if ns-3 is not installed.
     """
     require_ns3()
-    area, cases = load_cases(cases_path)
-    if area.environment != "open":
-        # Not yet: ns-3 would need the same per-link air-to-ground loss (a propagation loss
-        # model set from sim.channel.mean_path_loss_db), or it would compare another channel.
-        raise InputError(
-            f"{cases_path}: environment: the ns-3 backend models only 'open' so far, "
-            f"got {area.environment!r}"
-        )
-    settings = Ns3Settings(queueing=queueing, warmup_s=warmup_s, measure_s=measure_s, seed=seed)
+    area, cases = load_cases(cases_path)  # InputError naming a bad environment
+    settings = Ns3Settings(
+        queueing=queueing,
+        warmup_s=warmup_s,
+        measure_s=measure_s,
+        seed=seed,
+        user_height_m=area.user_height_m,
+        environment=area.environment,
+    )
     with Ns3Runner() as runner:
         results = evaluate_cases_ns3(cases, settings, runner)
         version = runner.version

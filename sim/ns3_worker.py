@@ -35,10 +35,15 @@ docs/network-model.md and issue 3):
 * traffic: one ``OnOffApplication`` per user (always on: CBR at the user's load, 512-byte UDP
   payloads) to a ``PacketSink`` on the AP; users start at the association time plus a
   uniform 0–5 ms jitter; users with zero load send nothing;
+* channel in an urban environment (the request carries ``ap_loss_db`` and ``sta_loss_db``):
+  ``MatrixPropagationLossModel`` with those per-pair losses (symmetric) in place of Friis, then
+  the same Nakagami model; see :mod:`sim.ns3_backend` for where the losses come from;
 * measurement: ``FlowMonitor`` on all nodes for transmitted / received packets and delay; drop
   counters from trace sources (queue disc ``Drop``, ``WifiMac::DroppedMpdu`` by reason,
-  ``WifiMac::MacTxDrop``, ``ArpCache::Drop``); cumulative counters are copied at each
-  snapshot time so the parent can take differences over any window.
+  ``WifiMac::MacTxDrop``, ``ArpCache::Drop`` and ``ArpL3Protocol::Drop``: where the packets of a
+  station that never associated end, ``Ipv4L3Protocol::Drop``); the AP's received power per
+  STA (``PhyRxBegin``, one sample per data MPDU whose reception starts); cumulative counters
+  are copied at each snapshot time so the parent can take differences over any window.
 """
 
 from __future__ import annotations
@@ -62,7 +67,8 @@ FIELDS: tuple[str, ...] = (
     "drop_mac_retry_limit",  # ... WIFI_MAC_DROP_REACHED_RETRY_LIMIT
     "drop_mac_old_packet",  # ... WIFI_MAC_DROP_QOS_OLD_PACKET
     "drop_mac_tx",  # WifiMac::MacTxDrop (e.g. not associated)
-    "drop_arp",  # ArpCache::Drop (pending queue full while resolving)
+    "drop_arp",  # ArpCache::Drop and ArpL3Protocol::Drop (address never resolved, pending
+    # queue (3 packets) full while resolving: the packets of a station that never associated)
     "drop_tc",  # TrafficControlLayer::TcDrop: no queue disc and the MAC queue (500) is full
     "backlog_qdisc_pkts",  # packets in the queue disc now
     "backlog_mac_pkts",  # packets in the BE WifiMacQueue now (in flight included)
@@ -83,6 +89,9 @@ FIELDS: tuple[str, ...] = (
     "backoff_slots_sum",  # slots drawn, summed
     "backoff_long_draws",  # backoffs drawn with CW >= 127 (after 3+ failures in a row)
     "max_tx_gap_s",  # longest gap between data PPDUs since the previous snapshot (not summed)
+    "ap_rx_dbm_sum",  # WifiPhy::PhyRxBegin at the AP: received power (dBm) of this STA's
+    "ap_rx_mpdus",  # data MPDUs, summed, and how many (their mean is the channel ns-3 applied)
+    "drop_ip",  # Ipv4L3Protocol::Drop on the user's node (e.g. a station that never associated)
 )
 # AP PHY drops of this STA's PPDUs by ns3::WifiPhyRxfailureReason (25 values in ns-3 3.44).
 PHY_DROP_REASONS: tuple[str, ...] = (
@@ -128,7 +137,8 @@ enum Field
     TX = 0, RX, DELAY_SUM, DROP_QDISC, DROP_ENQ, DROP_EXPIRED, DROP_RETRY, DROP_OLD, DROP_MACTX,
     DROP_ARP, DROP_TC, BACKLOG_QDISC, BACKLOG_MAC, PPDUS, MPDUS, MCS_SUM, NACKED, RESP_TIMEOUT,
     AP_RX_DROPS, APP_TX, ACKED, AMPDU_MAX, EXPIRED_UNSENT, EXPIRED_TX_SUM, OLD_TX_SUM,
-    TX_PER_MPDU_SUM, BACKOFF_DRAWS, BACKOFF_SLOTS, BACKOFF_LONG, MAX_TX_GAP, PHY_DROP_BASE
+    TX_PER_MPDU_SUM, BACKOFF_DRAWS, BACKOFF_SLOTS, BACKOFF_LONG, MAX_TX_GAP, AP_RX_DBM_SUM,
+    AP_RX_MPDUS, DROP_IP, PHY_DROP_BASE
 };
 static const int N_PHY_REASONS = 25;
 static const int NF = PHY_DROP_BASE + N_PHY_REASONS;
@@ -182,6 +192,12 @@ static void OnQdiscDrop(uint32_t u, Ptr<const QueueDiscItem>) { g->cum[u][DROP_Q
 static void OnArpDrop(uint32_t u, Ptr<const Packet>) { g->cum[u][DROP_ARP] += 1; }
 static void OnTcDrop(uint32_t u, Ptr<const Packet>) { g->cum[u][DROP_TC] += 1; }
 static void OnAppTx(uint32_t u, Ptr<const Packet>) { g->cum[u][APP_TX] += 1; }
+
+static void OnIpDrop(uint32_t u, const Ipv4Header&, Ptr<const Packet>,
+                     Ipv4L3Protocol::DropReason, Ptr<Ipv4>, uint32_t)
+{
+    g->cum[u][DROP_IP] += 1;
+}
 
 static void OnNacked(uint32_t u, Ptr<const WifiMpdu> mpdu)
 {
@@ -237,6 +253,19 @@ static void OnApPpduDrop(Ptr<const WifiPpdu> ppdu, WifiPhyRxfailureReason reason
     g->cum[it->second][AP_RX_DROPS] += 1;
     int r = static_cast<int>(reason);
     if (r >= 0 && r < N_PHY_REASONS) { g->cum[it->second][PHY_DROP_BASE + r] += 1; }
+}
+
+static void OnApRxBegin(Ptr<const Packet> packet, RxPowerWattPerChannelBand rxPowersW)
+{
+    WifiMacHeader header;
+    if (packet->PeekHeader(header) == 0 || !header.IsQosData()) { return; }
+    auto it = g->macToUser.find(header.GetAddr2());
+    if (it == g->macToUser.end() || rxPowersW.empty()) { return; }
+    double watts = 0;
+    for (const auto& [band, w] : rxPowersW) { watts = std::max(watts, static_cast<double>(w)); }
+    if (watts <= 0) { return; }
+    g->cum[it->second][AP_RX_DBM_SUM] += 10.0 * std::log10(watts) + 30.0;
+    g->cum[it->second][AP_RX_MPDUS] += 1;
 }
 
 static void OnCw(uint32_t u, uint32_t cw, uint8_t) { g->cw[u] = cw; }
@@ -297,11 +326,15 @@ static void Snapshot()
 }
 
 // Simulates one case; returns [n_snapshots x (1 + U x NF)] then U association times (-1: never).
+// apLossDb empty: Friis (the open environment). Otherwise apLossDb (U) is each user's loss to
+// the AP and staLossDb (U x U, row-major) the loss between users, set in a
+// MatrixPropagationLossModel (symmetric) ahead of the same Nakagami fading.
 std::vector<double> RunCase(double uavX, double uavY, double uavZ,
                             std::vector<double> xs, std::vector<double> ys,
                             std::vector<double> loads, double userHeight, bool macOnly,
                             double appStart, std::vector<double> snapshots, uint32_t seed,
-                            uint64_t run, uint32_t packetBytes, double nakagamiM)
+                            uint64_t run, uint32_t packetBytes, double nakagamiM,
+                            std::vector<double> apLossDb, std::vector<double> staLossDb)
 {
     State state;
     g = &state;
@@ -328,15 +361,48 @@ std::vector<double> RunCase(double uavX, double uavY, double uavZ,
     mobility.Install(ap);
     mobility.Install(state.stas);
 
+    const bool matrixLoss = !apLossDb.empty();
+    if (matrixLoss && (apLossDb.size() != n || staLossDb.size() != n * n))
+    {
+        NS_FATAL_ERROR("apLossDb needs one value per user and staLossDb one per pair");
+    }
     YansWifiChannelHelper channelHelper;
-    channelHelper.SetPropagationDelay("ns3::ConstantSpeedPropagationDelayModel");
-    channelHelper.AddPropagationLoss("ns3::FriisPropagationLossModel",
-                                     "Frequency", DoubleValue(5.18e9));
-    channelHelper.AddPropagationLoss("ns3::NakagamiPropagationLossModel",
-                                     "m0", DoubleValue(nakagamiM),
-                                     "m1", DoubleValue(nakagamiM),
-                                     "m2", DoubleValue(nakagamiM));
-    Ptr<YansWifiChannel> channel = channelHelper.Create();
+    Ptr<YansWifiChannel> channel;
+    if (!matrixLoss)
+    {
+        channelHelper.SetPropagationDelay("ns3::ConstantSpeedPropagationDelayModel");
+        channelHelper.AddPropagationLoss("ns3::FriisPropagationLossModel",
+                                         "Frequency", DoubleValue(5.18e9));
+        channelHelper.AddPropagationLoss("ns3::NakagamiPropagationLossModel",
+                                         "m0", DoubleValue(nakagamiM),
+                                         "m1", DoubleValue(nakagamiM),
+                                         "m2", DoubleValue(nakagamiM));
+        channel = channelHelper.Create();
+    }
+    else
+    {
+        // The same chain as the helper builds, with the per-pair losses in place of Friis.
+        Ptr<MatrixPropagationLossModel> matrix = CreateObject<MatrixPropagationLossModel>();
+        Ptr<MobilityModel> apMob = ap.Get(0)->GetObject<MobilityModel>();
+        for (uint32_t i = 0; i < n; ++i)
+        {
+            Ptr<MobilityModel> mi = state.stas.Get(i)->GetObject<MobilityModel>();
+            matrix->SetLoss(apMob, mi, apLossDb[i], true);
+            for (uint32_t j = i + 1; j < n; ++j)
+            {
+                matrix->SetLoss(mi, state.stas.Get(j)->GetObject<MobilityModel>(),
+                                staLossDb[i * n + j], true);
+            }
+        }
+        Ptr<NakagamiPropagationLossModel> nakagami =
+            CreateObjectWithAttributes<NakagamiPropagationLossModel>(
+                "m0", DoubleValue(nakagamiM), "m1", DoubleValue(nakagamiM),
+                "m2", DoubleValue(nakagamiM));
+        matrix->SetNext(nakagami);
+        channel = CreateObject<YansWifiChannel>();
+        channel->SetPropagationDelayModel(CreateObject<ConstantSpeedPropagationDelayModel>());
+        channel->SetPropagationLossModel(matrix);
+    }
 
     YansWifiPhyHelper phy;
     phy.SetChannel(channel);
@@ -363,7 +429,8 @@ std::vector<double> RunCase(double uavX, double uavY, double uavZ,
     all.Add(state.staDevs);
     int64_t stream = 1000;
     stream += WifiHelper::AssignStreams(all, stream);
-    stream += channelHelper.AssignStreams(channel, stream);
+    stream += matrixLoss ? channel->AssignStreams(stream)
+                         : channelHelper.AssignStreams(channel, stream);
 
     InternetStackHelper internet;
     internet.Install(ap);
@@ -422,8 +489,11 @@ std::vector<double> RunCase(double uavX, double uavY, double uavZ,
             root->TraceConnectWithoutContext("Drop", MakeBoundCallback(&OnQdiscDrop, i));
         }
         Ptr<Ipv4L3Protocol> ipv4 = node->GetObject<Ipv4L3Protocol>();
+        ipv4->TraceConnectWithoutContext("Drop", MakeBoundCallback(&OnIpDrop, i));
         int32_t ifIndex = ipv4->GetInterfaceForDevice(dev);
         ipv4->GetInterface(ifIndex)->GetArpCache()->TraceConnectWithoutContext(
+            "Drop", MakeBoundCallback(&OnArpDrop, i));
+        node->GetObject<ArpL3Protocol>()->TraceConnectWithoutContext(
             "Drop", MakeBoundCallback(&OnArpDrop, i));
 
         if (loads[i] <= 0) { continue; }
@@ -440,6 +510,8 @@ std::vector<double> RunCase(double uavX, double uavY, double uavZ,
     }
     DynamicCast<WifiNetDevice>(apDev.Get(0))->GetPhy()->TraceConnectWithoutContext(
         "PhyRxPpduDrop", MakeCallback(&OnApPpduDrop));
+    DynamicCast<WifiNetDevice>(apDev.Get(0))->GetPhy()->TraceConnectWithoutContext(
+        "PhyRxBegin", MakeCallback(&OnApRxBegin));
 
     FlowMonitorHelper flowmon;
     state.monitor = flowmon.InstallAll();
@@ -504,6 +576,8 @@ def simulate(run_case: Any, request: dict[str, Any]) -> dict[str, Any]:
         int(request["run"]),
         int(request["packet_bytes"]),
         float(request["nakagami_m"]),
+        vec([float(x) for x in request.get("ap_loss_db", [])]),
+        vec([float(x) for x in request.get("sta_loss_db", [])]),
     )
     values = list(flat)
     row = 1 + n_users * N_FIELDS

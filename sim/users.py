@@ -14,7 +14,28 @@ import math
 import numpy as np
 
 from sim.config import AreaConfig
-from sim.world import Demand, Mobility
+from sim.world import Demand, Mobility, World
+
+
+def episode_users(
+    users_xy_m: np.ndarray,
+    load_bps: np.ndarray,
+    world: World,
+    area: AreaConfig,
+    rng: np.random.Generator,
+    users_seed: int | None = None,
+) -> tuple[UserDynamics, np.random.Generator]:
+    """An episode's users and the generator they draw from (the environments' reset).
+
+    The users draw from their own generator, seeded by ``users_seed`` or, when not given, by a
+    draw from the episode's ``rng``: every policy meets the same user motion and demand, and a
+    controller outside the environment can replay it. Static users draw nothing from ``rng``
+    (the paper's episodes keep their random streams)."""
+    if users_seed is None:
+        users_seed = int(rng.integers(2**63 - 1)) if world.users_change else 0
+    users_rng = np.random.default_rng(users_seed)
+    users = UserDynamics(users_xy_m, load_bps, world.mobility, world.demand, area, users_rng)
+    return users, users_rng
 
 
 class UserDynamics:

@@ -5,12 +5,14 @@ them (:mod:`.inputs`, :mod:`.curves`), computes the numbers (:mod:`.stats`), ren
 (:mod:`.figures`) and ``results.md`` (:mod:`.markdown`), and only then writes them, each file
 atomically: ``utility_cdf.png``, ``throughput_cdf.png``, ``delay_cdf.png``, ``plr_cdf.png``,
 ``metrics_cdf.png`` (the three metric CDFs side by side, as the paper's figure),
-``utility_by_heterogeneity.png``, ``learning_curve.png`` (only with a learning curve) and
+``utility_by_heterogeneity.png``, ``learning_curve.png`` (only with a learning curve),
+``altitude.png`` (only when an eval file has altitude profiles: :mod:`.altitude`) and
 ``results.md`` (the tables behind the figures and the paper's two headline numbers as we
 measure them). Summaries are recomputed from the per-scenario rows, not copied from the files.
 
 The trainer writes the learning curve with :func:`policies.report.curves.write_learning_curve`;
-importing this package does not load matplotlib.
+importing this package does not load matplotlib. Given a ``tupa sweep`` directory, the report
+merges the sweep instead (:mod:`.sweep`).
 """
 
 from __future__ import annotations
@@ -18,7 +20,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from policies.report.figures import render_figures
+from policies.report.altitude import FIGURE_FILE as ALTITUDE_FIGURE
+from policies.report.altitude import altitude_figure, altitude_lines, load_altitude_profiles
+from policies.report.figures import line_styles, render_figures
 from policies.report.inputs import Warn, load_inputs, stderr_warning
 from policies.report.markdown import render_markdown
 from policies.report.stats import headlines, heterogeneity_bins
@@ -47,11 +51,21 @@ def build_report(results_dir: Path, out_dir: Path, warn: Warn = stderr_warning) 
     evaluation settings) go to ``warn``.
     """
     results_dir, out_dir = Path(results_dir), Path(out_dir)
+    from policies.sweep.state import is_sweep_dir
+
+    if is_sweep_dir(results_dir):  # a tupa sweep directory: policies/report/sweep.py
+        from policies.report.sweep import build_sweep_report
+
+        return build_sweep_report(results_dir, out_dir, warn)
     results, learning = load_inputs(results_dir, warn)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out: {out_dir}: exists and is not a directory")
     figures = render_figures(results, learning)
-    markdown = render_markdown(results, learning, results_dir)
+    profiles = load_altitude_profiles(results_dir)
+    if profiles:
+        styles = line_styles([r.policy for r in results])
+        figures[ALTITUDE_FIGURE] = altitude_figure(profiles, results, styles)
+    markdown = render_markdown(results, learning, results_dir, altitude_lines(profiles))
     written = []
     try:
         out_dir.mkdir(parents=True, exist_ok=True)

@@ -57,11 +57,12 @@ def _settings_table(results: Sequence[PolicyResult]) -> str:
     return _md_table(header, rows, numeric=False)
 
 
-def _altitude_section(results: Sequence[PolicyResult]) -> list[str]:
-    """Where each policy flies: the altitude the UAV ended each episode at."""
+def _altitude_section(results: Sequence[PolicyResult], profiles: Sequence[str] = ()) -> list[str]:
+    """Where each policy flies: the altitude the UAV ended each episode at; ``profiles``: the
+    utility-against-altitude paragraph (:func:`policies.report.altitude.altitude_lines`)."""
     known = [r for r in results if r.altitude_m is not None]
     if not known:
-        return []
+        return ["## Altitude", "", *profiles] if profiles else []
     environments = sorted({str(r.settings.get("environment", "open")) for r in results})
     rows = []
     for r in known:
@@ -79,6 +80,7 @@ def _altitude_section(results: Sequence[PolicyResult]) -> list[str]:
         "",
         _md_table(["policy", "mean", "p25", "median", "p75"], rows),
         "",
+        *profiles,
     ]
 
 
@@ -144,8 +146,10 @@ def render_markdown(
     results: Sequence[PolicyResult],
     learning: LearningCurves | None,
     results_dir: Path,
+    altitude_profiles: Sequence[str] = (),
 ) -> str:
-    """``results.md``: the headline numbers, the tables behind the figures, the figures."""
+    """``results.md``: the headline numbers, the tables behind the figures, the figures
+    (``altitude_profiles``: the lines of the altitude figure's paragraph, if any)."""
     bins = heterogeneity_bins(results)
     headline_lines = headlines(results, bins)
     n = len(results[0].ids)
@@ -196,7 +200,7 @@ def render_markdown(
         "![utility by heterogeneity](utility_by_heterogeneity.png)",
         "",
     ]
-    lines += _altitude_section(results)
+    lines += _altitude_section(results, altitude_profiles)
     if learning is not None:
         lines += _learning_section(learning)
     lines += ["## Evaluation settings", "", _settings_table(results), ""]

@@ -21,19 +21,52 @@ keys (ignored by ``load_cases``) that say what each case is for:
   positions each, for placement agreement (does the fast model pick the position ns-3 rates
   best?).
 
+**Urban cases** (issue 15): ``cases`` also writes one file per urban environment,
+``cases_<environment>.json`` (its top-level ``environment`` set: ``suburban``, ``urban``,
+``dense-urban``, ``highrise-urban``), 58 cases each (:func:`make_urban_cases`). The geometry
+is scaled to each environment's coverage radius R (:func:`coverage_radius_m`: the farthest
+ground distance at which a UAV at 100 m delivers a mean −85 dBm; suburban 466 m, urban 211 m,
+dense urban 140 m, highrise urban 30 m at 5.18 GHz): with one geometry for all, the highrise
+cases would have nobody connected and agree trivially (0 = 0). Same seeds in every
+environment, so the files differ by that scale and their ``environment`` field:
+
+* ``usingle-*`` (6): one user 0.3 R, 0.7 R or R from the UAV's ground point, at 25 and 100 m
+  altitude, 40 Mbit/s (saturated: the rate ladder on the urban mean loss);
+* ``ugrp*-c*`` (8 groups × 6 candidates = 48): a scenario of 3 or 8 users spread over up to R
+  (``GeneratorConfig.position_scale_max_m`` = R), Λ = 10 to 40 Mbit/s, at six UAV positions:
+  the users' centroid at 25, 50 and 100 m, the load-weighted centroid at 75 m, above the
+  heaviest user at 50 m and a random grid point. Altitude is a real trade-off there (climbing
+  raises P_LoS but lengthens the path), so the placement agreement ranks altitudes, not only
+  ground positions;
+* ``ucrowd-*`` (4): 12 or 20 users around one corner (exponential scale up to R/2, nearly all
+  in range), Λ = 40 Mbit/s, the UAV over their centroid at 50 and 100 m: contention and
+  saturation on the urban channel, which the groups (up to 8 users, many out of range) rarely
+  reach.
+
+Held out: ``usingle`` cases 3 and 6 (every 3rd), the odd groups (``ugrp1``, ``ugrp3``,
+``ugrp5``, ``ugrp7``) and the 100 m ``ucrowd`` cases. Groups 4–7 and the ``ucrowd`` family were
+appended after a first run of groups 0–3 (same rules; appended so that the first cases keep
+their run numbers): two held-out groups per environment were too few to judge placement
+agreement, and those first cases had few congested users in range.
+The MAC constants are not refitted on them (``fit.py`` reads ``cases.json`` only); the
+fidelity benchmark reports their errors per environment. ns-3 gets the fast model's per-user
+mean path loss (:mod:`sim.ns3_backend`), so these cases check the MAC on the urban channel.
+
 ``held_out`` lists the cases kept out of any fit: every 4th case of the first four families and
 every case of the odd groups (grp1, grp3, grp5). ``long_runs`` lists six cases also simulated
 for 10 s (1 s intervals), to show how FqCoDel delays grow.
 
-``run`` simulates every case with both queueing variants and ``--seeds`` seeds (ns-3 varies by
-±10 % from seed to seed on overloaded cases), seed-major so an interrupted run still has every
-case once, then the long runs. Results are rewritten atomically after every case and a rerun
-skips what is already there: a crash loses one case at most. Output per variant,
-``ns3_<queueing>.json``: the ``tupa sim evaluate`` format (``tupa-case-results/1``) whose
-``users`` are the means over seeds (throughput, delay, loss) and ``utility`` the mean of the
-per-seed utilities, with ``backend``, ``ns3_version``, the ns-3 settings, ``per_seed`` results
-and a few ns-3 counters per user (drops by cause, PPDUs, MCS, backoffs; see
-:data:`sim.ns3_worker.FIELDS`). ``ns3_long_<queueing>.json`` holds the 10 s runs.
+``run`` (``--environments``, default all five: ``open`` is ``cases.json``) simulates every case
+with both queueing variants and ``--seeds`` seeds (ns-3 varies by ±10 % from seed to seed on
+overloaded cases), seed-major so an interrupted run still has every case once, then the long
+runs (``open`` only). Results are rewritten atomically after every case and a rerun skips what
+is already there: a crash loses one case at most. Output per variant, ``ns3_<queueing>.json``:
+the ``tupa sim evaluate`` format (``tupa-case-results/1``) whose ``users`` are the means over
+seeds (throughput, delay, loss) and ``utility`` the mean of the per-seed utilities, with
+``backend``, ``ns3_version``, the ns-3 settings, ``per_seed`` results and a few ns-3 counters
+per user (drops by cause, PPDUs, MCS, backoffs; see :data:`sim.ns3_worker.FIELDS`).
+``ns3_long_<queueing>.json`` holds the 10 s runs; the urban results are
+``ns3_<environment>_<queueing>.json``.
 """
 
 from __future__ import annotations
@@ -43,19 +76,24 @@ import json
 import math
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from sim.config import AreaConfig
+from sim.channel import mean_path_loss_db
+from sim.config import ENVIRONMENTS, AreaConfig, RadioConfig
 from sim.files import atomic_write_json, cases_document, load_cases
-from sim.scenarios import Case, generate_scenarios
+from sim.scenarios import Case, GeneratorConfig, generate_scenarios
 
 HERE = Path(__file__).resolve().parent
 CASES_PATH = HERE / "cases.json"
 AREA = AreaConfig()
 MBPS = 1e6
+URBAN_ENVIRONMENTS: tuple[str, ...] = tuple(e for e in ENVIRONMENTS if e != "open")
+# Town-sized scenarios: users within a few hundred metres of each other.
+COVERAGE_RSSI_DBM = -85.0
 
 # ns-3 counters kept per user in the committed results (window differences or end levels).
 KEPT_DETAIL = (
@@ -198,13 +236,132 @@ def make_cases() -> tuple[list[Case], dict[str, Any]]:
     return cases, meta
 
 
+def cases_path(environment: str = "open") -> Path:
+    """The calibration case file of an environment (``open``: the original ``cases.json``)."""
+    return CASES_PATH if environment == "open" else HERE / f"cases_{environment}.json"
+
+
+def results_path(environment: str, queueing: str) -> Path:
+    """The committed ns-3 results of an environment and queueing variant."""
+    if environment == "open":
+        return HERE / f"ns3_{queueing}.json"
+    return HERE / f"ns3_{environment}_{queueing}.json"
+
+
+def coverage_radius_m(environment: str, area: AreaConfig = AREA) -> float:
+    """The farthest ground distance (1 m steps, at most the area's diagonal) at which a UAV at
+    the top of the altitude band delivers a mean received power of at least
+    :data:`COVERAGE_RSSI_DBM` (the fast model's mean path loss, 20 dBm transmitted)."""
+    radio = RadioConfig()
+    ground_m = np.arange(0.0, area.diagonal_m, 1.0)
+    height_m = area.z_max_m - area.user_height_m
+    rssi_dbm = radio.tx_power_dbm - mean_path_loss_db(
+        environment, ground_m, height_m, radio.frequency_hz
+    )
+    covered = ground_m[rssi_dbm >= COVERAGE_RSSI_DBM]
+    return float(covered.max()) if covered.size else 0.0
+
+
+def make_urban_cases(environment: str) -> tuple[list[Case], dict[str, Any]]:
+    """The urban calibration cases of ``environment`` and their metadata (module doc).
+
+    Fixed seeds: the geometry differs between environments only by the coverage radius it is
+    scaled to (module doc).
+    """
+    if environment not in URBAN_ENVIRONMENTS:
+        raise ValueError(f"environment: must be one of {', '.join(URBAN_ENVIRONMENTS)}")
+    radius_m = coverage_radius_m(environment)
+    generator = GeneratorConfig(
+        position_scale_min_m=min(10.0, radius_m / 3.0), position_scale_max_m=radius_m
+    )
+    rng = np.random.default_rng(20261115)
+    cases: list[Case] = []
+    family: dict[str, str] = {}
+    for fraction in (0.3, 0.7, 1.0):
+        d_m = round(fraction * radius_m)
+        for z_m in (25, 100):
+            xy = np.array([[d_m / math.sqrt(2.0), d_m / math.sqrt(2.0)]])
+            case = Case(f"usingle-d{d_m}-z{z_m}-L40", [0.0, 0.0, z_m], xy, [40 * MBPS])
+            cases.append(case)
+            family[case.id] = "usingle"
+    groups: dict[str, list[str]] = {}
+    shapes = [(3, 40), (3, 20), (8, 40), (8, 20), (3, 30), (8, 30), (3, 10), (8, 10)]
+    for g, (n_users, total_mbps) in enumerate(shapes):
+        (s,) = generate_scenarios(
+            1,
+            n_users,
+            seed=3000 + g,
+            total_load_bps=total_mbps * MBPS,
+            config=generator,
+        )
+        heavy = s.users_xy_m[int(np.argmax(s.load_bps))]
+        candidates = [
+            _centroid(s.users_xy_m, None, 25.0),
+            _centroid(s.users_xy_m, None, 50.0),
+            _centroid(s.users_xy_m, None, 100.0),
+            _centroid(s.users_xy_m, s.load_bps, 75.0),
+            np.array([heavy[0], heavy[1], 50.0]),
+            _grid_point(rng),
+        ]
+        ids = []
+        for c, uav in enumerate(candidates):
+            case = Case(f"ugrp{g}-c{c}", uav, s.users_xy_m, s.load_bps)
+            cases.append(case)
+            family[case.id] = "ugroup"
+            ids.append(case.id)
+        groups[f"ugrp{g}"] = ids
+    # Contention: 12 and 20 users near one corner, exponential scale up to R/2 (nearly all in
+    # range of their centroid), 40 Mbit/s in all.
+    crowd = replace(generator, position_scale_max_m=radius_m / 2.0, scatter_probability=0.0)
+    for n_users in (12, 20):
+        (s,) = generate_scenarios(
+            1, n_users, seed=3100 + n_users, total_load_bps=40 * MBPS, config=crowd
+        )
+        for z_m in (50.0, 100.0):
+            case = Case(
+                f"ucrowd-u{n_users}-z{z_m:.0f}",
+                _centroid(s.users_xy_m, None, z_m),
+                s.users_xy_m,
+                s.load_bps,
+            )
+            cases.append(case)
+            family[case.id] = "ucrowd"
+    singles = [c.id for c in cases if family[c.id] == "usingle"]
+    held_out = [case_id for i, case_id in enumerate(singles) if i % 3 == 2]
+    crowds = [c.id for c in cases if family[c.id] == "ucrowd"]
+    held_out += [case_id for i, case_id in enumerate(crowds) if i % 2 == 1]
+    held_out += [case_id for g, ids in groups.items() if int(g[4:]) % 2 == 1 for case_id in ids]
+    meta = {
+        "description": f"ns-3 calibration set, {environment} (issue 15); see "
+        "sim/calibration/build.py",
+        "coverage_radius_m": radius_m,
+        "family": family,
+        "held_out": held_out,
+        "groups": groups,
+        "long_runs": [],
+    }
+    return cases, meta
+
+
 def write_cases(path: Path = CASES_PATH) -> None:
+    """Write ``cases.json`` (open) and one ``cases_<environment>.json`` per urban class."""
     cases, meta = make_cases()
     doc = cases_document(AREA, cases)
     doc.update(meta)
     atomic_write_json(path, doc)
     load_cases(path)  # validates
     print(f"wrote {len(cases)} cases ({len(meta['held_out'])} held out) to {path}")
+    if path != CASES_PATH:
+        return
+    for environment in URBAN_ENVIRONMENTS:
+        cases, meta = make_urban_cases(environment)
+        doc = cases_document(AreaConfig(environment=environment), cases)
+        doc.update(meta)
+        target = cases_path(environment)
+        atomic_write_json(target, doc)
+        area, _ = load_cases(target)  # validates
+        assert area.environment == environment
+        print(f"wrote {len(cases)} cases ({len(meta['held_out'])} held out) to {target}")
 
 
 def load_meta(path: Path = CASES_PATH) -> dict[str, Any]:
@@ -277,8 +434,12 @@ def run_variant(
     seeds: list[int],
     niceness: int,
     deadline: float,
+    source: Path = CASES_PATH,
 ) -> None:
-    """Simulate ``cases`` for every seed, rewriting ``out_path`` after each case (resumable)."""
+    """Simulate ``cases`` for every seed, rewriting ``out_path`` after each case (resumable).
+
+    ``settings_kwargs`` are :class:`~sim.ns3_backend.Ns3Settings` fields (``environment`` among
+    them for the urban sets); ``source`` is the case file named in the results."""
     from sim.ns3_backend import Ns3CaseError, Ns3Runner, Ns3Settings
 
     doc: dict[str, Any] = {}
@@ -321,7 +482,7 @@ def run_variant(
                     out_path,
                     {
                         "format": "tupa-case-results/1",
-                        "source": str(CASES_PATH.relative_to(HERE.parent.parent)),
+                        "source": str(source.relative_to(HERE.parent.parent)),
                         "backend": "ns3",
                         "ns3_version": runner.version,
                         "mode": "stochastic",
@@ -337,12 +498,50 @@ def run_variant(
                 )
 
 
-def run_all(seeds: list[int], niceness: int, budget_s: float) -> None:
+def run_all(
+    seeds: list[int],
+    niceness: int,
+    budget_s: float,
+    environments: tuple[str, ...] = ENVIRONMENTS,
+) -> None:
+    """Simulate every calibration set in ``environments`` (``open`` first, with its long runs),
+    resumable, within ``budget_s`` seconds."""
+    deadline = time.monotonic() + budget_s
+    started = time.perf_counter()
+    if "open" in environments:
+        run_open(seeds, niceness, deadline)
+    for environment in environments:
+        if environment == "open":
+            continue
+        source = cases_path(environment)
+        area, cases = load_cases(source)
+        assert area.environment == environment, source
+        indices = list(range(len(cases)))
+        for seed in seeds:
+            for queueing in ("fq-codel", "mac-only"):
+                print(f"{environment}, {queueing}, seed {seed}", flush=True)
+                run_variant(
+                    results_path(environment, queueing),
+                    cases,
+                    indices,
+                    {
+                        "queueing": queueing,
+                        "environment": environment,
+                        "user_height_m": area.user_height_m,
+                    },
+                    [seed],
+                    niceness,
+                    deadline,
+                    source,
+                )
+    print(f"done in {time.perf_counter() - started:.0f} s", flush=True)
+
+
+def run_open(seeds: list[int], niceness: int, deadline: float) -> None:
+    """The original (open) set, both variants, then its long runs."""
     _, cases = load_cases(CASES_PATH)
     meta = load_meta()
     indices = list(range(len(cases)))
-    deadline = time.monotonic() + budget_s
-    started = time.perf_counter()
     # Seed-major across both variants: every case once before any case twice.
     for seed in seeds:
         for queueing in ("fq-codel", "mac-only"):
@@ -370,7 +569,6 @@ def run_all(seeds: list[int], niceness: int, budget_s: float) -> None:
             niceness,
             deadline,
         )
-    print(f"done in {time.perf_counter() - started:.0f} s", flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -381,11 +579,18 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     run.add_argument("--nice", type=int, default=19, help="worker niceness (default 19)")
     run.add_argument("--budget-s", type=float, default=40 * 60, help="stop after this long")
+    run.add_argument(
+        "--environments",
+        nargs="+",
+        choices=ENVIRONMENTS,
+        default=list(ENVIRONMENTS),
+        help="which calibration sets (default: all; open is cases.json)",
+    )
     args = parser.parse_args(argv)
     if args.command == "cases":
         write_cases()
     else:
-        run_all(args.seeds, args.nice, args.budget_s)
+        run_all(args.seeds, args.nice, args.budget_s, tuple(args.environments))
     return 0
 
 

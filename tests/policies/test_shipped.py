@@ -2,34 +2,52 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from policies.adapters import CheckpointPolicy
+from policies.adapters import CheckpointPolicy, trained_environments
 from policies.interface import ReportedUsers
 from policies.registry import make_placement
 from sim.config import AreaConfig
 from sim.envs import FapContinuousEnv
 from sim.geometry import move_target, valid_moves, volume_bounds
 from sim.scenarios import generate_scenarios
+from sim.world import PAPER
 
 SHIPPED = Path(__file__).resolve().parents[2] / "policies" / "checkpoints"
 AREA = AreaConfig()
 
 
-@pytest.mark.parametrize(("name", "algorithm"), [("ddqn-dr", "ddqn"), ("ddpg-residual-dr", "ddpg")])
-def test_shipped_checkpoint_has_its_metadata(name: str, algorithm: str) -> None:
+TOWNS = ["dense-urban", "highrise-urban", "suburban", "urban"]
+
+
+@pytest.mark.parametrize(
+    ("name", "algorithm", "environments"),
+    [
+        ("ddqn-dr", "ddqn", ["open"]),
+        ("ddpg-residual-dr", "ddpg", ["open"]),
+        ("ddpg-residual-towns", "ddpg", TOWNS),
+    ],
+)
+def test_shipped_checkpoint_has_its_metadata(
+    name: str, algorithm: str, environments: list[str]
+) -> None:
     assert (SHIPPED / f"{name}.zip").is_file()
-    agent = CheckpointPolicy.load(SHIPPED / f"{name}.zip", device="cpu")
+    area = AreaConfig(environment=environments[-1])
+    agent = CheckpointPolicy.load(SHIPPED / f"{name}.zip", replace(PAPER, area=area), device="cpu")
     assert agent.name == name
     assert agent.metadata["algorithm"] == algorithm
     assert agent.metadata["strategy"] == "gen10k"
     assert agent.metadata["families"] == ["exponential", "uniform", "hotspots", "corners"]
     assert agent.metadata["users"] == [1, 15]
-    assert 0 < agent.metadata["wall_time_s"] <= 900  # issue 13: at most 15 min on 2 cores
-    assert agent.metadata["training_command"].startswith("OMP_NUM_THREADS=1 tupa train")
+    assert trained_environments(agent.metadata) == environments
+    assert agent.metadata["serving_only"] is True  # the networks only learning uses: zeroed
+    assert agent.metadata["training_command"].split("tupa train")[0] in ("", "OMP_NUM_THREADS=1 ")
+    if environments == ["open"]:  # issue 13's checkpoints: at most 15 min on 2 cores
+        assert 0 < agent.metadata["wall_time_s"] <= 900
 
 
 def test_shipped_checkpoints_are_small_and_hold_no_replay_buffer() -> None:
@@ -52,14 +70,20 @@ def test_shipped_ddqn_picks_only_valid_moves() -> None:
             _, _, _, _, info = env.step_to(target)
 
 
-def test_shipped_ddpg_decides_near_the_load_weighted_placement() -> None:
+@pytest.mark.parametrize(
+    ("name", "environment"), [("ddpg-residual-dr", "open"), ("ddpg-residual-towns", "urban")]
+)
+def test_shipped_ddpg_decides_near_the_load_weighted_placement(name: str, environment: str) -> None:
     """Residual actions: every target lies within the residual radius of the load-weighted
     placement of the reported users, inside the volume."""
-    agent = CheckpointPolicy.load(SHIPPED / "ddpg-residual-dr.zip", device="cpu")
+    area = AreaConfig(environment=environment)
+    world = replace(PAPER, area=area)
+    agent = CheckpointPolicy.load(SHIPPED / f"{name}.zip", world, device="cpu")
     radius_m = agent.metadata["residual_radius_m"]
-    weighted = make_placement("load-weighted")
-    env = FapContinuousEnv(generate_scenarios(3, 8, seed=7, area=AREA, family="hotspots"))
-    lower, upper = volume_bounds(AREA)
+    weighted = make_placement("load-weighted", world)
+    scenarios = generate_scenarios(3, 8, seed=7, area=area, family="hotspots")
+    env = FapContinuousEnv(scenarios, world=world)
+    lower, upper = volume_bounds(area)
     for episode in range(3):
         _, info = env.reset(seed=episode)
         for _ in range(5):

@@ -271,6 +271,58 @@ def test_export_keeps_the_weights_and_drops_the_optimizer_state(tmp_path, random
         assert k1 == k2 and th.equal(v1, v2)
 
 
+@pytest.mark.parametrize("algorithm", ["ddpg", "ddqn"])
+def test_a_serving_only_export_acts_as_the_source_and_is_smaller(tmp_path, test_file, algorithm):
+    """The networks only learning uses are zeroed (deflate keeps them in kilobytes); the acting
+    network is the source's bit for bit, and plain SB3 still loads the file."""
+    from policies.checkpoints import algorithm_class, export_checkpoint
+    from sim.files import load_scenarios
+
+    _, scenarios = load_scenarios(test_file)
+    env = make_env(algorithm, scenarios, replace(PAPER, area=AREA))
+    model = build_model(algorithm, env, tiny_preset(algorithm), seed=0, tensorboard_log=None)
+    source = tmp_path / "trained.zip"
+    save_checkpoint(model, source, {"algorithm": algorithm, "observation_shape": [6, 20, 20]})
+    full, served = tmp_path / "full.zip", tmp_path / "served.zip"
+    export_checkpoint(source, full)
+    meta = export_checkpoint(source, served, serving_only=True)
+    assert meta["serving_only"] is True
+    assert served.stat().st_size < 0.7 * full.stat().st_size
+    original, _ = load_checkpoint(source, AREA)
+    copy = algorithm_class(algorithm).load(served, device="cpu")  # plain SB3
+    obs = np.random.default_rng(1).random((32, *model.observation_space.shape), dtype=np.float32)
+    np.testing.assert_array_equal(
+        original.predict(obs, deterministic=True)[0], copy.predict(obs, deterministic=True)[0]
+    )
+    zeroed = (
+        ("actor_target", "critic", "critic_target") if algorithm == "ddpg" else ("q_net_target",)
+    )
+    for name in zeroed:
+        assert all(not t.any() for t in getattr(copy.policy, name).state_dict().values())
+    acting = "actor" if algorithm == "ddpg" else "q_net"
+    assert any(t.any() for t in getattr(copy.policy, acting).state_dict().values())
+
+
+def test_training_across_environments_draws_one_per_episode(tmp_path, test_file):
+    out = tmp_path / "towns"
+    config = replace(
+        small_config(test_file, out, "ddpg", 8), environments=("urban", "highrise-urban")
+    )
+    assert [w.area.environment for w in config.train_worlds(AREA)] == ["urban", "highrise-urban"]
+    meta = train(config)
+    assert meta["train_environments"] == ["highrise-urban", "urban"]
+    assert meta["world"]["area"]["environment"] == "urban"  # evaluations: the first
+    env = make_env("ddpg", generate_scenarios(2, 3, seed=5), config.train_worlds(AREA))
+    seen = set()
+    for seed in range(12):
+        env.reset(seed=seed)
+        seen.add(env.unwrapped.area.environment)
+        assert env.unwrapped.model.area.environment == env.unwrapped.area.environment
+    assert seen == {"urban", "highrise-urban"}
+    with pytest.raises(InputError, match="--environment: must be among"):
+        replace(config, environments=("urban", "downtown"))
+
+
 def test_checkpoint_files_get_the_usual_permissions(tmp_path, random_ddqn):
     """Saved and exported zips are readable like any file the user writes (umask), not 0o600
     as the temporary files they are written through."""

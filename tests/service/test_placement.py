@@ -8,6 +8,7 @@ must not arm) run end to end against a real in-process sitl_mock (PX4 flavour)."
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -274,3 +275,24 @@ def test_an_unreadable_state_file_still_makes_the_start_a_restart_that_arms_noth
         assert not mock.state().armed
     finally:
         service.stop()
+
+
+def test_serving_a_checkpoint_outside_its_training_environments_is_warned(caplog) -> None:
+    """The shipped checkpoints were trained in the open environment: serving one over a town
+    still works, with one warning naming both; in the open field, none."""
+    from dataclasses import replace
+
+    from service.policy_runtime import SHIPPED_DDPG
+    from sim.world import CLOSED_LOOP
+
+    town = replace(CLOSED_LOOP, area=AreaConfig(environment="urban"))
+    with caplog.at_level(logging.WARNING, logger="service.policy_runtime"):
+        load_policy(str(SHIPPED_DDPG), town)
+    warned = [r.getMessage() for r in caplog.records if "trained in" in r.getMessage()]
+    assert warned == [
+        "policy ddpg-residual-dr was trained in the open environment(s); serving it in urban"
+    ]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="service.policy_runtime"):
+        load_policy(str(SHIPPED_DDPG), CLOSED_LOOP)
+    assert not [r for r in caplog.records if "trained in" in r.getMessage()]

@@ -1,4 +1,5 @@
-"""The fit of the fast model's free constants (sim/calibration/fit.py) and its committed result.
+"""The fit of the fast model's free constants (sim/calibration/fit.py) and its committed result,
+and the committed calibration case files (sim/calibration/build.py), open and urban.
 
 No ns-3 needed: the fit reads the committed ns-3 results of the calibration set.
 """
@@ -8,10 +9,12 @@ from __future__ import annotations
 import copy
 from dataclasses import replace
 
+import numpy as np
 import pytest
 
-from sim.calibration import fit
+from sim.calibration import build, fit
 from sim.config import NetworkConfig
+from sim.files import load_cases
 
 
 @pytest.fixture(scope="module")
@@ -85,3 +88,36 @@ def test_fit_never_reads_the_held_out_results(calib, tmp_path):
     assert a["objective"] == b["objective"]
     assert a["errors"]["fit"] == b["errors"]["fit"]
     assert a["errors"]["held_out"] != b["errors"]["held_out"]
+
+
+@pytest.mark.parametrize("environment", build.URBAN_ENVIRONMENTS)
+def test_urban_case_files_are_the_generated_sets(environment):
+    """``python -m sim.calibration.build cases`` rewrites these files; a hand edit fails here."""
+    area, committed = load_cases(build.cases_path(environment))
+    assert area.environment == environment
+    cases, meta = build.make_urban_cases(environment)
+    assert committed == cases
+    assert build.load_meta(build.cases_path(environment))["held_out"] == meta["held_out"]
+    ids = {c.id for c in cases}
+    held = set(meta["held_out"])
+    assert held < ids and len(held) == 28
+    by_id = {c.id: c for c in cases}
+    for group in meta["groups"].values():
+        # The candidates of a group differ in altitude, not only in ground position.
+        assert len({by_id[i].uav_xyz_m[2] for i in group}) >= 3
+        assert {i in held for i in group} in ({True}, {False})  # a group is held out whole
+
+
+def test_urban_sets_are_scaled_to_their_coverage_radius():
+    radii = [build.coverage_radius_m(e) for e in build.URBAN_ENVIRONMENTS]
+    assert radii == sorted(radii, reverse=True)  # suburban reaches farthest, highrise least
+    assert build.coverage_radius_m("open") > 500.0
+    for environment, radius in zip(build.URBAN_ENVIRONMENTS, radii, strict=True):
+        cases, _ = build.make_urban_cases(environment)
+        singles = [c for c in cases if c.id.startswith("usingle")]
+        farthest = max(float(np.hypot(*(c.users_xy_m[0] - c.uav_xyz_m[:2]))) for c in singles)
+        assert farthest == pytest.approx(radius, abs=1.0)
+
+
+def test_the_fit_reads_only_the_open_set(calib):
+    assert not any(case_id.startswith("u") for case_id in calib.cases)

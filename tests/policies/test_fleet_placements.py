@@ -1,0 +1,116 @@
+"""The fleet's placements: k-means baselines and the search oracle are deterministic, separated,
+inside the volume, and the oracle is never below the k-means placements on its own objective."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from policies.fleet_baselines import KMeansPlacement, kmeans
+from policies.fleet_oracle import FleetOracle, FleetOracleConfig, fleet_episode_utility
+from sim.config import AreaConfig
+from sim.errors import InputError
+from sim.fleet import FleetConfig, FleetModel
+from sim.geometry import volume_bounds
+from sim.scenarios import Scenario, generate_scenarios
+
+
+def _hot_spots() -> Scenario:
+    """Three hot spots of unequal demand: 120 Mbit/s, more than one cell carries."""
+    rng = np.random.default_rng(4)
+    centres = np.array([[80.0, 90.0], [400.0, 120.0], [260.0, 420.0]])
+    counts, loads = (6, 4, 2), (4e6, 12e6, 18e6)
+    xy = np.concatenate(
+        [c + rng.normal(0.0, 15.0, (n, 2)) for c, n in zip(centres, counts, strict=True)]
+    )
+    load = np.concatenate([np.full(n, v) for n, v in zip(counts, loads, strict=True)])
+    return Scenario("hot", np.clip(xy, 1.0, 499.0), load * 120e6 / load.sum())
+
+
+def _check_placement(positions: np.ndarray, k: int, separation_m: float = 10.0) -> None:
+    lower, upper = volume_bounds(AreaConfig())
+    assert positions.shape == (k, 3)
+    assert np.all(positions >= lower) and np.all(positions <= upper)
+    gap = positions[:, None] - positions[None]
+    distance = np.sqrt((gap**2).sum(-1)) + np.diag(np.full(k, np.inf))
+    assert distance.min() >= separation_m
+
+
+def test_kmeans_finds_separate_clusters_deterministically() -> None:
+    rng = np.random.default_rng(0)
+    points = np.concatenate([rng.normal(c, 5.0, (20, 2)) for c in ([0, 0], [100, 0], [0, 100])])
+    centres, labels = kmeans(points, 3, seed=1)
+    assert sorted(np.bincount(labels)) == [20, 20, 20]
+    again, labels_again = kmeans(points, 3, seed=1)
+    np.testing.assert_array_equal(centres, again)
+    np.testing.assert_array_equal(labels, labels_again)
+    # Weights pull a centre toward the heavy point.
+    two = np.array([[0.0, 0.0], [10.0, 0.0]])
+    centre, _ = kmeans(two, 1, weights=np.array([1.0, 3.0]))
+    assert centre[0, 0] == pytest.approx(7.5)
+
+
+@pytest.mark.parametrize("load_weighted", [False, True])
+def test_kmeans_placements_are_deterministic_separated_and_inside(load_weighted: bool) -> None:
+    scenario = _hot_spots()
+    placement = KMeansPlacement(3, load_weighted=load_weighted)
+    first = placement.place(scenario)
+    np.testing.assert_array_equal(
+        first, KMeansPlacement(3, load_weighted=load_weighted).place(scenario)
+    )
+    _check_placement(first, 3)
+    assert np.all(first[:, 2] == 25.0)  # min-distance flies at the lowest level
+    # One UAV over each hot spot.
+    centres = np.array([[80.0, 90.0], [400.0, 120.0], [260.0, 420.0]])
+    nearest = np.argmin(np.linalg.norm(first[:, None, :2] - centres[None], axis=-1), axis=1)
+    assert sorted(nearest) == [0, 1, 2]
+    assert placement.name == ("kmeans-load-weighted" if load_weighted else "kmeans-min-distance")
+
+
+def test_more_uavs_than_users_still_gives_separated_positions() -> None:
+    scenario = generate_scenarios(1, 2, seed=0, family="uniform")[0]
+    _check_placement(KMeansPlacement(5).place(scenario), 5)
+
+
+def test_bad_fleet_sizes_are_one_line_errors() -> None:
+    with pytest.raises(InputError, match=r"^n_uavs:"):
+        KMeansPlacement(9)
+    with pytest.raises(InputError, match=r"^separation_m:"):
+        KMeansPlacement(2, separation_m=0.0)
+
+
+def test_oracle_is_deterministic_and_at_least_the_kmeans_placements() -> None:
+    scenario = _hot_spots()
+    config = FleetOracleConfig(episode_steps=8, restarts=1, sweeps=2, screen_stride=4)
+    oracle = FleetOracle(FleetConfig(n_uavs=3), config=config)
+    result = oracle.search(scenario)
+    again = FleetOracle(FleetConfig(n_uavs=3), config=config).search(scenario)
+    np.testing.assert_array_equal(result.positions_m, again.positions_m)
+    assert result.utility == again.utility
+    _check_placement(result.positions_m, 3)
+    for load_weighted in (False, True):
+        baseline = KMeansPlacement(3, load_weighted=load_weighted).place(scenario)
+        assert result.utility >= oracle.score(baseline[None], scenario)[0]
+    # Its reported score is the score of what it returns.
+    assert oracle.score(result.positions_m[None], scenario)[0] == pytest.approx(result.utility)
+    assert result.utility > result.start_utility  # the search did improve on its starts
+
+
+def test_settled_episodes_are_scored_exactly() -> None:
+    """Skipping a placement's settled steps changes nothing: the same as stepping them all."""
+    scenario = _hot_spots()
+    model = FleetModel(FleetConfig(n_uavs=2))
+    fleets = np.array(
+        [
+            [[80.0, 90.0, 25.0], [400.0, 120.0, 25.0]],  # well placed: settles at once
+            [[10.0, 490.0, 100.0], [20.0, 480.0, 100.0]],  # badly placed: never settles
+        ]
+    )
+    fast = fleet_episode_utility(model, fleets, scenario, steps=12)
+    for b in range(2):
+        state, total = None, 0.0
+        for t in range(13):
+            result = model.step(fleets[b], scenario.users_xy_m, scenario.load_bps, state)
+            state = result.state
+            total += result.utility[0] if t >= 1 else 0.0
+        assert fast[b] == pytest.approx(total / 12, rel=1e-12)
