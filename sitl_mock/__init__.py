@@ -16,17 +16,19 @@ Modules, one job each:
 * :mod:`sitl_mock.params` — the read-only parameter table clients may fetch.
 * :mod:`sitl_mock.protocol` — MAVLink in and out: commands, ACKs, setpoints, streams, signing.
 * :mod:`sitl_mock.server` — TCP/UDP transport and :class:`MockAutopilot`, the entry point.
+* :mod:`sitl_mock.fleet` — :class:`MockFleet`: several vehicles in one process, one
+  :class:`MockAutopilot` each (own port, system id and home).
 * :mod:`sitl_mock.cli` — ``tupa sitl-mock``.
 
-This ``__init__`` stays import-light (``tupa --help`` imports the package); ``MockAutopilot`` and
-``VehicleConfig`` are loaded on first access.
+This ``__init__`` stays import-light (``tupa --help`` imports the package); ``MockAutopilot``,
+``MockFleet`` and ``VehicleConfig`` are loaded on first access.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["MockAutopilot", "VehicleConfig"]
+__all__ = ["MockAutopilot", "MockFleet", "VehicleConfig"]
 
 
 def __getattr__(name: str) -> Any:
@@ -34,6 +36,10 @@ def __getattr__(name: str) -> Any:
         from sitl_mock.server import MockAutopilot
 
         return MockAutopilot
+    if name == "MockFleet":
+        from sitl_mock.fleet import MockFleet
+
+        return MockFleet
     if name == "VehicleConfig":
         from sitl_mock.config import VehicleConfig
 

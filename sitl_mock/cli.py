@@ -22,15 +22,34 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=(
             "Serve one simulated multicopter over MAVLink 2, behaving like ArduPilot Copter "
             "(GUIDED) or PX4 (OFFBOARD): modes, arming checks, takeoff/land/RTL, position "
-            "setpoints, geofence, failsafes, battery. Runs until interrupted (Ctrl-C or SIGTERM)."
+            "setpoints, geofence, failsafes, battery. With --vehicles N, a fleet of N independent "
+            "vehicles: system ids --system-id, +1, ...; one port each; homes --spacing-m apart. "
+            "Runs until interrupted (Ctrl-C or SIGTERM)."
         ),
     )
     parser.add_argument(
         "--listen",
-        default="tcp:127.0.0.1:5760",
+        action="append",
+        default=None,
         help="tcp:HOST:PORT (server, several clients), udp:HOST:PORT (bind and answer senders) "
         "or udpout:HOST:PORT (send to a client listening there, as PX4 SITL does); port 0 picks "
-        "a free one (default tcp:127.0.0.1:5760)",
+        "a free one (default tcp:127.0.0.1:5760). With --vehicles N: vehicle i uses PORT+i "
+        "(port 0: each a free one), or repeat --listen once per vehicle",
+    )
+    parser.add_argument(
+        "--vehicles",
+        type=int,
+        default=None,
+        metavar="N",
+        help="serve a fleet of N vehicles (1..8) in this process, one port and one system id "
+        "each, printing one line per vehicle (default: 1, or one per repeated --listen)",
+    )
+    parser.add_argument(
+        "--spacing-m",
+        type=float,
+        default=15.0,
+        help="fleet: each vehicle's home this far east of the previous one's (default 15, more "
+        "than the fleet's 10 m separation)",
     )
     parser.add_argument(
         "--flavour", choices=("ardupilot", "px4"), default="ardupilot", help="default ardupilot"
@@ -140,7 +159,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--battery-capacity-mah", type=float, default=5000.0, help="default 5000")
     parser.add_argument(
-        "--system-id", type=int, default=1, help="MAVLink system id of the vehicle (default 1)"
+        "--system-id",
+        "--sysid-base",
+        dest="system_id",
+        type=int,
+        default=1,
+        help="MAVLink system id of the vehicle; in a fleet, of the first one, vehicle i having "
+        "this + i (default 1)",
     )
     parser.add_argument(
         "--log-level",
@@ -169,16 +194,27 @@ def _parse_home(text: str) -> GeoPoint:
 def run(args: argparse.Namespace) -> int:
     """Start the simulator with ``args`` and serve until SIGINT or SIGTERM."""
     import logging
+    import math
     import signal
     import threading
 
     from sitl_mock.config import VehicleConfig
-    from sitl_mock.server import MockAutopilot, parse_listen
+    from sitl_mock.fleet import MAX_VEHICLES, MockFleet, fleet_listens
+    from sitl_mock.server import parse_listen
 
+    listens: list[str] = args.listen or ["tcp:127.0.0.1:5760"]
+    for listen in listens:
+        try:
+            parse_listen(listen)
+        except ValueError as exc:
+            return _error(f"--listen: {exc}")
+    count = args.vehicles if args.vehicles is not None else len(listens)
+    if not 1 <= count <= MAX_VEHICLES:
+        return _error(f"--vehicles: must be in 1..{MAX_VEHICLES}, got {count}")
     try:
-        parse_listen(args.listen)
+        fleet_listens(listens[0] if len(listens) == 1 else listens, count)
     except ValueError as exc:
-        return _error(f"--listen: {exc}")
+        return _error(f"--listen: {str(exc).split(': ', 1)[-1]}")
     home = None
     if args.home is not None:
         try:
@@ -197,6 +233,13 @@ def run(args: argparse.Namespace) -> int:
             )
     if not 1 <= args.system_id <= 255:
         return _error(f"--system-id: must be in 1..255, got {args.system_id}")
+    if args.system_id + count - 1 > 255:
+        return _error(
+            f"--system-id/--sysid-base: {count} vehicles from system id {args.system_id} "
+            "would go past 255"
+        )
+    if not (math.isfinite(args.spacing_m) and args.spacing_m > 0):
+        return _error(f"--spacing-m: must be a positive number, got {args.spacing_m}")
     config = VehicleConfig(
         home=home,
         max_speed_h_mps=args.speed_mps,
@@ -244,17 +287,19 @@ def run(args: argparse.Namespace) -> int:
         level=getattr(logging, args.log_level),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-    mock = MockAutopilot(
-        args.listen,
+    fleet = MockFleet(
+        count,
+        listens[0] if len(listens) == 1 else listens,
         flavour=args.flavour,
         config=config,
         signing_key=signing_key,
-        system_id=args.system_id,
+        system_id_base=args.system_id,
+        spacing_m=args.spacing_m,
     )
     try:
-        mock.start()
+        fleet.start()
     except OSError as exc:
-        print(f"tupa sitl-mock: error: --listen: cannot open {args.listen}: {exc}", file=sys.stderr)
+        print(f"tupa sitl-mock: error: --listen: {exc.strerror}", file=sys.stderr)
         return 1
     stop = threading.Event()
 
@@ -265,14 +310,26 @@ def run(args: argparse.Namespace) -> int:
     # One line on stdout that scripts (and tests using port 0) can read.
     # One write, newline included (print() writes the newline separately; a log line from the
     # server thread could land in between and hide the line from scripts reading it).
-    sys.stdout.write(f"sitl-mock {args.flavour} listening on {mock.address}\n")
+    # A fleet: one line per vehicle, "sitl-mock FLAVOUR sysid ID listening on ADDRESS", all in
+    # that one write.
+    if count == 1:
+        lines = [f"sitl-mock {args.flavour} listening on {fleet[0].address}\n"]
+    else:
+        lines = [
+            f"sitl-mock {args.flavour} sysid {system_id} listening on {address}\n"
+            for system_id, address in zip(fleet.system_ids, fleet.addresses, strict=True)
+        ]
+    sys.stdout.write("".join(lines))
     sys.stdout.flush()
     try:
         while not stop.wait(0.5):
             pass
     finally:
-        mock.stop()
+        fleet.stop()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-        logging.getLogger(__name__).info("stopped; counters: %s", mock.stats)
+        for mock in fleet:
+            logging.getLogger(__name__).info(
+                "stopped sysid %d; counters: %s", mock.protocol.system_id, mock.stats
+            )
     return 0
