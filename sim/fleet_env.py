@@ -66,7 +66,7 @@ from sim.geometry import (
 from sim.observation import N_MAPS, UserReports, build_observations
 from sim.scenarios import Scenario, ScenarioSampler
 from sim.users import UserDynamics, episode_users
-from sim.world import PAPER, World
+from sim.world import PAPER, World, fly_many
 
 __all__ = [
     "ACTION_KINDS",
@@ -364,10 +364,8 @@ class FleetParallelEnv(ParallelEnv):
         world = self.world
         sep = self.fleet.separation_m
         self.target_xyz_m = enforce_separation(targets, sep, self.area)
-        # The single environment's flight, vehicle by vehicle (K is small).
-        flown = np.array(
-            [world.fly(p, t) for p, t in zip(self.uav_xyz_m, self.target_xyz_m, strict=True)]
-        )
+        # The single environment's flight, every vehicle at once (the same floats as world.fly).
+        flown = fly_many(self.uav_xyz_m, self.target_xyz_m, world.flight, world.step_s)
         self.uav_xyz_m = hold_separation(self.uav_xyz_m, flown, sep)
         self._moved()
         assert self.users is not None

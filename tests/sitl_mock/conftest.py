@@ -3,13 +3,18 @@ tests/conftest.py). Every client a test starts is stopped at teardown, also on f
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 from sitl_mock.server import MockAutopilot
-from tests.sitl_mock.helpers import MavClient
+from tests.sitl_mock.helpers import MavClient, stop_process
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture
@@ -26,3 +31,25 @@ def connect() -> Iterator[Callable[..., MavClient]]:
     yield _connect
     for client in clients:
         client.close()
+
+
+@pytest.fixture
+def spawn() -> Iterator[Callable[..., subprocess.Popen]]:
+    """Factory: ``spawn(*args)``: ``tupa sitl-mock ARGS`` as a process (stdout and stderr
+    piped, text); every process is stopped at teardown (SIGTERM, then SIGKILL)."""
+    processes: list[subprocess.Popen] = []
+
+    def _spawn(*args: str) -> subprocess.Popen:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "service.cli", "sitl-mock", *args],
+            cwd=REPO_ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        processes.append(process)
+        return process
+
+    yield _spawn
+    for process in processes:
+        stop_process(process)

@@ -8,7 +8,9 @@ from __future__ import annotations
 import contextlib
 import math
 import select
+import signal
 import socket
+import subprocess
 import time
 from collections.abc import Callable
 from typing import Any
@@ -199,3 +201,24 @@ class MavClient:
 
 def distance_m(a: tuple[float, float, float], b: tuple[float, float, float]) -> float:
     return math.dist(a, b)
+
+
+def read_line(process: subprocess.Popen, timeout_s: float) -> str:
+    """One line of the process's stdout, waiting at most ``timeout_s``."""
+    assert process.stdout is not None
+    ready, _, _ = select.select([process.stdout], [], [], timeout_s)
+    if not ready:
+        raise AssertionError(f"no output within {timeout_s} s")
+    return process.stdout.readline()
+
+
+def stop_process(process: subprocess.Popen) -> int:
+    """SIGTERM, then SIGKILL after 10 s; the exit status."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
+        try:
+            return process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(timeout=10)
+    return process.returncode

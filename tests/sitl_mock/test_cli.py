@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import re
 import select
-import signal
 import subprocess
 import sys
 import time
@@ -15,49 +14,9 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sitl_mock.cli import register
-from tests.sitl_mock.helpers import MavClient
+from tests.sitl_mock.helpers import MavClient, read_line, stop_process
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-
-
-def read_line(process: subprocess.Popen, timeout_s: float) -> str:
-    """One line of the process's stdout, waiting at most ``timeout_s``."""
-    assert process.stdout is not None
-    ready, _, _ = select.select([process.stdout], [], [], timeout_s)
-    if not ready:
-        raise AssertionError(f"no output within {timeout_s} s")
-    return process.stdout.readline()
-
-
-def stop_process(process: subprocess.Popen) -> int:
-    if process.poll() is None:
-        process.send_signal(signal.SIGTERM)
-        try:
-            return process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait(timeout=10)
-    return process.returncode
-
-
-@pytest.fixture
-def spawn():
-    processes: list[subprocess.Popen] = []
-
-    def _spawn(*args: str) -> subprocess.Popen:
-        process = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "sitl-mock", *args],
-            cwd=REPO_ROOT,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        processes.append(process)
-        return process
-
-    yield _spawn
-    for process in processes:
-        stop_process(process)
 
 
 def test_tupa_sitl_mock_serves_on_a_free_port_and_stops_on_sigterm(spawn):
