@@ -36,6 +36,15 @@ The figures:
   the frames that fade under it and the model's connection is all or nothing) apart from the
   *inner* ones.
 
+* ``per_regime`` (issue 19): the held-out target figures by queueing variant × station count
+  (1–3, 4–8, 9–20) × congested / uncongested users, each beside ns-3's seed-to-seed figure, on
+  the open set's held-out part and on the few-station set (``sim/calibration/
+  cases_few_stations.json``, held out entirely, ns-3 results ``ns3_few_stations_*.json``);
+* ``few_stations_mechanism`` (issue 19): where the few-station set's congested users' packets
+  go in ns-3 (drops by cause, still queued, backlog at the window's end) beside the fast
+  model's throughput, loss, delay and backlog for the same users, and which FIFO delay rule
+  (delivered vs arriving packets) reproduces ns-3's delay from its own throughput.
+
 Run (ns-3 needed only for the live timing; ``--no-live`` uses the calibration's timings)::
 
     nice -n 19 .venv/bin/python benchmarks/fidelity_ns3.py
@@ -52,7 +61,13 @@ from typing import Any
 
 import numpy as np
 
-from sim.calibration.build import cases_path, load_meta, results_path
+from sim.calibration.build import (
+    FEW_STATIONS_PATH,
+    cases_path,
+    few_stations_results_path,
+    load_meta,
+    results_path,
+)
 from sim.calibration.fit import HAND_SET, load_fitted, make_config
 from sim.channel import mean_path_loss_db
 from sim.config import ENVIRONMENTS, AreaConfig, NetworkConfig, RadioConfig
@@ -667,6 +682,396 @@ def per_environment(config: NetworkConfig) -> dict[str, Any]:
     return out
 
 
+STATION_BINS: tuple[tuple[int, int], ...] = ((1, 3), (4, 8), (9, 20))
+
+
+def station_bin(n_stations: int) -> str:
+    """The per-regime table's station-count bin of a case (``"1-3"``, ``"4-8"``, ``"9-20"``)."""
+    for lo, hi in STATION_BINS:
+        if lo <= n_stations <= hi:
+            return f"{lo}-{hi}"
+    raise ValueError(f"n_stations: {n_stations} is outside 1-20")
+
+
+def _regime_sets() -> dict[str, tuple[dict[str, Case], dict[str, Any], dict[str, Any]]]:
+    """The held-out sets the per-regime table scores: the open calibration set's held-out part
+    and the few-station set (issue 19, held out entirely). Per set: the cases, the metadata
+    (held-out ids, groups) and the ns-3 results per variant."""
+    out = {}
+    sets = {
+        "open_held_out": (cases_path("open"), results_path),
+        "few_stations": (FEW_STATIONS_PATH, lambda _env, q: few_stations_results_path(q)),
+    }
+    for name, (source, result_path) in sets.items():
+        if not source.exists():
+            continue
+        _, case_list = load_cases(source)
+        meta = load_meta(source)
+        docs = {}
+        for variant in VARIANTS:
+            path = result_path("open", variant)
+            if path.exists():
+                docs[variant] = json.loads(path.read_text(encoding="utf-8"))
+        out[name] = ({c.id: c for c in case_list}, meta, docs)
+    return out
+
+
+def regime_cell(
+    rows: list[dict[str, Any]],
+    entries: dict[str, dict[str, Any]],
+    fast: dict[str, CaseMetrics],
+    groups: list[list[str]],
+    all_entries: dict[str, dict[str, Any]],
+) -> dict[str, Any]:
+    """The target figures of one regime cell, each beside ns-3's own seed-to-seed figure.
+
+    ``rows``: the cell's users (:func:`user_rows`, with ``user``: the index in its case);
+    ``entries``: the ns-3 results of the cases whose utility is scored in the cell; ``groups``:
+    the candidate lists scored for placement; ``all_entries``: every case's ns-3 results.
+    Seed to seed: ns-3 seed 0 scored against seed 1 on the same users and cases, as
+    :func:`seed_vs_seed` does (cases with one seed are skipped there).
+    """
+    ns3_t = np.array([r["ns3_tput"] for r in rows])
+    fast_t = np.array([r["fast_tput"] for r in rows])
+    rel = np.abs(fast_t - ns3_t) / np.maximum(ns3_t, THROUGHPUT_FLOOR_BPS)
+    bias = (fast_t - ns3_t) / np.array([r["load_bps"] for r in rows]) if rows else np.array([])
+    util = np.array([abs(fast[i].utility - e["utility"]) for i, e in entries.items()])
+    seed_rel = []
+    for r in rows:
+        seeds = all_entries[r["id"]]["per_seed"]
+        if len(seeds) >= 2:
+            a = seeds[0]["users"][r["user"]]["throughput_bps"]
+            b = seeds[1]["users"][r["user"]]["throughput_bps"]
+            seed_rel.append(abs(a - b) / max(b, THROUGHPUT_FLOOR_BPS))
+    seed_util = [
+        abs(e["per_seed"][0]["utility"] - e["per_seed"][1]["utility"])
+        for e in entries.values()
+        if len(e["per_seed"]) >= 2
+    ]
+    ratios = []
+    for ids in groups:
+        ns3_u = np.array([all_entries[i]["utility"] for i in ids])
+        fast_u = np.array([fast[i].utility for i in ids])
+        ratios.append(float(ns3_u[int(np.argmax(fast_u))] / ns3_u.max()))
+    rel_s, seed_s, util_s = summary(rel), summary(np.array(seed_rel)), summary(util)
+    return {
+        "n_users": len(rows),
+        "n_cases": len(entries),
+        "throughput_rel_error_median": rel_s.get("median"),
+        "throughput_rel_error_p90": rel_s.get("p90"),
+        "throughput_bias_fast_minus_ns3_over_load_mean": (
+            round(float(np.mean(bias)), 4) if bias.size else None
+        ),
+        "utility_abs_error_median": util_s.get("median"),
+        "n_placement_groups": len(ratios),
+        "placement_agreement_mean": round(float(np.mean(ratios)), 4) if ratios else None,
+        "ns3_seed_vs_seed": {
+            "throughput_rel_error_median": seed_s.get("median"),
+            "throughput_rel_error_p90": seed_s.get("p90"),
+            "utility_abs_error_median": summary(np.array(seed_util)).get("median"),
+        },
+    }
+
+
+def per_regime(config: NetworkConfig) -> dict[str, Any]:
+    """Issue 19's table: the held-out target figures by set × queueing variant × station count
+    (1–3, 4–8, 9–20) × congested / uncongested, each with ns-3's seed-to-seed figure beside it.
+
+    A user is congested when ns-3 loses > 1 % of its packets (mean over seeds); a case is
+    congested when one of its users is (its utility is scored there), and a placement group
+    when one of its candidates is. ``pooled``: both sets together.
+    """
+    out: dict[str, Any] = {
+        "definition": "held-out cases only (open: cases.json's held-out part; few_stations: "
+        "cases_few_stations.json, never fitted); station count = users in the case; congested "
+        "user: ns-3 loss > 1 % (mean of the seeds); utility and placement are per case / group, "
+        "a case (group) counting as congested when any of its users (candidates' users) is; "
+        "ns3_seed_vs_seed: ns-3 seed 0 scored against seed 1 on the same users and cases",
+        "sets": {},
+    }
+    pooled: dict[str, dict[str, Any]] = {v: {"rows": [], "entries": {}, "fast": {}, "groups": []}
+                                         for v in VARIANTS}  # fmt: skip
+    for name, (cases, meta, docs) in _regime_sets().items():
+        held = set(meta["held_out"])
+        block: dict[str, Any] = {}
+        for variant, ns3 in docs.items():
+            model = NetworkModel(config.with_queueing(variant))
+            entries = {e["id"]: e for e in ns3["cases"] if e["id"] in held}
+            fast = {i: evaluate_case(model, cases[i], None) for i in entries}
+            rows = [
+                r
+                for r in user_rows(cases, {"cases": list(entries.values())}, fast, meta)
+                if r["held_out"]
+            ]
+            seen: dict[str, int] = {}
+            for r in rows:
+                r["user"] = seen.get(r["id"], 0)
+                seen[r["id"]] = r["user"] + 1
+            groups = [ids for ids in meta["groups"].values() if all(i in entries for i in ids)]
+            pool = pooled[variant]
+            pool["rows"] += [{**r, "id": f"{name}/{r['id']}"} for r in rows]
+            pool["entries"].update({f"{name}/{i}": e for i, e in entries.items()})
+            pool["fast"].update({f"{name}/{i}": f for i, f in fast.items()})
+            pool["groups"] += [[f"{name}/{i}" for i in ids] for ids in groups]
+            block[variant] = _regime_table(rows, entries, fast, groups, cases)
+        out["sets"][name] = block
+    block = {}
+    for variant, pool in pooled.items():
+        if not pool["rows"]:
+            continue
+        n_users = {i: len(e["users"]) for i, e in pool["entries"].items()}
+        block[variant] = _regime_table(
+            pool["rows"], pool["entries"], pool["fast"], pool["groups"], n_users
+        )
+    out["sets"]["pooled"] = block
+    return out
+
+
+def _regime_table(
+    rows: list[dict[str, Any]],
+    entries: dict[str, dict[str, Any]],
+    fast: dict[str, CaseMetrics],
+    groups: list[list[str]],
+    cases: dict[str, Case] | dict[str, int],
+) -> dict[str, Any]:
+    """One variant's cells: station bin → congested / uncongested (and both) → figures.
+    ``cases``: each case's :class:`Case`, or its station count."""
+
+    def n_stations(case_id: str) -> int:
+        c = cases[case_id]
+        return c if isinstance(c, int) else c.n_users
+
+    def congested_case(case_id: str) -> bool:
+        return any(u["plr"] > CONGESTED_PLR for u in entries[case_id]["users"])
+
+    table: dict[str, Any] = {}
+    for lo, hi in STATION_BINS:
+        label = f"{lo}-{hi}"
+        in_bin = {i for i in entries if station_bin(n_stations(i)) == label}
+        if not in_bin:
+            continue
+        cells = {}
+        for cell, want in (("congested", True), ("uncongested", False), ("all", None)):
+            cell_rows = [
+                r
+                for r in rows
+                if r["id"] in in_bin and (want is None or (r["ns3_plr"] > CONGESTED_PLR) == want)
+            ]
+            cell_cases = {
+                i: entries[i] for i in in_bin if want is None or congested_case(i) == want
+            }
+            cell_groups = [
+                ids
+                for ids in groups
+                if ids[0] in in_bin
+                and (want is None or any(congested_case(i) for i in ids) == want)
+            ]
+            cells[cell] = regime_cell(cell_rows, cell_cases, fast, cell_groups, entries)
+        table[label] = cells
+    return table
+
+
+QDISC_LIMIT_PKTS = 10_240 + 500  # FqCoDel's limit + the MAC queue below it
+DROP_KEYS = (
+    "drop_qdisc",
+    "drop_mac_failed_enqueue",
+    "drop_mac_expired",
+    "drop_mac_retry_limit",
+    "drop_mac_old_packet",
+    "drop_tc",
+    "drop_mac_tx",
+    "drop_arp",
+)
+
+
+def fifo_delay_s(load_bps: float, tput_bps: float, rule: str, warmup_s: float = 0.5,
+                 measure_s: float = 2.0) -> float:  # fmt: skip
+    """Mean queueing delay over the window of an overloaded FIFO flow filling from empty at
+    the start of the warm-up, backlog B(t) = min((L − T)·t, limit) packets. ``departure``:
+    the delay of the packets *delivered* in the window (what FlowMonitor measures), B/L (a
+    packet delivered now arrived when the backlog was shorter; at the limit FqCoDel drops from
+    the head, so survivors cross it at the arrival rate too); ``arrival``: B/T, the delay a
+    packet arriving now will see (the fast model's Little's-law rule)."""
+    bits = 8.0 * PACKET_BYTES
+    arrival, service = load_bps / bits, tput_bps / bits
+    t = np.linspace(warmup_s, warmup_s + measure_s, 401)
+    backlog = np.minimum(np.maximum(arrival - service, 0.0) * t, QDISC_LIMIT_PKTS)
+    return float(np.mean(backlog / (arrival if rule == "departure" else max(service, 1e-9))))
+
+
+def few_stations_mechanism(config: NetworkConfig) -> dict[str, Any]:
+    """Issue 19, item 1: where the congested users' packets go in ns-3 on the few-station set
+    (its counters, both seeds summed), beside what the fast model predicts for the same users.
+
+    Heavy: ≥ 15 Mbit/s offered; light: ≤ 3 Mbit/s. Congested: ns-3 loss > 1 % (seed mean).
+    """
+    if not FEW_STATIONS_PATH.exists():
+        return {}
+    _, case_list = load_cases(FEW_STATIONS_PATH)
+    cases = {c.id: c for c in case_list}
+    docs = {}
+    for variant in VARIANTS:
+        path = few_stations_results_path(variant)
+        if path.exists():
+            docs[variant] = {e["id"]: e for e in json.loads(path.read_text("utf-8"))["cases"]}
+    if set(docs) != set(VARIANTS):
+        return {}
+    models = {v: NetworkModel(config.with_queueing(v)) for v in VARIANTS}
+    out: dict[str, Any] = {
+        "definition": "few-station set; heavy user: >= 15 Mbit/s offered, light: <= 3 Mbit/s; "
+        "congested: ns-3 loss > 1 % (mean of the seeds); ns-3 counters summed over both seeds",
+    }
+    for variant in VARIANTS:
+        model, other = models[variant], VARIANTS[1 - VARIANTS.index(variant)]
+        for kind in ("heavy", "light"):
+            users = []
+            for case_id, entry in docs[variant].items():
+                if case_id not in docs[other]:
+                    continue
+                case = cases[case_id]
+                uav = case.uav_xyz_m[None, :]
+                warm = model.step(uav, case.users_xy_m, case.load_bps, None, None, 0.5)
+                step = model.step(uav, case.users_xy_m, case.load_bps, warm.state, None, 2.0)
+                f_other = evaluate_case(models[other], case, None)
+                for u, user in enumerate(entry["users"]):
+                    heavy = case.load_bps[u] >= 15e6
+                    if user["plr"] <= CONGESTED_PLR or heavy != (kind == "heavy"):
+                        continue
+                    seeds = [s["users"][u]["ns3"] for s in entry["per_seed"]]
+                    users.append(
+                        {
+                            "load": float(case.load_bps[u]),
+                            "ns3_t": user["throughput_bps"],
+                            "ns3_t_other": docs[other][case_id]["users"][u]["throughput_bps"],
+                            "fast_t": float(step.throughput_bps[0, u]),
+                            "fast_t_other": float(f_other.throughput_bps[u]),
+                            "ns3_plr": user["plr"],
+                            "fast_plr": float(step.plr[0, u]),
+                            "ns3_d": user["delay_s"],
+                            "fast_d": float(step.delay_s[0, u]),
+                            "fast_backlog": float(step.state.backlog_pkts[0, u]),
+                            "ns3_backlog": float(
+                                np.mean(
+                                    [
+                                        s.get("backlog_qdisc_pkts", 0)
+                                        + s.get("backlog_mac_pkts", 0)
+                                        for s in seeds
+                                    ]
+                                )
+                            ),
+                            "counters": {
+                                k: sum(s.get(k, 0) for s in seeds)
+                                for k in (*DROP_KEYS, "app_tx_pkts", "rx_pkts", "expired_unsent")
+                            },
+                        }
+                    )
+            out[f"{variant}_congested_{kind}_users"] = _mechanism_figures(
+                users, variant == "fq-codel" and kind == "heavy"
+            )
+    return out
+
+
+def _mechanism_figures(users: list[dict[str, Any]], fifo_rules: bool) -> dict[str, Any]:
+    """The figures of :func:`few_stations_mechanism` over one group of users; ``fifo_rules``:
+    also score the two FIFO delay rules (:func:`fifo_delay_s`) on ns-3's own throughput
+    (overloaded FqCoDel flows)."""
+    if not users:
+        return {"n_users": 0}
+
+    def col(key: str) -> np.ndarray:
+        return np.array([u[key] for u in users], dtype=float)
+
+    totals = {k: sum(u["counters"][k] for u in users) for k in DROP_KEYS}
+    lost = sum(totals.values())
+    sent = sum(u["counters"]["app_tx_pkts"] for u in users)
+    received = sum(u["counters"]["rx_pkts"] for u in users)
+    expired = totals["drop_mac_expired"]
+    ns3_t, fast_t = col("ns3_t"), col("fast_t")
+    out = {
+        "n_users": len(users),
+        "ns3_packets": {
+            "offered": int(sent),
+            "received_share": round(received / sent, 4),
+            "dropped_share": round(lost / sent, 4),
+            "still_queued_at_window_end_share": round((sent - received - lost) / sent, 4),
+            "drops_by_cause_share": {k: round(v / lost, 4) for k, v in totals.items() if v}
+            if lost
+            else {},
+            "mac_expired_never_transmitted_share": (
+                round(sum(u["counters"]["expired_unsent"] for u in users) / expired, 4)
+                if expired
+                else None
+            ),
+        },
+        "throughput": {
+            "fast_over_ns3_median": round(float(np.median(fast_t / ns3_t)), 4),
+            "rel_error_median": round(float(np.median(np.abs(fast_t - ns3_t) / ns3_t)), 4),
+            "ns3_this_variant_over_other_median": round(
+                float(np.median(ns3_t / col("ns3_t_other"))), 4
+            ),
+            "fast_this_variant_over_other_median": round(
+                float(np.median(fast_t / np.maximum(col("fast_t_other"), 1.0))), 4
+            ),
+        },
+        "loss": {
+            "ns3_median": round(float(np.median(col("ns3_plr"))), 4),
+            "fast_median": round(float(np.median(col("fast_plr"))), 4),
+            "abs_error_median": round(
+                float(np.median(np.abs(col("fast_plr") - col("ns3_plr")))), 4
+            ),
+        },
+        "delay": {
+            "ns3_median_s": round(float(np.median(col("ns3_d"))), 4),
+            "fast_median_s": round(float(np.median(col("fast_d"))), 4),
+            "log10_fast_over_ns3_median": round(
+                float(np.median(np.log10(np.maximum(col("fast_d"), 1e-5) / col("ns3_d")))), 4
+            ),
+        },
+        "backlog_at_window_end_pkts": {
+            "ns3_median": round(float(np.median(col("ns3_backlog"))), 1),
+            "fast_median": round(float(np.median(col("fast_backlog"))), 1),
+            "ns3_at_limit": int(np.sum(col("ns3_backlog") >= 10_000)),
+            "fast_at_limit": int(np.sum(col("fast_backlog") >= 10_000)),
+        },
+    }
+    if fifo_rules:
+        # Which FIFO rule gives ns-3's delay, from ns-3's own throughput (no fast model in it)?
+        rules = {}
+        for rule in ("departure", "arrival"):
+            pred = np.array([fifo_delay_s(u["load"], u["ns3_t"], rule) for u in users], dtype=float)
+            rules[rule] = {
+                "abs_error_median_s": round(float(np.median(np.abs(pred - col("ns3_d")))), 4),
+                "log10_over_ns3_median": round(
+                    float(np.median(np.log10(np.maximum(pred, 1e-5) / col("ns3_d")))), 4
+                ),
+            }
+        out["delay"]["fifo_rule_on_ns3_throughput"] = rules
+    return out
+
+
+def regime_lines(block: dict[str, Any]) -> list[str]:
+    """The per-regime table as text lines: model error (ns-3 seed vs seed)."""
+    lines = []
+    for name, variants in block["sets"].items():
+        for variant, table in variants.items():
+            for stations, cells in table.items():
+                for cell in ("congested", "uncongested"):
+                    c = cells[cell]
+                    if not c["n_users"] and not c["n_cases"]:
+                        continue
+                    n = c["ns3_seed_vs_seed"]
+                    lines.append(
+                        f"{name} {variant} {stations} stations {cell}: {c['n_users']} users / "
+                        f"{c['n_cases']} cases, throughput error median "
+                        f"{c['throughput_rel_error_median']} ({n['throughput_rel_error_median']})"
+                        f", p90 {c['throughput_rel_error_p90']} ({n['throughput_rel_error_p90']})"
+                        f", utility {c['utility_abs_error_median']} "
+                        f"({n['utility_abs_error_median']}), placement "
+                        f"{c['placement_agreement_mean']} ({c['n_placement_groups']} groups)"
+                    )
+    return lines
+
+
 def refit_check() -> dict[str, Any]:
     """Do the urban sets ask for other MAC constants? The fit's objective
     (:func:`sim.calibration.fit.objective_terms`, both variants) on the *fit* part of the urban
@@ -960,6 +1365,11 @@ def main(argv: list[str] | None = None) -> int:
                 f"{h['utility_abs_error_median']}, placement {h['placement_agreement_mean']} "
                 f"({h['n_placement_groups']} groups)"
             )
+    result["per_regime"] = per_regime(NetworkConfig())
+    for line in regime_lines(result["per_regime"]):
+        print(line)
+    result["few_stations_mechanism"] = few_stations_mechanism(NetworkConfig())
+    print(json.dumps(result["few_stations_mechanism"], indent=1))
     result["per_environment_refit_check"] = refit_check()
     check = result["per_environment_refit_check"]
     print(

@@ -168,6 +168,7 @@ class FleetParallelEnv(ParallelEnv):
     a :class:`sim.world.World` (``paper`` by default)."""
 
     metadata = {"name": "tupa_fleet_v0", "render_modes": [], "is_parallelizable": True}  # noqa: RUF012
+    render_mode = None  # nothing to render (PettingZoo's wrappers and SuperSuit read it)
 
     def __init__(
         self,

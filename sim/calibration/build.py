@@ -52,6 +52,12 @@ The MAC constants are not refitted on them (``fit.py`` reads ``cases.json`` only
 fidelity benchmark reports their errors per environment. ns-3 gets the fast model's per-user
 mean path loss (:mod:`sim.ns3_backend`), so these cases check the MAC on the urban channel.
 
+**Few-station cases** (issue 19): ``few-stations-cases`` writes ``cases_few_stations.json``
+(:func:`make_few_station_cases`: 1–4 stations, heavy users 250–500 m from the UAV, light ones
+near or, ``fmid``, 150–400 m away; 152 cases, all held out, never fitted) and
+``run-few-stations`` simulates it (both variants, seeds 0 and 1, every ns-3 counter kept;
+``ns3_few_stations_<queueing>.json``).
+
 ``held_out`` lists the cases kept out of any fit: every 4th case of the first four families and
 every case of the odd groups (grp1, grp3, grp5). ``long_runs`` lists six cases also simulated
 for 10 s (1 s intervals), to show how FqCoDel delays grow.
@@ -343,6 +349,126 @@ def make_urban_cases(environment: str) -> tuple[list[Case], dict[str, Any]]:
     return cases, meta
 
 
+FEW_STATIONS_PATH = HERE / "cases_few_stations.json"
+
+
+def _few_station_users(
+    rng: np.random.Generator,
+    uav_xy_m: np.ndarray,
+    n_heavy: int,
+    n_light: int,
+    light_m: tuple[float, float] = (10.0, 100.0),
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Users around ``uav_xy_m``: ``n_heavy`` heavy ones 250–500 m away (15–45 Mbit/s) and
+    ``n_light`` light ones ``light_m`` away (0.5–3 Mbit/s; clipped to the area), or None if a
+    heavy one would fall outside it (the caller draws again). Positions to 0.1 m, loads
+    (bit/s) to 1 kbit/s."""
+    xy, loads = [], []
+    for _ in range(n_heavy):
+        d_m, bearing = rng.uniform(250.0, 500.0), rng.uniform(0.0, 2.0 * math.pi)
+        xy.append(uav_xy_m + d_m * np.array([math.cos(bearing), math.sin(bearing)]))
+        loads.append(rng.uniform(15.0, 45.0))
+    for _ in range(n_light):
+        d_m, bearing = rng.uniform(*light_m), rng.uniform(0.0, 2.0 * math.pi)
+        xy.append(uav_xy_m + d_m * np.array([math.cos(bearing), math.sin(bearing)]))
+        loads.append(rng.uniform(0.5, 3.0))
+    users = np.round(np.array(xy), 1)
+    if n_heavy and not np.all((users[:n_heavy] >= 0.0) & (users[:n_heavy] <= AREA.size_x_m)):
+        return None
+    users = np.clip(users, 0.0, [AREA.size_x_m, AREA.size_y_m])
+    return users, np.round(np.array(loads) * 1e3) * (MBPS / 1e3)
+
+
+def make_few_station_cases() -> tuple[list[Case], dict[str, Any]]:
+    """Issue 19's regime: 1–4 stations, one or two heavy users 250–500 m from the UAV, light
+    ones near it (or, ``fmid``, not near). Held out entirely (no fit reads it); 152 cases:
+
+    * ``few-n<U>-h<H>-<i>`` (80): U = 1..4 stations, H = 1 or 2 heavy (15–45 Mbit/s, 250–500 m
+      from the UAV's ground point), the rest light (0.5–3 Mbit/s, 10–100 m), the UAV at a
+      random point of the area's inner part, 25–100 m (altitude levels);
+    * ``fgrp<g>-c<c>`` (8 groups × 4 candidates = 32): one such scenario (2–4 stations) at four
+      UAV positions, for placement agreement in the regime: above the light users' centroid
+      at 25 and 75 m, the load-weighted centroid of all users at 25 m, and halfway between
+      the lights' centroid and the (first) heavy user at 50 m;
+    * ``fmid-n<U>-h<H>-<i>`` (40): as ``few`` with U = 2..4, but the light users 150–400 m
+      from the UAV (appended after the first run: the open set's congested light users that
+      the model misses are of this kind, not near ones).
+    """
+    rng = np.random.default_rng(20261124)
+    cases: list[Case] = []
+    family: dict[str, str] = {}
+    levels = (25.0, 50.0, 75.0, 100.0)
+
+    def draw(
+        n_stations: int, n_heavy: int, light_m: tuple[float, float] = (10.0, 100.0)
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        for _ in range(10_000):
+            uav_xy = np.round(rng.uniform(50.0, 450.0, size=2), 1)
+            users = _few_station_users(rng, uav_xy, n_heavy, n_stations - n_heavy, light_m)
+            if users is not None:
+                return uav_xy, *users
+        raise RuntimeError("no scenario fits in the area")  # pragma: no cover
+
+    for i in range(80):
+        n_stations = 1 + i % 4
+        n_heavy = 1 if n_stations == 1 else 1 + (i // 4) % 2
+        uav_xy, xy, load_bps = draw(n_stations, n_heavy)
+        z_m = levels[int(rng.integers(len(levels)))]
+        case = Case(f"few-n{n_stations}-h{n_heavy}-{i:02d}", [*uav_xy, z_m], xy, load_bps)
+        cases.append(case)
+        family[case.id] = "few"
+    groups: dict[str, list[str]] = {}
+    for g in range(8):
+        n_stations = 2 + g % 3
+        n_heavy = 1 if n_stations == 2 else 1 + (g // 3) % 2
+        _, xy, load_bps = draw(n_stations, n_heavy)
+        lights = xy[n_heavy:]
+        light_c = lights.mean(axis=0)
+        heavy = xy[0]
+        candidates = [
+            np.array([*light_c, 25.0]),
+            np.array([*light_c, 75.0]),
+            _centroid(xy, load_bps, 25.0),
+            np.array([*(0.5 * (light_c + heavy)), 50.0]),
+        ]
+        ids = []
+        for c, uav in enumerate(candidates):
+            case = Case(f"fgrp{g}-c{c}", np.round(uav, 1), xy, load_bps)
+            cases.append(case)
+            family[case.id] = "fgroup"
+            ids.append(case.id)
+        groups[f"fgrp{g}"] = ids
+    # Appended after a first run (same rules otherwise): light users 150-400 m away, not near;
+    # in the open set it is such light users that ns-3 congests and the model does not.
+    for i in range(40):
+        n_stations = 2 + i % 3
+        n_heavy = 1 if n_stations == 2 else 1 + (i // 3) % 2
+        uav_xy, xy, load_bps = draw(n_stations, n_heavy, (150.0, 400.0))
+        z_m = levels[int(rng.integers(len(levels)))]
+        case = Case(f"fmid-n{n_stations}-h{n_heavy}-{i:02d}", [*uav_xy, z_m], xy, load_bps)
+        cases.append(case)
+        family[case.id] = "fmid"
+    meta = {
+        "description": "issue 19's regime (1-4 stations, heavy users 250-500 m away, light ones "
+        "near), held out entirely; see sim/calibration/build.py make_few_station_cases",
+        "family": family,
+        "held_out": [c.id for c in cases],
+        "groups": groups,
+        "long_runs": [],
+    }
+    return cases, meta
+
+
+def write_few_station_cases(path: Path = FEW_STATIONS_PATH) -> None:
+    """Write ``cases_few_stations.json`` (:func:`make_few_station_cases`)."""
+    cases, meta = make_few_station_cases()
+    doc = cases_document(AREA, cases)
+    doc.update(meta)
+    atomic_write_json(path, doc)
+    load_cases(path)  # validates
+    print(f"wrote {len(cases)} cases (all held out) to {path}")
+
+
 def write_cases(path: Path = CASES_PATH) -> None:
     """Write ``cases.json`` (open) and one ``cases_<environment>.json`` per urban class."""
     cases, meta = make_cases()
@@ -405,7 +531,9 @@ def _round(value: Any) -> Any:
     return value
 
 
-def _compact(result_dict: dict[str, Any], seed: int) -> dict[str, Any]:
+def _compact(
+    result_dict: dict[str, Any], seed: int, kept: tuple[str, ...] = KEPT_DETAIL
+) -> dict[str, Any]:
     out = {
         "seed": seed,
         "utility": result_dict["utility"],
@@ -417,7 +545,7 @@ def _compact(result_dict: dict[str, Any], seed: int) -> dict[str, Any]:
             "throughput_bps": user["throughput_bps"],
             "delay_s": user["delay_s"],
             "plr": user["plr"],
-            "ns3": {k: v for k, v in user.get("ns3", {}).items() if k in KEPT_DETAIL},
+            "ns3": {k: v for k, v in user.get("ns3", {}).items() if k in kept},
         }
         for user in result_dict["users"]
     ]
@@ -435,11 +563,13 @@ def run_variant(
     niceness: int,
     deadline: float,
     source: Path = CASES_PATH,
+    kept: tuple[str, ...] = KEPT_DETAIL,
 ) -> None:
     """Simulate ``cases`` for every seed, rewriting ``out_path`` after each case (resumable).
 
     ``settings_kwargs`` are :class:`~sim.ns3_backend.Ns3Settings` fields (``environment`` among
-    them for the urban sets); ``source`` is the case file named in the results."""
+    them for the urban sets); ``source`` is the case file named in the results; ``kept``: the
+    ns-3 counters kept per user and seed."""
     from sim.ns3_backend import Ns3CaseError, Ns3Runner, Ns3Settings
 
     doc: dict[str, Any] = {}
@@ -466,7 +596,7 @@ def run_variant(
                     failed.append({"id": case.id, "seed": str(seed), "error": exc.reason})
                     print(f"  FAILED {exc}", flush=True)
                     continue
-                done.setdefault(case.id, {})[seed] = _compact(result.to_dict(), seed)
+                done.setdefault(case.id, {})[seed] = _compact(result.to_dict(), seed, kept)
                 print(
                     f"  {out_path.name} seed {seed} {case.id}: utility "
                     f"{result.metrics.utility:.3f}, {time.perf_counter() - started:.1f} s",
@@ -537,6 +667,37 @@ def run_all(
     print(f"done in {time.perf_counter() - started:.0f} s", flush=True)
 
 
+def few_stations_results_path(queueing: str) -> Path:
+    """The ns-3 results of the few-station set (:func:`make_few_station_cases`)."""
+    return HERE / f"ns3_few_stations_{queueing}.json"
+
+
+def run_few_stations(seeds: list[int], niceness: int, budget_s: float) -> None:
+    """Simulate the few-station set, both variants, seed-major, resumable, every ns-3 counter
+    of :data:`sim.ns3_worker.FIELDS` kept per user and seed (the mechanism needs them)."""
+    from sim.ns3_worker import FIELDS
+
+    deadline = time.monotonic() + budget_s
+    started = time.perf_counter()
+    _, cases = load_cases(FEW_STATIONS_PATH)
+    indices = list(range(len(cases)))
+    for seed in seeds:
+        for queueing in ("fq-codel", "mac-only"):
+            print(f"few stations, {queueing}, seed {seed}", flush=True)
+            run_variant(
+                few_stations_results_path(queueing),
+                cases,
+                indices,
+                {"queueing": queueing},
+                [seed],
+                niceness,
+                deadline,
+                FEW_STATIONS_PATH,
+                kept=FIELDS,
+            )
+    print(f"done in {time.perf_counter() - started:.0f} s", flush=True)
+
+
 def run_open(seeds: list[int], niceness: int, deadline: float) -> None:
     """The original (open) set, both variants, then its long runs."""
     _, cases = load_cases(CASES_PATH)
@@ -575,6 +736,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("cases", help="write sim/calibration/cases.json")
+    sub.add_parser("few-stations-cases", help="write sim/calibration/cases_few_stations.json")
+    few = sub.add_parser("run-few-stations", help="simulate the few-station set in ns-3")
+    few.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    few.add_argument("--nice", type=int, default=10, help="worker niceness (default 10)")
+    few.add_argument("--budget-s", type=float, default=20 * 60, help="stop after this long")
     run = sub.add_parser("run", help="simulate the cases in ns-3 (resumable)")
     run.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     run.add_argument("--nice", type=int, default=19, help="worker niceness (default 19)")
@@ -589,6 +755,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command == "cases":
         write_cases()
+    elif args.command == "few-stations-cases":
+        write_few_station_cases()
+    elif args.command == "run-few-stations":
+        run_few_stations(args.seeds, args.nice, args.budget_s)
     else:
         run_all(args.seeds, args.nice, args.budget_s, tuple(args.environments))
     return 0

@@ -121,3 +121,27 @@ def test_urban_sets_are_scaled_to_their_coverage_radius():
 
 def test_the_fit_reads_only_the_open_set(calib):
     assert not any(case_id.startswith("u") for case_id in calib.cases)
+
+
+def test_few_station_case_file_is_the_generated_set(calib):
+    """``python -m sim.calibration.build few-stations-cases`` rewrites this file (issue 19); a
+    hand edit fails here. It is held out whole, in issue 19's regime, and no fit reads it."""
+    area, committed = load_cases(build.FEW_STATIONS_PATH)
+    assert area.environment == "open"
+    cases, meta = build.make_few_station_cases()
+    assert committed == cases
+    stored = build.load_meta(build.FEW_STATIONS_PATH)
+    assert stored["held_out"] == meta["held_out"] == [c.id for c in cases]
+    assert stored["groups"] == meta["groups"] and stored["family"] == meta["family"]
+    for case in cases:
+        ground_m = np.hypot(*(case.users_xy_m - case.uav_xyz_m[:2]).T)
+        heavy = case.load_bps >= 15e6
+        assert 1 <= case.n_users <= 4 and 1 <= heavy.sum() <= 2
+        assert np.all(case.load_bps[~heavy] <= 3e6)
+        if meta["family"][case.id] == "few":
+            assert np.all((ground_m[heavy] >= 250.0) & (ground_m[heavy] <= 500.0))
+            assert np.all(ground_m[~heavy] <= 100.0)
+        elif meta["family"][case.id] == "fmid":
+            assert np.all(ground_m[~heavy] <= 400.0)
+    assert {meta["family"][c.id] for c in cases} == {"few", "fgroup", "fmid"}
+    assert not set(meta["held_out"]) & set(calib.cases)
