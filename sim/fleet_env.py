@@ -459,7 +459,8 @@ class FleetParallelEnv(ParallelEnv):
         uav_utility = result.uav_utility[0].tolist()
         discrete = self.action_kind == "discrete"
         if discrete:
-            masks = move_masks(self._index, self.area)  # a fresh array: rows are not shared
+            # int8, PettingZoo's convention (Gymnasium samples with int8 masks); a fresh array.
+            masks = move_masks(self._index, self.area).astype(np.int8)
             refused = self._refused.tolist()
         for k, agent in enumerate(self.agents):
             info = dict(common)

@@ -9,7 +9,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
-from pettingzoo.test import parallel_api_test
+from pettingzoo.test import api_test, parallel_api_test
+from pettingzoo.utils.conversions import parallel_to_aec
 
 import sim.envs  # noqa: F401 (registers the environments)
 from sim.envs import FapContinuousEnv, FapDiscreteEnv
@@ -31,6 +32,17 @@ MOVING = replace(get_world("closed-loop-moving"), episode_steps=12)
 @pytest.mark.parametrize("kind", ["discrete", "continuous"])
 def test_parallel_api(kind: str) -> None:
     parallel_api_test(parallel_env(n_uavs=3, action_kind=kind, world=MOVING), num_cycles=20)
+
+
+@pytest.mark.parametrize("kind", ["discrete", "continuous"])
+def test_the_turn_based_view_passes_the_aec_api_test(kind: str) -> None:
+    """PettingZoo's AEC conversion (what its wrappers and SuperSuit build on) works; its test
+    samples moves with the info's action mask, which Gymnasium wants as int8."""
+    env = parallel_env(n_uavs=2, action_kind=kind, world=MOVING)
+    api_test(parallel_to_aec(env), num_cycles=20)
+    if kind == "discrete":
+        _, infos = env.reset(seed=0)
+        assert all(info["action_mask"].dtype == np.int8 for info in infos.values())
 
 
 @pytest.mark.parametrize("kind", ["discrete", "continuous"])
