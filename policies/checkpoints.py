@@ -34,7 +34,7 @@ from typing import Any
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.files import atomic_write_bytes, atomic_write_json
-from sim.observation import observation_shape
+from sim.observation import observation_shape as area_observation_shape
 
 CHECKPOINT_FORMAT = "tupa-checkpoint/1"
 
@@ -310,6 +310,7 @@ def load_checkpoint(
     device: str = "auto",
     allowed_dirs: Sequence[Path] | None = None,
     max_bytes: int | None = None,
+    observation_shape: Sequence[int] | None = None,
 ) -> tuple[Any, dict[str, Any]]:
     """Load a checkpoint for serving or evaluation: (SB3 model, metadata).
 
@@ -317,7 +318,9 @@ def load_checkpoint(
     corrupt file, the wrong algorithm, or an observation shape other than ``area``'s. The files
     are read once by :func:`read_checkpoint` (``allowed_dirs``, ``max_bytes``: see there; the
     zip's expanded size is bounded by ``max_bytes`` too, :func:`check_archive`), and the model
-    is loaded from those bytes, never from the path again.
+    is loaded from those bytes, never from the path again. ``observation_shape``: the shape
+    the network must take when it is not the single-UAV observation of ``area`` (a fleet
+    agent's ``(9, n_x, n_y)``: :mod:`policies.fleet_training`).
     """
     files = read_checkpoint(path, allowed_dirs, max_bytes)
     shown, meta = files.shown, files.metadata
@@ -325,7 +328,11 @@ def load_checkpoint(
         raise CheckpointError(
             shown, f"algorithm: expected {algorithm}, the file holds {meta['algorithm']}"
         )
-    expected_shape = list(observation_shape(area))
+    expected_shape = (
+        [int(n) for n in observation_shape]
+        if observation_shape is not None
+        else list(area_observation_shape(area))
+    )
     if meta.get("observation_shape") != expected_shape:
         raise CheckpointError(
             shown,

@@ -37,8 +37,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--queueing", choices=("fq-codel", "mac-only"), default="fq-codel", metavar="Q"
     )
     parser.add_argument(
+        "--uavs",
+        type=int,
+        default=1,
+        metavar="K",
+        help="fleet size 1..8 (default 1). K > 1 trains one DDPG network shared by the K UAVs "
+        "(policies/fleet_training.py; --algo ddpg, --episodes, --out, --preset, --seed, --world "
+        "(default closed-loop), --families, --users (default 20), --envs fleets per batch)",
+    )
+    parser.add_argument(
         "--world",
-        default="paper",
+        default=None,
         metavar="NAME",
         help="the world to train (and evaluate) in: paper (default), closed-loop, "
         "closed-loop-moving; several separated by commas: one drawn per episode, evaluations in "
@@ -123,6 +132,12 @@ def _user_range(text: str | None) -> tuple[int, int] | None:
 def _train(args: argparse.Namespace) -> int:
     from sim.errors import InputError
 
+    if not 1 <= args.uavs <= 8:
+        raise InputError(f"--uavs: must be in 1..8, got {args.uavs}")
+    if args.uavs > 1:
+        return _train_fleet(args)
+    if args.world is None:
+        args.world = "paper"
     if args.resume is not None:
         from policies.training import resume_config, train
 
@@ -178,4 +193,45 @@ def _train(args: argparse.Namespace) -> int:
             f"{evaluation['oracle']['mean_utility']:.3f}; "
             f"{evaluation['ratio_to_oracle']:.3f} of the oracle)"
         )
+    return 0
+
+
+def _train_fleet(args: argparse.Namespace) -> int:
+    """``tupa train --uavs K`` with K > 1: one DDPG network shared by the fleet's UAVs."""
+    import shlex
+    import sys
+
+    from sim.errors import InputError
+
+    if args.algo == "ddqn":
+        raise InputError("--uavs: fleets train with --algo ddpg for now")
+    if args.resume is not None:
+        raise InputError("--uavs: fleet runs cannot be resumed yet (drop --resume)")
+    missing = [f"--{name}" for name in ("algo", "episodes", "out") if getattr(args, name) is None]
+    if missing:
+        raise InputError(f"{', '.join(missing)}: required with --uavs K > 1")
+    if (args.out / "model.zip").exists():
+        raise InputError(f"--out: {args.out} already holds a trained model (use another dir)")
+    from policies.fleet_training import FleetTrainConfig, train_fleet
+
+    config = FleetTrainConfig(
+        n_uavs=args.uavs,
+        episodes=args.episodes,
+        out_dir=args.out,
+        algorithm=args.algo,
+        preset=args.preset,
+        seed=args.seed,
+        world=args.world or "closed-loop",
+        families=tuple(f.strip() for f in args.families.split(",")),
+        users=_user_range(args.users) or (20, 20),
+        n_fleets=args.envs,
+        command=shlex.join(["tupa", *sys.argv[1:]]),
+    )
+    metadata = train_fleet(config)
+    print(
+        f"trained a shared {metadata['algorithm']} policy for {metadata['n_uavs_trained']} UAVs "
+        f"over {metadata['episodes']} episodes ({metadata['timesteps']} agent-steps) in "
+        f"{metadata['wall_time_s']:.0f} s on {metadata['device']}; wrote "
+        f"{config.out_dir / 'model.zip'}"
+    )
     return 0
