@@ -199,7 +199,6 @@ def _train(args: argparse.Namespace) -> int:
 def _train_fleet(args: argparse.Namespace) -> int:
     """``tupa train --uavs K`` with K > 1: one DDPG network shared by the fleet's UAVs."""
     import shlex
-    import sys
 
     from sim.errors import InputError
 
@@ -225,7 +224,7 @@ def _train_fleet(args: argparse.Namespace) -> int:
         families=tuple(f.strip() for f in args.families.split(",")),
         users=_user_range(args.users) or (20, 20),
         n_fleets=args.envs,
-        command=shlex.join(["tupa", *sys.argv[1:]]),
+        command=shlex.join(args.command_line),
     )
     metadata = train_fleet(config)
     print(

@@ -38,6 +38,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     parser = build_parser()
     args = parser.parse_args(argv)
+    # What was asked, for handlers that record their own command (a training run's metadata).
+    args.command_line = ["tupa", *(sys.argv[1:] if argv is None else argv)]
     try:
         result = args.handler(args)
     except InputError as exc:
