@@ -1168,6 +1168,23 @@ def urban_rows(config: NetworkConfig) -> dict[str, list[dict[str, Any]]]:
     return out
 
 
+def _scatter_users(
+    ax: Any,
+    rows: list[dict[str, Any]],
+    key: str,
+    scale: float,
+    floor: float,
+    colour: str,
+    face: str,
+    label: str,
+) -> None:
+    """Per-user ns-3 (x) against fast-model (y) values of ``key``, scaled, floored for the
+    log axes: one marker style (open: fit part, filled: held out)."""
+    x = np.maximum([r[f"ns3_{key}"] * scale for r in rows], floor)
+    y = np.maximum([r[f"fast_{key}"] * scale for r in rows], floor)
+    ax.scatter(x, y, s=14, facecolors=face, edgecolors=colour, linewidths=0.8, label=label)
+
+
 def scatter(
     rows_by_config: dict[str, dict[str, list[dict[str, Any]]]],
     path: Path,
@@ -1202,17 +1219,8 @@ def scatter(
                 ]
                 if not sel:
                     continue
-                x = np.maximum([r[f"ns3_{key}"] * scale for r in sel], floor)
-                y = np.maximum([r[f"fast_{key}"] * scale for r in sel], floor)
-                ax.scatter(
-                    x,
-                    y,
-                    s=14,
-                    facecolors=face,
-                    edgecolors=colour,
-                    linewidths=0.8,
-                    label=environment + (", held out" if held else ""),
-                )
+                legend = environment + (", held out" if held else "")
+                _scatter_users(ax, sel, key, scale, floor, colour, face, legend)
         ax.plot([floor, hi], [floor, hi], color="black", lw=0.8)
         ax.set_xscale("log")
         ax.set_yscale("log")
@@ -1242,18 +1250,10 @@ def scatter(
                     ]
                     if not sel:
                         continue
-                    x = np.maximum([r[f"ns3_{key}"] * scale for r in sel], floor)
-                    y = np.maximum([r[f"fast_{key}"] * scale for r in sel], floor)
-                    ax.scatter(
-                        x,
-                        y,
-                        s=14,
-                        facecolors=face,
-                        edgecolors=colour,
-                        linewidths=0.8,
-                        label=("congested" if congested else "uncongested")
-                        + (", held out" if held else ""),
+                    legend = ("congested" if congested else "uncongested") + (
+                        ", held out" if held else ""
                     )
+                    _scatter_users(ax, sel, key, scale, floor, colour, face, legend)
             lo = floor
             hi = 100.0 if key == "tput" else 10.0
             ax.plot([lo, hi], [lo, hi], color="black", lw=0.8)
