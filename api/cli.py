@@ -28,7 +28,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--mavlink", metavar="CONN", help="pymavlink connection string")
+    parser.add_argument(
+        "--mavlink",
+        metavar="CONN",
+        action="append",
+        help="pymavlink connection string; repeat it to drive a fleet whose vehicles share one "
+        "frame (vehicles uav1, uav2, ...)",
+    )
+    parser.add_argument(
+        "--fleet-file",
+        type=Path,
+        metavar="FILE",
+        help="drive a fleet of 1-8 vehicles: YAML with one MAVLink connection, frame and "
+        "optional system id per vehicle (service/fleet_spec.py); the policy is then a fleet "
+        "one: kmeans-load-weighted (default), kmeans-min-distance, fleet-oracle",
+    )
+    parser.add_argument(
+        "--separation-m",
+        type=float,
+        metavar="M",
+        help="a fleet's minimum 3-D distance between any two targets (default 10)",
+    )
     parser.add_argument("--mavlink-backend", choices=("pymavlink", "mavsdk"))
     parser.add_argument(
         "--policy",
@@ -91,8 +111,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 _SETTING_ARGS = (
-    "mavlink",
     "mavlink_backend",
+    "fleet_file",
+    "separation_m",
     "policy",
     "arm_and_takeoff",
     "takeoff_timeout_s",
@@ -120,6 +141,13 @@ def settings_from_args(args: argparse.Namespace):  # -> ServiceSettings (lazy im
 
     overrides = {name: getattr(args, name) for name in _SETTING_ARGS}
     overrides = {k: v for k, v in overrides.items() if v is not None}
+    if args.mavlink and args.fleet_file is not None:
+        raise InputError("fleet_file: give a fleet file or --mavlink, not both")
+    if args.mavlink:  # one vehicle, or a fleet from repeated --mavlink
+        if len(args.mavlink) == 1:
+            overrides["mavlink"] = args.mavlink[0]
+        else:
+            overrides["fleet_mavlink"] = tuple(args.mavlink)
     if args.api_token_file is not None:
         try:
             overrides["api_token"] = args.api_token_file.read_text().strip()
@@ -162,7 +190,7 @@ def _serve(args: argparse.Namespace) -> int:
     try:
         sock.bind((settings.host, settings.port))
     except OSError as exc:
-        service.link.close()
+        service.close_links()
         raise InputError(f"port: cannot listen on {settings.host}:{settings.port}: {exc}") from None
     port = sock.getsockname()[1]
     # The server's limits (head size, read and keep-alive timeouts, connections, no proxy

@@ -100,7 +100,9 @@ class LiveFrameOut(_Frame):
     area: LiveArea
     geofence: LiveGeofence
     policy: LivePolicy
-    vehicles: list[LiveVehicle] = Field(description="One today; a list for the fleet to come")
+    vehicles: list[LiveVehicle] = Field(
+        description="The vehicle (id uav1), or a fleet's vehicles in the fleet's order"
+    )
     users: list[LiveUser]
     report: LiveReport | None
     utility: LiveUtility | None

@@ -46,6 +46,23 @@ class ServiceCollector(Collector):
         yield CounterMetricFamily(
             "tupa_policy_swaps", "Policies swapped in", value=counters.get("policy_swaps", 0)
         )
+        yield from _vehicle_families(service.vehicles())
+        hub = service.live.hub
+        yield GaugeMetricFamily(
+            "tupa_live_streams", "Operator-view streams open", value=float(len(hub))
+        )
+        yield CounterMetricFamily(
+            "tupa_live_frames_dropped",
+            "Operator-view frames a slow client lost (its queue was full)",
+            value=hub.dropped,
+        )
+        if service.is_fleet:
+            yield CounterMetricFamily(
+                "tupa_fleet_decisions_degraded",
+                "Fleet decisions taken without every vehicle (degraded mode)",
+                value=counters.get("decisions_degraded", 0),
+            )
+            return
         state = service.vehicle()
         link_counters = state.counters
         yield CounterMetricFamily(
@@ -77,15 +94,37 @@ class ServiceCollector(Collector):
             "Setpoints being streamed (1) or not (0)",
             value=float(state.streaming),
         )
-        hub = service.live.hub
-        yield GaugeMetricFamily(
-            "tupa_live_streams", "Operator-view streams open", value=float(len(hub))
-        )
-        yield CounterMetricFamily(
-            "tupa_live_frames_dropped",
-            "Operator-view frames a slow client lost (its queue was full)",
-            value=hub.dropped,
-        )
+
+
+def _vehicle_families(views: list[Any]) -> Iterator[Any]:
+    """Per-vehicle families, labelled ``vehicle`` (one vehicle: ``uav1``): link state,
+    commanded, armed, setpoints sent, reconnects."""
+    link = GaugeMetricFamily(
+        "tupa_vehicle_link_state",
+        "Each vehicle's MAVLink link state (1 = current)",
+        labels=["vehicle", "state"],
+    )
+    commanded = GaugeMetricFamily(
+        "tupa_vehicle_commanded",
+        "Whether the vehicle is streamed a target now (1) or not (0)",
+        labels=["vehicle"],
+    )
+    armed = GaugeMetricFamily("tupa_vehicle_is_armed", "Vehicle armed (1)", labels=["vehicle"])
+    setpoints = CounterMetricFamily(
+        "tupa_vehicle_setpoints_sent", "Setpoints sent to each vehicle", labels=["vehicle"]
+    )
+    reconnects = CounterMetricFamily(
+        "tupa_vehicle_link_reconnects", "MAVLink reconnections, by vehicle", labels=["vehicle"]
+    )
+    for view in views:
+        state = view.state
+        for name in LINK_STATES:
+            link.add_metric([view.id, name], 1.0 if state.link == name else 0.0)
+        commanded.add_metric([view.id], float(view.problem is None and view.decision is not None))
+        armed.add_metric([view.id], float(state.armed))
+        setpoints.add_metric([view.id], state.counters.get("setpoints_sent", 0))
+        reconnects.add_metric([view.id], state.counters.get("reconnects", 0))
+    yield from (link, commanded, armed, setpoints, reconnects)
 
 
 class HttpMetrics:

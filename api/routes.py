@@ -21,6 +21,8 @@ from api.auth import require_token
 from api.schemas import (
     DecisionOut,
     ErrorOut,
+    FleetOut,
+    FleetVehicleOut,
     Health,
     PolicyIn,
     PolicyOut,
@@ -39,7 +41,9 @@ from service.placement import (
     PlacementService,
     PolicyBusyError,
     Report,
+    VehicleView,
 )
+from service.vehicle_link import LinkState
 
 _AUTH_RESPONSES: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorOut, "description": "Missing or wrong bearer token"},
@@ -76,15 +80,66 @@ def _unprocessable(loc: list[str | int], msg: str) -> HTTPException:
     )
 
 
+def _target(xyz_m: tuple[float, float, float]) -> Target:
+    x, y, z = xyz_m
+    return Target(x_m=x, y_m=y, z_m=z)
+
+
 def _decision_out(decision: Decision | None) -> DecisionOut:
     if decision is None:
         return DecisionOut(target=None, source="none", policy=None, decided_at=None)
-    x, y, z = decision.target_m
     return DecisionOut(
-        target=Target(x_m=x, y_m=y, z_m=z),
+        target=_target(decision.target_m),
         source=decision.source,  # type: ignore[arg-type]
         policy=decision.policy,
         decided_at=decision.decided_at,
+    )
+
+
+def _setpoint_out(service: PlacementService) -> DecisionOut:
+    """The current target (one vehicle), or every commanded vehicle's (a fleet)."""
+    if not service.is_fleet:
+        return _decision_out(service.current_decision())
+    decisions = service.decisions()  # type: ignore[attr-defined]
+    if not decisions:
+        return DecisionOut(target=None, source="none", policy=None, decided_at=None, targets={})
+    first = next(iter(decisions.values()))
+    return DecisionOut(
+        target=None,
+        source=first.source,
+        policy=first.policy,
+        decided_at=max(d.decided_at for d in decisions.values()),
+        targets={vid: _target(d.target_m) for vid, d in decisions.items()},
+    )
+
+
+def _vehicle_out(state: LinkState) -> VehicleOut:
+    return VehicleOut(
+        position=None if state.position_m is None else _target(state.position_m),
+        mode=state.mode,
+        armed=state.armed,
+        link=state.link,
+        flavour=state.flavour,
+        heartbeat_age_s=state.heartbeat_age_s,
+        streaming=state.streaming,
+        takeoff=TakeoffOut(
+            state=state.takeoff,
+            phase=state.takeoff_phase,
+            attempts=state.takeoff_attempts,
+            last_refusal=state.takeoff_last_refusal,
+        ),
+        status_texts=list(state.status_texts),
+    )
+
+
+def _fleet_vehicle_out(view: VehicleView) -> FleetVehicleOut:
+    return FleetVehicleOut(
+        id=view.id,
+        system_id=view.state.system_id,
+        commanded=view.problem is None and view.decision is not None,
+        problem=view.problem,
+        vehicle=_vehicle_out(view.state),
+        setpoint=_decision_out(view.decision),
     )
 
 
@@ -142,39 +197,78 @@ async def post_report(body: ReportIn, request: Request) -> DecisionOut:
         raise HTTPException(status.HTTP_409_CONFLICT, detail=str(exc)) from None
     except FutureReportError as exc:
         raise _unprocessable(["timestamp"], str(exc)) from None
-    return _decision_out(decision)
+    return _setpoint_out(service) if service.is_fleet else _decision_out(decision)
 
 
-@v1.get("/setpoint", response_model=DecisionOut, summary="The current target")
+@v1.get("/setpoint", response_model=DecisionOut, summary="The current target(s)")
 async def get_setpoint(request: Request) -> DecisionOut:
-    """The target being streamed to the vehicle and when it was decided."""
-    return _decision_out(_service(request).current_decision())
+    """The target being streamed to the vehicle and when it was decided; for a fleet,
+    ``targets`` has each commanded vehicle's."""
+    return _setpoint_out(_service(request))
 
 
-@v1.get("/vehicle", response_model=VehicleOut, summary="The vehicle's state")
+_FLEET_CONFLICT: dict[int | str, dict[str, Any]] = {
+    409: {"model": ErrorOut, "description": "This service drives a fleet: see /v1/vehicles"},
+}
+
+
+@v1.get(
+    "/vehicle", response_model=VehicleOut, summary="The vehicle's state", responses=_FLEET_CONFLICT
+)
 async def get_vehicle(request: Request) -> VehicleOut:
     """Position in the area frame (x east, y north, z up, metres), mode, armed, link health."""
-    state = _service(request).vehicle()
-    position = None
-    if state.position_m is not None:
-        x, y, z = state.position_m
-        position = Target(x_m=x, y_m=y, z_m=z)
-    return VehicleOut(
-        position=position,
-        mode=state.mode,
-        armed=state.armed,
-        link=state.link,
-        flavour=state.flavour,
-        heartbeat_age_s=state.heartbeat_age_s,
-        streaming=state.streaming,
-        takeoff=TakeoffOut(
-            state=state.takeoff,
-            phase=state.takeoff_phase,
-            attempts=state.takeoff_attempts,
-            last_refusal=state.takeoff_last_refusal,
-        ),
-        status_texts=list(state.status_texts),
+    service = _service(request)
+    if service.is_fleet:
+        raise HTTPException(
+            status.HTTP_409_CONFLICT,
+            detail=f"this service drives {len(service.links)} vehicles: GET /v1/vehicles",
+        )
+    return _vehicle_out(service.vehicle())
+
+
+@v1.get("/vehicles", response_model=FleetOut, summary="Every vehicle the service drives")
+async def get_vehicles(request: Request) -> FleetOut:
+    """Each vehicle's state, current target and, when it is not commanded now, why (link lost,
+    no position yet, a system id that is not its own). A single-vehicle service lists one,
+    ``uav1``. While a vehicle is lost the others cover its users (degraded mode)."""
+    service = _service(request)
+    separation = service.fleet.separation_m if service.is_fleet else None  # type: ignore[attr-defined]
+    return FleetOut(
+        separation_m=separation,
+        vehicles=[_fleet_vehicle_out(view) for view in service.vehicles()],
     )
+
+
+_NO_SUCH_VEHICLE: dict[int | str, dict[str, Any]] = {
+    404: {"model": ErrorOut, "description": "No vehicle with this id"},
+}
+
+
+def _one_vehicle(service: PlacementService, vehicle_id: str) -> VehicleView:
+    for view in service.vehicles():
+        if view.id == vehicle_id:
+            return view
+    raise HTTPException(status.HTTP_404_NOT_FOUND, detail=f"vehicle_id: no vehicle {vehicle_id!r}")
+
+
+@v1.get(
+    "/vehicles/{vehicle_id}",
+    response_model=FleetVehicleOut,
+    summary="One vehicle of the fleet",
+    responses=_NO_SUCH_VEHICLE,
+)
+async def get_fleet_vehicle(vehicle_id: str, request: Request) -> FleetVehicleOut:
+    return _fleet_vehicle_out(_one_vehicle(_service(request), vehicle_id))
+
+
+@v1.get(
+    "/vehicles/{vehicle_id}/setpoint",
+    response_model=DecisionOut,
+    summary="One vehicle's current target",
+    responses=_NO_SUCH_VEHICLE,
+)
+async def get_fleet_setpoint(vehicle_id: str, request: Request) -> DecisionOut:
+    return _decision_out(_one_vehicle(_service(request), vehicle_id).decision)
 
 
 @v1.get("/policy", response_model=PolicyOut, summary="The serving policy")
@@ -225,8 +319,13 @@ async def readyz(request: Request, response: Response) -> Readiness:
     ready, reasons = service.readiness()
     if not ready:
         response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE
+    views = service.vehicles()
     return Readiness(
-        ready=ready, reasons=reasons, policy=service.policy.name, link=service.vehicle().link
+        ready=ready,
+        reasons=reasons,
+        policy=service.policy.name,
+        link=views[0].state.link,
+        vehicles={v.id: v.state.link for v in views} if service.is_fleet else None,
     )
 
 

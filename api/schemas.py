@@ -116,10 +116,17 @@ class DecisionOut(BaseModel):
         }
     )
 
-    target: Target | None = Field(description="None until the first decision")
+    target: Target | None = Field(
+        description="None until the first decision (and always for a fleet: see targets)"
+    )
     source: Literal["policy", "restored", "none"]
     policy: str | None
     decided_at: float | None = Field(description="Unix time of the decision, seconds")
+    targets: dict[str, Target] | None = Field(
+        default=None,
+        description="A fleet: the target of each commanded vehicle, by vehicle id (a vehicle "
+        "that cannot be commanded now has none); None for a single vehicle",
+    )
 
 
 class TakeoffOut(BaseModel):
@@ -215,7 +222,32 @@ class Readiness(BaseModel):
     ready: bool
     reasons: list[str]
     policy: str
-    link: str
+    link: str = Field(description="The (first) vehicle's MAVLink link")
+    vehicles: dict[str, str] | None = Field(
+        default=None, description="A fleet: each vehicle's MAVLink link, by id"
+    )
+
+
+class FleetVehicleOut(BaseModel):
+    """One vehicle of the service's fleet (a single-vehicle service has one: ``uav1``)."""
+
+    id: str
+    system_id: int | None = Field(
+        description="The MAVLink system id heard from it (None before its first HEARTBEAT)"
+    )
+    commanded: bool = Field(description="Whether the service streams it a target now")
+    problem: str | None = Field(description="Why it is not commanded now")
+    vehicle: VehicleOut
+    setpoint: DecisionOut
+
+
+class FleetOut(BaseModel):
+    """The vehicles the service drives, in the fleet's priority order."""
+
+    separation_m: float | None = Field(
+        description="The minimum 3-D distance between any two targets (None: one vehicle)"
+    )
+    vehicles: list[FleetVehicleOut]
 
 
 class ErrorOut(BaseModel):

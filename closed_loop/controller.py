@@ -20,6 +20,7 @@ import numpy as np
 
 from service.frames import FrameConfig, ned_to_area
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
+from sim.errors import InputError
 from sim.network import NetworkModel, QueueState
 from sim.scenarios import Scenario
 from sim.users import UserDynamics
@@ -33,19 +34,34 @@ from pymavlink import mavutil
 class TruePosition:
     """The vehicle's position as the autopilot reports it (LOCAL_POSITION_NED), area frame.
 
-    Asks for LOCAL_POSITION_NED at ``rate_hz`` (ArduPilot sends nothing until asked) and keeps
-    the latest one; :meth:`wait` blocks until a position is known or the time is up.
+    Asks system ``system_id`` for LOCAL_POSITION_NED at ``rate_hz`` (ArduPilot sends nothing
+    until asked) and keeps the latest one it sends; :meth:`wait` blocks until a position is
+    known or the time is up. A fleet's vehicles have system ids 1..K, each read by its own
+    instance with its own ``frames`` (every vehicle has its own home); ``system_id=None`` asks
+    every system (broadcast) and keeps any system's position.
     """
 
-    def __init__(self, url: str, frames: FrameConfig | None = None, rate_hz: float = 10.0) -> None:
+    def __init__(
+        self,
+        url: str,
+        frames: FrameConfig | None = None,
+        rate_hz: float = 10.0,
+        *,
+        system_id: int | None = 1,
+    ) -> None:
+        if system_id is not None and not 1 <= system_id <= 255:
+            raise InputError(f"system_id: must be in 1..255, got {system_id}")
         self.url = url
         self.frames = frames or FrameConfig()
         self.rate_hz = rate_hz
+        self.system_id = system_id
         self._conn: Any = None
         self._position: tuple[float, float, float] | None = None
         self._cond = threading.Condition()
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="true-position", daemon=True)
+        self._thread = threading.Thread(
+            target=self._run, name=f"true-position-{system_id or url}", daemon=True
+        )
 
     def start(self) -> TruePosition:
         self._thread.start()
@@ -82,7 +98,7 @@ class TruePosition:
             if (now - asked_at > 2.0 and self._position is None) or now - asked_at > 10.0:
                 self._conn.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, 8, 0, 0, 0)
                 self._conn.mav.command_long_send(
-                    1,
+                    self.system_id or 0,
                     1,
                     mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
                     0,
@@ -96,7 +112,7 @@ class TruePosition:
                 )
                 asked_at = now
             message = self._conn.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=0.2)
-            if message is not None:
+            if message is not None and self.system_id in (None, message.get_srcSystem()):
                 position = ned_to_area(message.x, message.y, message.z, self.frames)
                 with self._cond:
                     self._position = position
@@ -151,20 +167,38 @@ class SimulatedNetwork:
 
     def report(self, metrics: dict[str, Any], timestamp_s: float) -> dict[str, Any]:
         """The ``POST /v1/reports`` body for ``metrics``."""
-        users = []
-        for i, (xy, load) in enumerate(zip(self.users.xy_m, self.users.load_bps, strict=True)):
-            users.append(
-                {
-                    "id": f"ue-{i + 1}",
-                    "x_m": float(xy[0]),
-                    "y_m": float(xy[1]),
-                    "offered_bps": float(load),
-                    "throughput_bps": float(metrics["throughput_bps"][i]),
-                    "delay_s": float(metrics["delay_s"][i]),
-                    "plr": float(metrics["plr"][i]),
-                }
-            )
-        return {"timestamp": timestamp_s, "users": users}
+        return report_body(
+            self.users.xy_m,
+            self.users.load_bps,
+            metrics["throughput_bps"],
+            metrics["delay_s"],
+            metrics["plr"],
+            timestamp_s,
+        )
+
+
+def report_body(
+    xy_m: np.ndarray,
+    offered_bps: np.ndarray,
+    throughput_bps: np.ndarray,
+    delay_s: np.ndarray,
+    plr: np.ndarray,
+    timestamp_s: float,
+) -> dict[str, Any]:
+    """A ``POST /v1/reports`` body: user ``i`` is ``ue-{i + 1}`` (the same ids every step)."""
+    users = [
+        {
+            "id": f"ue-{i + 1}",
+            "x_m": float(xy[0]),
+            "y_m": float(xy[1]),
+            "offered_bps": float(offered_bps[i]),
+            "throughput_bps": float(throughput_bps[i]),
+            "delay_s": float(delay_s[i]),
+            "plr": float(plr[i]),
+        }
+        for i, xy in enumerate(xy_m)
+    ]
+    return {"timestamp": timestamp_s, "users": users}
 
 
 @dataclass

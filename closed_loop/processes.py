@@ -18,6 +18,8 @@ import time
 from collections import deque
 from collections.abc import Sequence
 
+from service.frames import FrameConfig, GeoPoint, ned_to_global
+
 
 def _detach_and_die_with_parent() -> None:
     """In the child before exec: its own session (Ctrl-C in the parent's terminal does not hit
@@ -148,3 +150,61 @@ def start_service(
         proc.stop()
         raise
     return proc, int(match.group(1))
+
+
+def start_mock_fleet(
+    count: int,
+    home: GeoPoint,
+    args: Sequence[str] = (),
+    spacing_m: float = 15.0,
+    timeout_s: float = 30.0,
+) -> list[tuple[TupaProcess, int]]:
+    """``count`` ``tupa sitl-mock`` processes, one per vehicle, so that one vehicle alone can be
+    frozen (SIGSTOP: its link is lost) or stopped, as a real fleet loses one vehicle's link.
+
+    Vehicle ``i`` (0-based) has system id ``i + 1``, its home ``spacing_m * i`` metres east of
+    ``home`` (as ``tupa sitl-mock --vehicles`` spaces them) and a free loopback TCP port; every
+    one gets ``args`` too. Returns (process, port) per vehicle; if one fails, the ones started
+    are stopped. :func:`mock_fleet_file` writes the matching fleet file."""
+    started: list[tuple[TupaProcess, int]] = []
+    try:
+        for i in range(count):
+            at = ned_to_global(home, 0.0, spacing_m * i, 0.0)
+            started.append(
+                start_sitl_mock(
+                    [
+                        "--listen", "tcp:127.0.0.1:0",
+                        "--system-id", str(i + 1),
+                        "--home", f"{at.lat_deg:.9f},{at.lon_deg:.9f},{at.alt_amsl_m:.3f}",
+                        *args,
+                    ],
+                    timeout_s,
+                )
+            )  # fmt: skip
+    except BaseException:
+        for process, _ in started:
+            process.stop()
+        raise
+    return started
+
+
+def mock_fleet_file(
+    ports: Sequence[int], frames: FrameConfig, spacing_m: float = 15.0, separation_m: float = 10.0
+) -> dict[str, object]:
+    """The fleet file (as a mapping to dump as YAML or JSON) for vehicles on loopback ``ports``
+    spaced as :func:`start_mock_fleet` spaces them: ``frames`` is the first vehicle's, each next
+    home lies ``spacing_m`` further east, so the area's corner lies that much further west of it."""
+    return {
+        "separation_m": separation_m,
+        "vehicles": [
+            {
+                "id": f"uav{i + 1}",
+                "mavlink": f"tcp:127.0.0.1:{port}",
+                "system_id": i + 1,
+                "area_origin_north_m": frames.area_origin_north_m,
+                "area_origin_east_m": frames.area_origin_east_m - spacing_m * i,
+                "area_origin_down_m": frames.area_origin_down_m,
+            }
+            for i, port in enumerate(ports)
+        ],
+    }

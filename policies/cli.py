@@ -36,6 +36,17 @@ Output (--json): with one --policy, the object
    "uav_xyz_m", "trace", "ratio_to_oracle"}]}
 (ratio_to_oracle: the scenario's utility over the oracle's; the oracle is evaluated on the side
 when it is not among the policies)
+
+With --uavs K (2..8): a fleet of K UAVs in the fleet environment (world closed-loop unless
+--world says otherwise), one episode per scenario from the fleet's homes. --policy is then
+kmeans-min-distance, kmeans-load-weighted, fleet-oracle (the search oracle over the world's
+network and episode: seconds per search) or a fleet checkpoint (tupa train --uavs K, any K); a
+fleet checkpoint decides every step, the placements are placed on the first report and
+re-placed every --replan-every decisions (default: once per episode). Per scenario: utility,
+served_fraction, jain_fairness, min_throughput_bps (episode means), handovers (over the
+episode), heterogeneity. Output: one "tupa-fleet-eval/1" document per policy (several:
+{"format", "results": [...]}), with ratio_to_oracle when fleet-oracle is among the policies
+(policies/fleet_evaluation.py); tupa report draws the fleet figures from them.
 with several, {"results": [object, ...]} in the order given; --altitude-profiles N adds
 "altitude_profiles": [{"id", "environment", "altitudes_m", "best_utility", "best_xy_m"}] beside
 them (policies/altitude.py). The file is written atomically,
@@ -123,6 +134,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     evaluate.add_argument(
         "--address", default=None, metavar="ADDR", help="with --backend ray: a running cluster"
     )
+    evaluate.add_argument(
+        "--uavs",
+        type=int,
+        default=None,
+        metavar="K",
+        help="evaluate fleet policies for K UAVs (2..8) in the fleet environment (see above)",
+    )
+    evaluate.add_argument(
+        "--replan-every",
+        type=int,
+        default=None,
+        metavar="N",
+        help="with --uavs: re-place the k-means and oracle placements every N decisions "
+        "(default: once per episode)",
+    )
     evaluate.set_defaults(handler=_eval)
     _register_report(subparsers)
     register_train(subparsers)
@@ -190,6 +216,10 @@ def _eval(args: argparse.Namespace) -> int:
     from sim.errors import InputError
     from sim.files import atomic_write_json, load_scenarios
 
+    if args.uavs is not None:
+        return _eval_fleet(args)
+    if args.replan_every is not None:
+        raise InputError("--replan-every: only with --uavs (fleet placements)")
     names = list(dict.fromkeys(args.policy))  # drop repeats, keep the order
     for name in names:
         if name not in PLACEMENTS and not Path(name).exists():
@@ -242,6 +272,67 @@ def _eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _eval_fleet(args: argparse.Namespace) -> int:
+    """``tupa eval --uavs K``: fleet policies on a scenario file (policies/fleet_evaluation.py)."""
+    from policies.fleet_evaluation import (
+        FLEET_EVAL_FORMAT,
+        add_ratio_to_oracle,
+        build_fleet_candidate,
+        check_fleet_size,
+        evaluate_fleet,
+        format_fleet_results,
+    )
+    from sim.errors import InputError
+    from sim.files import atomic_write_json, load_scenarios
+    from sim.fleet import FleetConfig
+
+    k = check_fleet_size(args.uavs)
+    for option, given in (
+        ("--backend", args.backend is not None),
+        ("--workers", args.workers is not None),
+        ("--address", args.address is not None),
+        ("--altitude-profiles", args.altitude_profiles != 0),
+    ):
+        if given:
+            raise InputError(f"{option}: not with --uavs (a single-UAV evaluation's option)")
+    if args.seed < 0:
+        raise InputError(f"--seed: must be >= 0, got {args.seed}")
+    if args.replan_every is not None and args.replan_every < 1:
+        raise InputError(f"--replan-every: must be at least 1, got {args.replan_every}")
+    area, scenarios = load_scenarios(args.scenarios)
+    if not scenarios:
+        raise InputError(f"{args.scenarios}: scenarios: empty (nothing to evaluate)")
+    world = world_from_args(args, "closed-loop", area)
+    fleet = FleetConfig(n_uavs=k)
+    replan = args.replan_every or world.episode_steps
+    candidates: dict[str, object] = {}
+    for spec in dict.fromkeys(args.policy):  # drop repeats, keep the order
+        name, candidate = build_fleet_candidate(spec, k, world, fleet, args.seed, "--policy")
+        if name in candidates:
+            raise InputError(f"--policy: two policies are named {name!r} ({spec} is the second)")
+        candidates[name] = candidate
+    progress = not args.no_progress
+    documents = [
+        evaluate_fleet(c, scenarios, k, world, fleet, replan, args.seed, name=n, progress=progress)
+        for n, c in candidates.items()
+    ]
+    add_ratio_to_oracle(documents)
+    document = (
+        documents[0] if len(documents) == 1 else {"format": FLEET_EVAL_FORMAT, "results": documents}
+    )
+    try:
+        atomic_write_json(args.json, document)
+    except OSError as exc:
+        raise InputError(f"{args.json}: cannot write: {exc.strerror or exc}") from None
+    print(
+        f"evaluated {', '.join(candidates)} with {k} UAVs on {len(scenarios)} scenarios "
+        f"(world {world.name}, environment {world.environment}, {world.episode_steps} steps, "
+        f"placements re-placed every {replan}, seed {args.seed}); wrote {args.json}"
+    )
+    print(format_fleet_results(documents))
+    return 0
+
+
 _REPORT_DESCRIPTION = """\
 Draw the paper's figures and write their tables from tupa eval results.
 
@@ -262,6 +353,12 @@ Given a tupa sweep directory (it holds sweep.json), merges the sweep instead: wr
 sweep_learning_curve.png (median and inter-quartile band across seeds per version),
 results.md (the trials, the paper's 4 versions, Gen500 vs Gen10k, the learning-curve table)
 and best/<version>-e<episodes>.zip, the best seed of each cell exported (policies/report/sweep.py).
+
+Given fleet results (tupa eval --uavs K files, format tupa-fleet-eval/1; not mixed with
+single-UAV ones), writes fleet_metrics.png (one panel per metric: utility, served-user
+fraction, Jain fairness, minimum user throughput, handovers per episode; a box per policy),
+fleet_utility_by_heterogeneity.png and results.md (means, ratio to fleet-oracle, per-bin
+table; policies/report/fleet.py).
 """
 
 

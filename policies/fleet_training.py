@@ -1,4 +1,4 @@
-"""Learned cooperative fleet policies: one DDPG network shared by every UAV of a fleet.
+"""Learned cooperative fleet policies: one DDPG or DDQN network shared by every UAV of a fleet.
 
 Parameter sharing (Gupta et al. 2017): every agent of :class:`sim.fleet_env.FleetParallelEnv`
 sees its own observation (9 maps, the same channels for any K) and gets the same reward (the
@@ -10,13 +10,17 @@ parameters are shared, the checkpoint flies any K (1..8), not only the K it trai
 
 * :func:`train_fleet` (``tupa train --uavs K``): builds that vector env over the world's
   preset (the training episode of the :mod:`policies.presets` preset: length and start), the
-  DDPG agent with the paper's CNN (:func:`policies.training.build_model`, 9 input channels),
-  learns ``episodes × episode_steps × K`` agent-steps and writes ``model.zip`` + ``model.json``
-  (:func:`policies.checkpoints.save_checkpoint`).
+  agent with the paper's CNN (:func:`policies.training.build_model`, 9 input channels): DDPG
+  with absolute coordinates or residual actions around the k-means placement
+  (:mod:`policies.fleet_residual`), or the masked Double DQN over the 13 moves; learns
+  ``episodes × episode_steps × K`` agent-steps with a progress bar and writes ``model.zip`` +
+  ``model.json`` (:func:`policies.checkpoints.save_checkpoint`). DDQN's ε decays per episode
+  of each agent (SB3 counts the K agent-environments' episodes), so K times faster per fleet
+  episode than the preset's rate says.
 * :class:`FleetCheckpointPolicy`: such a checkpoint deciding K targets from K observations.
-* :func:`evaluate_fleet`: the utility, served-user fraction, Jain fairness and minimum user
-  throughput of a fleet policy, or of a placement (k-means baselines, the search oracle)
-  re-placed every ``replan_every`` decisions, over a list of scenarios.
+
+Evaluation (the checkpoint against the k-means baselines and the search oracle) lives in
+:mod:`policies.fleet_evaluation`.
 
 Update ratio: a vector step gives ``n_fleets × K`` transitions, so the preset's
 ``train_freq`` (environment steps per gradient step) is re-expressed per vector step
@@ -29,39 +33,50 @@ from __future__ import annotations
 import shlex
 import sys
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 import supersuit as ss
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecMonitor
 from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
 
 from policies.checkpoints import git_commit, load_checkpoint, save_checkpoint
+from policies.fleet_residual import FleetResidualActions, KMeansPrior, fleet_residual_targets
 from policies.presets import PRESET_NAMES, Preset, get_preset
-from policies.training import TRAIN_SEED_OFFSET, build_model
+from policies.residual import residual_metadata, residual_radius
+from policies.training import TRAIN_SEED_OFFSET, build_model, episode_bar, zero_actor_output
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet import MAX_UAVS, FleetConfig
 from sim.fleet_env import FLEET_MAPS, FleetParallelEnv
-from sim.geometry import enforce_separation, unit_to_m_many
-from sim.scenarios import Scenario, ScenarioSampler
+from sim.geometry import (
+    enforce_separation,
+    move_masks,
+    move_targets,
+    unit_to_m_many,
+    zone_indices,
+)
+from sim.observation import UserReports
+from sim.scenarios import ScenarioSampler
 from sim.world import World, get_world
 
 __all__ = [
     "FLEET_ALGORITHMS",
     "FleetCheckpointPolicy",
     "FleetTrainConfig",
-    "evaluate_fleet",
     "fleet_observation_shape",
     "train_fleet",
 ]
 
-FLEET_ALGORITHMS: tuple[str, ...] = ("ddpg",)
-"""Algorithms a fleet trains with (DDQN's masked moves need per-agent masks through the
-bridge: not yet)."""
+FLEET_ALGORITHMS: tuple[str, ...] = ("ddpg", "ddqn")
+"""Algorithms a fleet trains with: the paper's two, one network shared by every UAV. DDQN's
+agents move by the 13 discrete moves, each masked to its own zone (the masks reach the learner
+through the bridge's infos: :class:`_SeededVecEnv`)."""
 
 
 def fleet_observation_shape(area: AreaConfig) -> tuple[int, int, int]:
@@ -90,14 +105,21 @@ class FleetTrainConfig:
     users: tuple[int, int] = (20, 20)
     load_per_uav_bps: float = 40e6
     n_fleets: int = 1
+    action: str = "coordinates"
+    """``coordinates`` (each agent's absolute target) or ``residual`` (a correction to its
+    place in the ``kmeans-load-weighted`` placement: :mod:`policies.fleet_residual`)."""
     command: str | None = None
+    progress: bool = True
+    """A progress bar on stderr (fleet episodes, recent utility, ETA)."""
 
     def __post_init__(self) -> None:
         k = self.n_uavs
         if isinstance(k, bool) or not isinstance(k, int | np.integer) or not 1 <= k <= MAX_UAVS:
             raise InputError(f"--uavs: must be an integer in 1..{MAX_UAVS}, got {k!r}")
         if self.algorithm not in FLEET_ALGORITHMS:
-            raise InputError("--uavs: fleets train with --algo ddpg for now")
+            raise InputError(
+                f"--algo: fleets train with {' or '.join(FLEET_ALGORITHMS)}, got {self.algorithm!r}"
+            )
         if isinstance(self.preset, str) and self.preset not in PRESET_NAMES:
             raise InputError(
                 f"--preset: must be one of {', '.join(PRESET_NAMES)}, got {self.preset!r}"
@@ -106,6 +128,10 @@ class FleetTrainConfig:
             raise InputError(f"--episodes: must be at least 1, got {self.episodes}")
         if self.seed < 0:
             raise InputError(f"--seed: must be >= 0, got {self.seed}")
+        if self.action not in ("coordinates", "residual"):
+            raise InputError(f"--action: 'coordinates' or 'residual', got {self.action!r}")
+        if self.algorithm == "ddqn" and self.action != "coordinates":
+            raise InputError("--action: residual actions are DDPG's (DDQN moves by zones)")
         if self.n_fleets < 1:
             raise InputError(f"--envs: must be at least 1, got {self.n_fleets}")
         if not (np.isfinite(self.load_per_uav_bps) and self.load_per_uav_bps > 0):
@@ -146,12 +172,14 @@ class FleetTrainConfig:
 def make_fleet_vec_env(config: FleetTrainConfig) -> Any:
     """The SB3 vector env of ``n_fleets`` fleets of K agents (SuperSuit), monitored."""
     world = config.train_world()
-    fleet = FleetParallelEnv(
+    fleet: Any = FleetParallelEnv(
         n_uavs=config.n_uavs,
-        action_kind="continuous",
+        action_kind="discrete" if config.algorithm == "ddqn" else "continuous",
         scenarios=config.sampler(world.area),
         world=world,
     )
+    if config.action == "residual":
+        fleet = FleetResidualActions(fleet)
     # concat_vec_envs_v1 copies the fleet n_fleets times (each copy its own generator).
     vec = ss.pettingzoo_env_to_vec_env_v1(fleet)
     vec = ss.concat_vec_envs_v1(vec, config.n_fleets, num_cpus=0, base_class="stable_baselines3")
@@ -166,6 +194,23 @@ class _SeededVecEnv(SB3VecEnvWrapper):
     def __init__(self, venv: Any) -> None:
         super().__init__(venv)
         self._pending_seed: int | None = None
+        self._infos: list[dict[str, Any]] = []
+
+    def step_wait(self) -> Any:
+        observations, rewards, dones, infos = super().step_wait()
+        self._infos = infos  # after an episode's end, the next one's first infos (SuperSuit)
+        return observations, rewards, dones, infos
+
+    def env_method(
+        self, method_name: str, *args: Any, indices: Any = None, **kwargs: Any
+    ) -> list[Any]:
+        """``action_masks`` (what the masked DDQN asks each environment before acting): each
+        agent's mask of its current state, from the infos the bridge returned last."""
+        if method_name != "action_masks":
+            return super().env_method(method_name, *args, indices=indices, **kwargs)
+        if len(self._infos) != self.num_envs or any("action_mask" not in i for i in self._infos):
+            raise RuntimeError("action_masks: the fleet's infos carry none (continuous actions?)")
+        return [np.asarray(info["action_mask"], dtype=bool) for info in self._infos]
 
     def seed(self, seed: int | None = None) -> list[int | None]:
         self._pending_seed = seed
@@ -180,7 +225,42 @@ class _SeededVecEnv(SB3VecEnvWrapper):
         seed = self._pending_seed if seed is None else seed
         self._pending_seed = None
         observations, self.reset_infos = self.venv.reset(seed=seed, options=options)
+        self._infos = list(self.reset_infos)
         return observations
+
+
+class _FleetProgress(BaseCallback):
+    """A progress bar in fleet episodes: each of a fleet's K agent-environments reports the
+    end of the same episode, so K reports make one."""
+
+    def __init__(self, config: FleetTrainConfig) -> None:
+        super().__init__()
+        self.config = config
+        self.agent_episodes = 0
+        self.recent_utility: deque[float] = deque(maxlen=50)
+        self.bar: Any = None
+
+    def _on_training_start(self) -> None:
+        if self.config.progress:
+            c = self.config
+            self.bar = episode_bar(c.episodes, f"fleet-{c.algorithm}-{c.action} K={c.n_uavs}")
+
+    def _on_step(self) -> bool:
+        for info in self.locals.get("infos", []):
+            episode = info.get("episode")
+            if episode is None:
+                continue
+            self.agent_episodes += 1
+            if self.agent_episodes % self.config.n_uavs == 0:
+                self.recent_utility.append(episode["r"] / max(episode["l"], 1))
+                if self.bar is not None:
+                    self.bar.update(1)
+                    self.bar.set_postfix(utility=f"{np.mean(self.recent_utility):.3f}")
+        return True
+
+    def _on_training_end(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
 
 def _vector_preset(preset: Preset, n_envs: int) -> Preset:
@@ -206,8 +286,10 @@ def train_fleet(config: FleetTrainConfig) -> dict[str, Any]:
         TRAIN_SEED_OFFSET + config.seed,
         tensorboard_log=None,
     )
+    if config.action == "residual":  # an untrained policy is the k-means placement
+        zero_actor_output(model)
     total = config.episodes * preset.train_episode_steps * config.n_uavs
-    model.learn(total_timesteps=total)
+    model.learn(total_timesteps=total, callback=_FleetProgress(config))
     world = config.train_world()
     shape = fleet_observation_shape(world.area)
     metadata = {
@@ -216,7 +298,11 @@ def train_fleet(config: FleetTrainConfig) -> dict[str, Any]:
         "fleet": True,
         "n_uavs_trained": config.n_uavs,
         "observation_shape": list(shape),
-        "action": "coordinates",
+        **(
+            {"action": "moves", "residual_radius_m": None}
+            if config.algorithm == "ddqn"
+            else residual_metadata(config.action)
+        ),
         "preset": preset.to_dict(),
         "episodes": config.episodes,
         "timesteps": int(model.num_timesteps),
@@ -240,9 +326,12 @@ def train_fleet(config: FleetTrainConfig) -> dict[str, Any]:
 class FleetCheckpointPolicy:
     """A shared-parameter fleet checkpoint as a fleet policy: K observations → K targets.
 
-    ``targets(observations)`` takes the K agents' observations (K, 9, n_x, n_y), acts with the
-    one network on each (deterministic), maps each action in [0, 1]³ to metres and separates
-    the set (:func:`sim.geometry.enforce_separation`, lower index first). Any K works: the
+    ``targets(observations, reports, uav_xyz_m)`` takes the K agents' observations
+    (K, 9, n_x, n_y), acts with the one network on each (deterministic) and maps the actions to
+    targets: absolute coordinates in [0, 1]³ to metres, or residual actions around the
+    k-means placement of ``reports`` for the UAVs at ``uav_xyz_m``
+    (:func:`policies.fleet_residual.fleet_residual_targets`, as in training); the set is
+    separated (:func:`sim.geometry.enforce_separation`, lower index first). Any K works: the
     network never sees K."""
 
     name = "fleet-checkpoint"
@@ -254,10 +343,14 @@ class FleetCheckpointPolicy:
         area: AreaConfig | None = None,
         separation_m: float = FleetConfig().separation_m,
     ) -> None:
-        if metadata.get("action", "coordinates") != "coordinates":
+        algorithm, action = metadata.get("algorithm"), metadata.get("action", "coordinates")
+        allowed = ("moves",) if algorithm == "ddqn" else ("coordinates", "residual")
+        if algorithm not in FLEET_ALGORITHMS or action not in allowed:
             raise InputError(
-                f"action: fleet checkpoints act with coordinates, got {metadata.get('action')!r}"
+                f"action: a fleet {algorithm} checkpoint acts with {' or '.join(allowed)}, "
+                f"got {action!r}"
             )
+        self.algorithm = algorithm
         if not (np.isfinite(separation_m) and separation_m > 0):
             raise InputError(f"separation_m: must be > 0, got {separation_m!r}")
         self.model = model
@@ -265,6 +358,9 @@ class FleetCheckpointPolicy:
         self.area = area or AreaConfig()
         self.separation_m = float(separation_m)
         self.shape = fleet_observation_shape(self.area)
+        self.residual_radius_m = residual_radius(metadata)
+        """Residual actions' radius (m); None: absolute coordinates."""
+        self._prior = KMeansPrior(self.area, self.separation_m)
 
     @classmethod
     def load(
@@ -273,105 +369,61 @@ class FleetCheckpointPolicy:
         area: AreaConfig | None = None,
         separation_m: float = FleetConfig().separation_m,
         device: str = "cpu",
+        allowed_dirs: Sequence[Path] | None = None,
+        max_bytes: int | None = None,
     ) -> FleetCheckpointPolicy:
-        """Load a checkpoint written by :func:`train_fleet` (shape and algorithm checked)."""
+        """Load a checkpoint written by :func:`train_fleet` (shape and algorithm checked;
+        ``allowed_dirs`` and ``max_bytes`` as for :func:`policies.checkpoints.load_checkpoint`)."""
         area = area or AreaConfig()
         model, meta = load_checkpoint(
             path,
             area,
-            algorithm="ddpg",
             device=device,
+            allowed_dirs=allowed_dirs,
+            max_bytes=max_bytes,
             observation_shape=fleet_observation_shape(area),
         )
+        if not meta.get("fleet"):
+            raise InputError("policy: not a fleet checkpoint (tupa train --uavs K writes those)")
         return cls(model, meta, area, separation_m)
 
-    def targets(self, observations: np.ndarray) -> np.ndarray:
-        """Targets (K, 3) in metres for observations (K, 9, n_x, n_y)."""
+    def targets(
+        self,
+        observations: np.ndarray,
+        reports: UserReports | None = None,
+        uav_xyz_m: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Targets (K, 3) in metres for observations (K, 9, n_x, n_y); a residual checkpoint
+        needs the report the observations were built from and the UAVs' positions (K, 3)."""
         obs = np.asarray(observations, dtype=np.float32)
         if obs.ndim != 4 or obs.shape[1:] != self.shape or not 1 <= len(obs) <= MAX_UAVS:
             raise InputError(
                 f"observations: must be (K, {', '.join(map(str, self.shape))}) with K in "
                 f"1..{MAX_UAVS}, got {obs.shape}"
             )
-        actions, _ = self.model.predict(obs, deterministic=True)
-        targets = unit_to_m_many(np.asarray(actions).reshape(len(obs), 3), self.area)
-        return enforce_separation(targets, self.separation_m, self.area)
-
-
-class FleetPlacement(Protocol):
-    """A placement of the whole fleet from the users' report (k-means baselines, oracle)."""
-
-    def place(self, users: Any) -> np.ndarray: ...
-
-
-@dataclass(frozen=True)
-class _Report:
-    users_xy_m: np.ndarray
-    load_bps: np.ndarray
-
-
-@dataclass
-class _Decider:
-    """Targets for one step: the policy's, or the placement's (re-placed every N steps)."""
-
-    policy: FleetCheckpointPolicy | FleetPlacement
-    replan_every: int
-    _held: np.ndarray | None = field(default=None, init=False)
-
-    def __call__(self, env: FleetParallelEnv, observations: np.ndarray, step: int) -> np.ndarray:
-        if isinstance(self.policy, FleetCheckpointPolicy):
-            return self.policy.targets(observations)
-        if self._held is None or step % self.replan_every == 0:
-            report = env.reports
-            users = _Report(
-                np.column_stack([report.x_m, report.y_m]), np.asarray(report.offered_bps)
+        if self.algorithm == "ddqn":  # moves from each UAV's zone, masked to the volume
+            if uav_xyz_m is None:
+                raise InputError("uav_xyz_m: a DDQN fleet checkpoint moves from where UAVs are")
+            here = np.asarray(uav_xyz_m, dtype=float)
+            index = zone_indices(here, self.area)
+            moves, _ = self.model.predict(
+                obs, deterministic=True, action_masks=move_masks(index, self.area)
             )
-            self._held = np.asarray(self.policy.place(users), dtype=float)
-        return self._held
-
-
-def evaluate_fleet(
-    policy: FleetCheckpointPolicy | FleetPlacement,
-    scenarios: Sequence[Scenario],
-    n_uavs: int,
-    world: World,
-    fleet: FleetConfig | None = None,
-    replan_every: int = 1,
-    seed: int = 0,
-) -> dict[str, Any]:
-    """Run one episode of the fleet env (``world``'s length, from the fleet's homes) per
-    scenario with ``policy`` deciding every step, and average.
-
-    ``policy``: a :class:`FleetCheckpointPolicy`, or a placement with ``place(users) -> (K, 3)``
-    re-placed on the report the decision sees every ``replan_every`` steps. Returns the means
-    over scenarios of each episode's mean utility, served-user fraction, Jain fairness and
-    minimum user throughput, the per-scenario utilities, and the scenario count."""
-    if not scenarios:
-        raise InputError("scenarios: empty")
-    if replan_every < 1:
-        raise InputError(f"replan_every: must be >= 1, got {replan_every}")
-    fleet = fleet or FleetConfig(n_uavs=n_uavs)
-    if fleet.n_uavs != n_uavs:
-        raise InputError(f"n_uavs: {n_uavs} disagrees with the fleet's {fleet.n_uavs}")
-    env = FleetParallelEnv(action_kind="continuous", scenarios=list(scenarios), world=world,
-                           fleet=fleet)  # fmt: skip
-    keys = ("utility", "served_fraction", "jain_fairness", "min_throughput_bps")
-    per_scenario: dict[str, list[float]] = {k: [] for k in keys}
-    for i, scenario in enumerate(scenarios):
-        decide: Callable[..., np.ndarray] = _Decider(policy, replan_every)
-        observations, _ = env.reset(seed=seed + i, options={"scenario": scenario})
-        sums = dict.fromkeys(keys, 0.0)
-        steps = 0
-        while env.agents:
-            joint = np.stack([observations[a] for a in env.possible_agents])
-            observations, _, _, _, infos = env.step_to(decide(env, joint, steps))
-            info = infos[env.possible_agents[0]]
-            for k in keys:
-                sums[k] += info[k]
-            steps += 1
-        for k in keys:
-            per_scenario[k].append(sums[k] / steps)
-    summary: dict[str, Any] = {f"mean_{k}": float(np.mean(v)) for k, v in per_scenario.items()}
-    summary["utilities"] = per_scenario["utility"]
-    summary["n_scenarios"] = len(scenarios)
-    return summary
+            targets, _ = move_targets(np.asarray(moves).reshape(-1), here, self.area, index)
+            return enforce_separation(targets, self.separation_m, self.area)
+        actions, _ = self.model.predict(obs, deterministic=True)
+        actions = np.asarray(actions, dtype=float).reshape(len(obs), 3)
+        if self.residual_radius_m is not None:
+            if reports is None or uav_xyz_m is None:
+                raise InputError("reports, uav_xyz_m: a residual fleet checkpoint needs both")
+            return fleet_residual_targets(
+                actions,
+                reports,
+                uav_xyz_m,
+                self.area,
+                self.separation_m,
+                self.residual_radius_m,
+                self._prior,
+            )
+        targets = unit_to_m_many(actions, self.area)
+        return enforce_separation(targets, self.separation_m, self.area)

@@ -41,9 +41,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=int,
         default=1,
         metavar="K",
-        help="fleet size 1..8 (default 1). K > 1 trains one DDPG network shared by the K UAVs "
-        "(policies/fleet_training.py; --algo ddpg, --episodes, --out, --preset, --seed, --world "
-        "(default closed-loop), --families, --users (default 20), --envs fleets per batch)",
+        help="fleet size 1..8 (default 1). K > 1 trains one network shared by the K UAVs "
+        "(policies/fleet_training.py; --algo ddpg (--action coordinates or residual) or ddqn, "
+        "--episodes, --out, --preset, --seed, --world (default closed-loop), --families, "
+        "--users (default 20), --envs fleets per batch)",
     )
     parser.add_argument(
         "--world",
@@ -197,13 +198,11 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _train_fleet(args: argparse.Namespace) -> int:
-    """``tupa train --uavs K`` with K > 1: one DDPG network shared by the fleet's UAVs."""
+    """``tupa train --uavs K`` with K > 1: one network shared by the fleet's UAVs."""
     import shlex
 
     from sim.errors import InputError
 
-    if args.algo == "ddqn":
-        raise InputError("--uavs: fleets train with --algo ddpg for now")
     if args.resume is not None:
         raise InputError("--uavs: fleet runs cannot be resumed yet (drop --resume)")
     missing = [f"--{name}" for name in ("algo", "episodes", "out") if getattr(args, name) is None]
@@ -224,7 +223,9 @@ def _train_fleet(args: argparse.Namespace) -> int:
         families=tuple(f.strip() for f in args.families.split(",")),
         users=_user_range(args.users) or (20, 20),
         n_fleets=args.envs,
+        action=args.action,
         command=shlex.join(args.command_line),
+        progress=not args.no_progress,
     )
     metadata = train_fleet(config)
     print(

@@ -302,6 +302,14 @@ def build_model(
     )
 
 
+def episode_bar(total: int, desc: str, initial: int = 0) -> Any:
+    """A training run's progress bar on stderr, counted in episodes (tqdm: rate and ETA); the
+    caller shows the recent utility beside it."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, initial=initial, desc=desc, unit="ep", dynamic_ncols=True)
+
+
 class TrainingCallback(BaseCallback):
     """Progress bar, periodic checkpoints and learning-curve evaluations, counted in episodes."""
 
@@ -313,14 +321,9 @@ class TrainingCallback(BaseCallback):
 
     def _on_training_start(self) -> None:
         if self.run.config.progress:
-            from tqdm import tqdm
-
-            self.bar = tqdm(
-                total=self.run.config.episodes,
-                initial=self.run.episodes_done,
-                desc=f"{self.run.config.algorithm}-{self.run.config.strategy}",
-                unit="ep",
-                dynamic_ncols=True,
+            config = self.run.config
+            self.bar = episode_bar(
+                config.episodes, f"{config.algorithm}-{config.strategy}", self.run.episodes_done
             )
 
     def _on_step(self) -> bool:

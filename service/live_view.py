@@ -1,9 +1,9 @@
 """What the operator view shows, kept by the placement service: one JSON frame per decision period.
 
-:class:`LiveView` keeps the vehicle's recent track and the utility of recent reports, and turns
+:class:`LiveView` keeps each vehicle's recent track and the utility of recent reports, and turns
 a :class:`Moment` (what the service knows at one instant: link state, latest report, current
 decision, policy) into a :class:`LiveFrame`. The placement loop calls :meth:`LiveView.record`
-once per decision period: the track and the history grow (bounded), and when anyone watches a
+once per decision period: the tracks and the history grow (bounded), and when anyone watches a
 frame is published through :attr:`LiveView.hub` (:mod:`service.pubsub`: never blocks the loop).
 ``GET /v1/live`` and the start of each stream use :meth:`LiveView.frame`.
 
@@ -24,9 +24,10 @@ A frame (``format: tupa-live/1``, JSON; metres in the area frame: x east, y nort
 
 The utility is the paper's (``sim.utility.network_utility``) of the latest report, and its three
 parts are the weighted terms ``0.6·T``, ``0.3·(1 − D)`` and ``0.1·(1 − P)`` (each the same
-function with the other two weights set to zero), so they add up to it. ``vehicles`` is a list
-for the fleet to come; today it holds one vehicle, ``uav-1``. ``heading_deg`` is the vehicle's
-own (telemetry; degrees clockwise from north), or null when it sends none.
+function with the other two weights set to zero), so they add up to it. ``vehicles`` holds
+the one vehicle (``uav1``) or a fleet's, in the fleet's order, each with its own track.
+``heading_deg`` is the vehicle's own (telemetry; degrees clockwise from north), or null when it
+sends none.
 """
 
 from __future__ import annotations
@@ -49,7 +50,8 @@ if TYPE_CHECKING:
     from service.placement import Decision, Report
 
 FORMAT = "tupa-live/1"
-VEHICLE_ID = "uav-1"
+VEHICLE_ID = "uav1"
+"""The one vehicle's id (``GET /v1/vehicles`` calls it the same)."""
 TRACK_POINTS = 300
 """Positions kept per vehicle (a new one when it has moved ``TRACK_STEP_M`` from the last)."""
 TRACK_STEP_M = 0.5
@@ -80,6 +82,13 @@ class Moment:
     report_age_s: float | None
     """Seconds since the report arrived."""
     report_max_age_s: float
+    fleet: tuple[tuple[str, LinkState, Decision | None], ...] = ()
+    """A fleet's vehicles (id, link state, current decision), in the fleet's order; empty for
+    one vehicle, which is ``link`` and ``decision`` (id ``uav1``)."""
+
+    def vehicles(self) -> tuple[tuple[str, LinkState, Decision | None], ...]:
+        """Every vehicle shown: the fleet's, or the one."""
+        return self.fleet or ((VEHICLE_ID, self.link, self.decision),)
 
 
 class LiveView:
@@ -102,7 +111,7 @@ class LiveView:
             "loss": replace(utility, weight_throughput=0.0, weight_delay=0.0),
         }
         self._lock = threading.Lock()  # the state below (the loop writes, requests read)
-        self._track: deque[tuple[float, float, float]] = deque(maxlen=TRACK_POINTS)
+        self._tracks: dict[str, deque[tuple[float, float, float]]] = {}
         self._history: deque[tuple[float, float, float, float, float]] = deque(
             maxlen=HISTORY_POINTS
         )
@@ -114,11 +123,14 @@ class LiveView:
         """Once per decision period: extend the track and the history, and publish a frame
         when anyone watches (building it only then)."""
         with self._lock:
-            position = moment.link.position_m
-            if position is not None and all(math.isfinite(v) for v in position):
-                last = self._track[-1] if self._track else None
+            for vehicle_id, link, _ in moment.vehicles():
+                position = link.position_m
+                if position is None or not all(math.isfinite(v) for v in position):
+                    continue
+                track = self._tracks.setdefault(vehicle_id, deque(maxlen=TRACK_POINTS))
+                last = track[-1] if track else None
                 if last is None or math.dist(last, position) >= TRACK_STEP_M:
-                    self._track.append(tuple(round(float(v), 1) for v in position))  # type: ignore[arg-type]
+                    track.append(tuple(round(float(v), 1) for v in position))  # type: ignore[arg-type]
             report = moment.report
             if report is not None and report is not self._report_seen:
                 self._report_seen = report
@@ -142,7 +154,7 @@ class LiveView:
         with self._lock:
             self._seq += 1
             seq = self._seq
-            track = [list(p) for p in self._track]
+            tracks = {vid: [list(p) for p in track] for vid, track in self._tracks.items()}
             history = [list(h) for h in self._history]
             utility = self._utility if moment.report is self._report_seen else None
         if utility is None and moment.report is not None:  # a report the loop has not seen yet
@@ -166,7 +178,10 @@ class LiveView:
                 "z_m": [area.z_min_m, area.z_max_m],
             },
             "policy": {"name": moment.policy_name, "spec": moment.policy_spec},
-            "vehicles": [_vehicle(moment, track)],
+            "vehicles": [
+                _vehicle(vid, link, decision, moment.time_s, tracks.get(vid, []))
+                for vid, link, decision in moment.vehicles()
+            ],
             "users": _users(moment.report),
             "report": _report(moment),
             "utility": (
@@ -189,11 +204,15 @@ def _point(point: tuple[float, float, float] | None) -> list[float | None] | Non
     return None if point is None else [_number(v, 2) for v in point]
 
 
-def _vehicle(moment: Moment, track: list[list[float]]) -> dict[str, Any]:
-    state = moment.link
-    decision = moment.decision
+def _vehicle(
+    vehicle_id: str,
+    state: LinkState,
+    decision: Decision | None,
+    time_s: float,
+    track: list[list[float]],
+) -> dict[str, Any]:
     return {
-        "id": VEHICLE_ID,
+        "id": vehicle_id,
         "link": state.link,
         "mode": state.mode,
         "armed": state.armed,
@@ -210,7 +229,7 @@ def _vehicle(moment: Moment, track: list[list[float]]) -> dict[str, Any]:
             "source": decision.source,
             "policy": decision.policy,
             "decided_at": round(decision.decided_at, 3),
-            "age_s": _number(moment.time_s - decision.decided_at),
+            "age_s": _number(time_s - decision.decided_at),
         },
     }
 

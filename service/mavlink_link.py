@@ -162,7 +162,7 @@ class MavlinkLink(VehicleLinkBase):
         with self._cond:
             if kind == "HEARTBEAT":
                 fields = (message.autopilot, message.type, message.base_mode, message.custom_mode)
-                if not self._note_heartbeat(*fields):
+                if not self._note_heartbeat(*fields, system_id=message.get_srcSystem()):
                     return  # another ground station or companion, not the vehicle
                 header = message.get_header()
                 if (

@@ -179,7 +179,7 @@ class MavsdkLink(VehicleLinkBase):
                 self.counters["bad_data"] += 1
             return
         if message.system_id == system_id and message.component_id == MAV_COMP_ID_AUTOPILOT1:
-            self._note_heartbeat(*heartbeat)
+            self._note_heartbeat(*heartbeat, system_id=system_id)
 
     def _on_position_ned(self, position_velocity: Any, _user_data: Any) -> None:
         p = position_velocity.position

@@ -55,7 +55,6 @@ from pathlib import Path
 import numpy as np
 
 from policies.interface import Policy
-from service.frames import FrameConfig
 from service.live_view import LiveFrame, LiveView, Moment
 from service.policy_runtime import load_policy
 from service.settings import ServiceSettings
@@ -100,9 +99,32 @@ class Decision:
     """Unix time, seconds."""
 
 
+@dataclass(frozen=True)
+class VehicleView:
+    """One vehicle of the fleet as ``GET /v1/vehicles`` shows it."""
+
+    id: str
+    system_id: int | None
+    """The system id the fleet file requires (None: any); the heard one is ``state.system_id``."""
+    state: LinkState
+    decision: Decision | None
+    """The target it is flying to (None: not commanded now)."""
+    problem: str | None
+    """Why it is not commanded now (None: it is)."""
+
+
 def _vehicle_known(state: LinkState) -> bool:
     """What a decision needs from the link: up, with the vehicle's position."""
-    return state.link == "up" and state.position_m is not None
+    return link_problem(state) is None
+
+
+def link_problem(state: LinkState) -> str | None:
+    """Why the link does not let the vehicle be commanded now (None: it does)."""
+    if state.link != "up":
+        return f"mavlink link is {state.link}"
+    if state.position_m is None:
+        return "no vehicle position yet (telemetry not received)"
+    return None
 
 
 class OutOfOrderReportError(ValueError):
@@ -129,6 +151,8 @@ class PlacementService:
     ) -> None:
         self.settings = settings
         self.link = link
+        self.links: dict[str, VehicleLink] = {"uav1": link}
+        """Every vehicle's link by id (one here; a fleet's in :mod:`service.fleet_placement`)."""
         self.world = world if world is not None else settings.policy_world()
         """The world the policy decides in (area, network, utility, decision period)."""
         self._policy = policy
@@ -166,17 +190,17 @@ class PlacementService:
         """Load the policy (``InputError`` if unusable) and open the link (retries on its own)."""
         from service.links import open_link
 
+        if settings.is_fleet:
+            from service.fleet_placement import FleetPlacementService
+
+            return FleetPlacementService.from_settings(settings)
         world = settings.policy_world()
         # The operator's own choice: from any directory, within the size limit.
         policy = load_policy(settings.policy, world, max_bytes=settings.checkpoint_max_bytes)
         link_config = LinkConfig(
             url=settings.mavlink,
             area=world.area,
-            frames=FrameConfig(
-                settings.area_origin_north_m,
-                settings.area_origin_east_m,
-                settings.area_origin_down_m,
-            ),
+            frames=settings.frames(),
             setpoint_rate_hz=settings.setpoint_rate_hz,
             signing_key=settings.signing_key_bytes(),
         )
@@ -195,13 +219,17 @@ class PlacementService:
                 log.info("restarted (state file found): arm-and-takeoff waits for a decision")
             else:
                 self.link.arm_and_takeoff(timeout_s=self.settings.takeoff_timeout_s)
+        self._start_loop()
+        return self
+
+    def _start_loop(self) -> None:
+        """The decision thread (``paced``) or the link watcher (``on-report``)."""
         if self.settings.decision_mode == "paced":
             target, name = self._run, "placement"
         else:
             target, name = self._decide_when_link_returns, "placement-link-watch"
         self._thread = threading.Thread(target=target, name=name, daemon=True)
         self._thread.start()
-        return self
 
     def stop(self, timeout_s: float = 5.0) -> None:
         self._stop.set()
@@ -210,6 +238,10 @@ class PlacementService:
         if self._thread is not None:
             self._thread.join(timeout_s)
             self._thread = None
+        self.close_links()
+
+    def close_links(self) -> None:
+        """Close the vehicle link(s) (safe to call twice)."""
         self.link.close()
 
     # ------------------------------------------------------------------ inputs
@@ -282,14 +314,25 @@ class PlacementService:
     def vehicle(self) -> LinkState:
         return self.link.state()
 
+    @property
+    def is_fleet(self) -> bool:
+        """Whether this service drives a fleet (:mod:`service.fleet_placement`)."""
+        return False
+
+    def vehicles(self) -> list[VehicleView]:
+        """The one vehicle as a fleet of one (``GET /v1/vehicles``), id ``uav1``."""
+        state = self.link.state()
+        return [VehicleView("uav1", None, state, self.current_decision(), link_problem(state))]
+
+    def _can_decide(self) -> bool:
+        """Whether the link lets a decision be taken now (the ``on-report`` watcher asks)."""
+        return _vehicle_known(self.link.state())
+
     def readiness(self) -> tuple[bool, list[str]]:
         """(ready, reasons it is not): a policy is loaded and the MAVLink link is up."""
-        reasons = []
         state = self.link.state()
-        if state.link != "up":
-            reasons.append(f"mavlink link is {state.link}")
-        elif state.position_m is None:
-            reasons.append("no vehicle position yet (telemetry not received)")
+        problem = link_problem(state)
+        reasons = [problem] if problem else []
         if state.takeoff == "running":
             refusal = (
                 f"; last refusal: {state.takeoff_last_refusal}"
@@ -371,7 +414,9 @@ class PlacementService:
         with self._deciding:
             return self._decide_latest()
 
-    def _decide_latest(self) -> Decision | None:
+    def _fresh_report(self) -> tuple[Report, Policy] | None:
+        """The latest report and the serving policy, if a report is fresh enough to decide on
+        (a stale one is counted: the target is held)."""
         with self._lock:
             report, received, policy = self._report, self._report_received, self._policy
         if report is None or received is None:
@@ -379,6 +424,13 @@ class PlacementService:
         if time.monotonic() - received > self.settings.report_max_age_s:
             self._count("decisions_held_stale")
             return None
+        return report, policy
+
+    def _decide_latest(self) -> Decision | None:
+        fresh = self._fresh_report()
+        if fresh is None:
+            return None
+        report, policy = fresh
         state = self.link.state()
         if not _vehicle_known(state):
             self._count("decisions_waiting_link")
@@ -428,7 +480,7 @@ class PlacementService:
                     next_tick = now + period_s
             if not self._waiting_for_link.wait(min(0.5, max(0.0, next_tick - now))):
                 continue
-            if _vehicle_known(self.link.state()) and not self._stop.is_set():
+            if self._can_decide() and not self._stop.is_set():
                 self._waiting_for_link.clear()
                 self._decide_guarded()
             else:

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.observation import UserReports
 from sim.world import CLOSED_LOOP, World
@@ -118,10 +119,10 @@ def _public_problem(error: CheckpointError, baselines: Iterable[str]) -> str:
     return f"policy: {error.problem}"
 
 
-def _dry_run(policy: Policy, world: World) -> None:
-    """One decision on a synthetic report: a policy that cannot decide is not served."""
-    area = world.area
-    reports = UserReports(
+def synthetic_report(area: AreaConfig) -> UserReports:
+    """The test report a policy must decide on before it is served: two users, a heavy
+    congested one and a light one, on the area's middle line."""
+    return UserReports(
         x_m=np.array([0.25, 0.75]) * area.size_x_m,
         y_m=np.array([0.5, 0.5]) * area.size_y_m,
         offered_bps=np.array([30e6, 10e6]),
@@ -129,6 +130,12 @@ def _dry_run(policy: Policy, world: World) -> None:
         delay_s=np.array([0.2, 0.01]),
         plr=np.array([0.1, 0.0]),
     )
+
+
+def _dry_run(policy: Policy, world: World) -> None:
+    """One decision on a synthetic report: a policy that cannot decide is not served."""
+    area = world.area
+    reports = synthetic_report(area)
     centre = np.array([area.size_x_m / 2, area.size_y_m / 2, area.z_min_m])
     try:
         target = np.asarray(policy.decide(reports, centre), dtype=float)

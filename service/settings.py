@@ -18,6 +18,8 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from service.policy_runtime import SHIPPED_CHECKPOINTS, default_policy_spec
 
 if TYPE_CHECKING:
+    from service.fleet_spec import FleetSpec
+    from service.frames import FrameConfig
     from sim.world import World
 
 DecisionMode = Literal["paced", "on-report"]
@@ -31,6 +33,14 @@ class ServiceSettings(BaseSettings):
 
     mavlink: str = "tcp:127.0.0.1:5760"
     """pymavlink connection string of the autopilot (``tcp:``, ``udpin:``, ``udpout:``, serial)."""
+    fleet_mavlink: tuple[str, ...] = ()
+    """A fleet from repeated ``--mavlink`` (two or more): vehicles ``uav1``, ``uav2``, ... in one
+    frame (JSON list in ``TUPA_FLEET_MAVLINK``). Vehicles with different homes: ``fleet_file``."""
+    fleet_file: Path | None = None
+    """A fleet of 1–8 vehicles (:mod:`service.fleet_spec` has the format): one MAVLink link
+    each, with its own frame; the policy is a fleet policy (``kmeans-load-weighted``, ...)."""
+    separation_m: float = Field(default=10.0, gt=0, le=1000, allow_inf_nan=False)
+    """A fleet's minimum 3-D distance between any two targets (a fleet file may set its own)."""
     mavlink_backend: MavlinkBackend = "pymavlink"
     mavlink_signing_key: SecretStr | None = None
     """MAVLink 2 signing key, 64 hex characters (32 bytes), the same as the vehicle's."""
@@ -164,12 +174,40 @@ class ServiceSettings(BaseSettings):
             raise ValueError(f"must be 32 bytes (64 hex characters), got {len(key)} bytes")
         return value
 
+    @property
+    def is_fleet(self) -> bool:
+        """Whether the service drives a fleet (a fleet file, or several ``--mavlink``)."""
+        return self.fleet_file is not None or len(self.fleet_mavlink) > 1
+
+    def fleet_spec(self) -> FleetSpec:
+        """The vehicles to drive (``InputError`` naming the field for a bad fleet): the fleet
+        file's, the repeated ``--mavlink`` ones, or the one ``mavlink`` vehicle (``uav1``)."""
+        from service.fleet_spec import fleet_from_urls, load_fleet_file, single_vehicle
+
+        if self.fleet_file is not None:
+            return load_fleet_file(self.fleet_file, self.separation_m)
+        if len(self.fleet_mavlink) > 1:
+            return fleet_from_urls(self.fleet_mavlink, self.frames(), self.separation_m)
+        return single_vehicle(self.mavlink, self.frames())
+
+    def frames(self) -> FrameConfig:
+        """Where the area lies from the (single) vehicle's home."""
+        from service.frames import FrameConfig
+
+        return FrameConfig(
+            self.area_origin_north_m, self.area_origin_east_m, self.area_origin_down_m
+        )
+
     def signing_key_bytes(self) -> bytes | None:
         key = self.mavlink_signing_key
         return bytes.fromhex(key.get_secret_value()) if key is not None else None
 
     def check_startable(self) -> None:
         """Refuse to serve without a token unless ``insecure`` (ValueError naming the field)."""
+        if self.fleet_file is not None and self.fleet_mavlink:
+            raise ValueError("fleet_file: give a fleet file or repeated --mavlink, not both")
+        if self.is_fleet and self.state_file is not None:
+            raise ValueError("state_file: not supported with a fleet yet (one vehicle only)")
         token = self.api_token.get_secret_value() if self.api_token else ""
         if not token and not self.insecure:
             raise ValueError(

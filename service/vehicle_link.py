@@ -198,6 +198,8 @@ class LinkState:
     """The vehicle's latest STATUSTEXT messages, oldest first, as ``SEVERITY: text``."""
     heading_deg: float | None = None
     """Where the vehicle's nose points, degrees clockwise from north (None: not reported)."""
+    system_id: int | None = None
+    """The vehicle's MAVLink system id, from its HEARTBEAT; None before the first one."""
 
 
 class VehicleLink(ABC):
@@ -298,6 +300,7 @@ class VehicleLinkBase(VehicleLink):
         self._ned: tuple[float, float, float] | None = None
         self._position_at: float | None = None
         self._relative_alt_m: float | None = None
+        self._system_id: int | None = None  # the vehicle's, from its HEARTBEAT
         self._heading_deg: float | None = None  # GLOBAL_POSITION_INT.hdg (MAVSDK: its heading)
         self._home_amsl_m: float | None = None
         self._ekf_flags: int | None = None  # ArduPilot's EKF_STATUS_REPORT.flags, when it sends it
@@ -414,6 +417,7 @@ class VehicleLinkBase(VehicleLink):
                 takeoff_last_refusal=self._takeoff_last_refusal,
                 status_texts=tuple(text for _, text in self._status_texts),
                 heading_deg=self._heading_deg,
+                system_id=self._system_id,
             )
 
     def set_target(self, target_m: Sequence[float]) -> tuple[float, float, float]:
@@ -602,12 +606,18 @@ class VehicleLinkBase(VehicleLink):
             return self._health
 
     def _note_heartbeat(
-        self, autopilot: int, vehicle_type: int, base_mode: int, custom_mode: int
+        self,
+        autopilot: int,
+        vehicle_type: int,
+        base_mode: int,
+        custom_mode: int,
+        system_id: int | None = None,
     ) -> bool:
-        """A HEARTBEAT heard on the link. False, and nothing changes, when it is not the
-        vehicle's (a ground station or a companion computer: autopilot INVALID, or type GCS or
-        ONBOARD_CONTROLLER). Otherwise the flavour, mode and armed state are the vehicle's, and
-        the link is up; telemetry from before a loss no longer counts as fresh."""
+        """A HEARTBEAT heard on the link (from MAVLink system ``system_id``). False, and nothing
+        changes, when it is not the vehicle's (a ground station or a companion computer:
+        autopilot INVALID, or type GCS or ONBOARD_CONTROLLER). Otherwise the flavour, mode,
+        armed state and system id are the vehicle's, and the link is up; telemetry from before a
+        loss no longer counts as fresh."""
         if autopilot == mavlink.MAV_AUTOPILOT_INVALID or vehicle_type in (
             mavlink.MAV_TYPE_GCS,
             mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
@@ -616,6 +626,8 @@ class VehicleLinkBase(VehicleLink):
         now = time.monotonic()
         with self._cond:
             self._flavour = flavour = flavour_of(autopilot)
+            if system_id is not None:
+                self._system_id = system_id
             self._custom_mode = custom_mode
             self._armed = bool(base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
             self._last_hb = now

@@ -79,6 +79,7 @@ __all__ = [
     "FleetParallelEnv",
     "fleet_homes",
     "fleet_maps",
+    "fleet_observations",
     "parallel_env",
 ]
 
@@ -122,6 +123,26 @@ def fleet_maps(
         np.ascontiguousarray(association, dtype=np.int64),
         area.zone_m,
     )
+    return out
+
+
+def fleet_observations(
+    uav_xyz_m: np.ndarray, report: UserReports, association: np.ndarray, world: World
+) -> np.ndarray:
+    """Every agent's observation (K, 9, n_x, n_y), float32: the six maps of
+    :func:`sim.observation.build_observation` at its UAV and the three fleet maps
+    (:func:`fleet_maps`), from one report of all users and the AP each user is on (U,). The
+    environments and the service build observations with this one function."""
+    area = world.area
+    uav = np.asarray(uav_xyz_m, dtype=float)
+    out = np.empty((len(uav), FLEET_MAPS, area.n_zones_x, area.n_zones_y), dtype=np.float32)
+    # One call for every agent: row k is exactly build_observation at UAV k.
+    tiled = np.empty((len(report), len(uav), len(report.x_m)))
+    for i, values in enumerate(report):
+        tiled[i] = values
+    out[:, :N_MAPS] = build_observations(uav, *tiled, area, world.utility.delay_ref_s)
+    xy = np.column_stack([report.x_m, report.y_m])
+    out[:, N_MAPS:] = fleet_maps(uav, xy, association, world)
     return out
 
 
@@ -422,18 +443,7 @@ class FleetParallelEnv(ParallelEnv):
 
     def _joint_observation(self) -> np.ndarray:
         report, association = self._reports[0]
-        area, world = self.area, self.world
-        out = np.empty((self.n_uavs, FLEET_MAPS, area.n_zones_x, area.n_zones_y), dtype=np.float32)
-        # One call for every agent: row k is exactly build_observation at UAV k.
-        tiled = np.empty((len(report), self.n_uavs, len(report.x_m)))
-        for i, values in enumerate(report):
-            tiled[i] = values
-        out[:, :N_MAPS] = build_observations(
-            self.uav_xyz_m, *tiled, area, world.utility.delay_ref_s
-        )
-        xy = np.column_stack([report.x_m, report.y_m])
-        out[:, N_MAPS:] = fleet_maps(self.uav_xyz_m, xy, association, world)
-        return out
+        return fleet_observations(self.uav_xyz_m, report, association, self.world)
 
     @property
     def reports(self) -> UserReports:

@@ -28,6 +28,7 @@ paper's move.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from functools import lru_cache
@@ -320,6 +321,31 @@ def min_pairwise_distance_m(xyz_m: np.ndarray) -> float:
         for q in points[i + 1 :]:
             closest = min(closest, math.dist(p, q))
     return closest
+
+
+@lru_cache(maxsize=8)
+def _permutations(k: int) -> np.ndarray:
+    return np.array(list(itertools.permutations(range(k))), dtype=np.intp).reshape(-1, k)
+
+
+def assign_targets(positions_m: np.ndarray, targets_m: np.ndarray) -> np.ndarray:
+    """``targets_m`` (K, 3) reordered so that row i is vehicle i's: the order with the least
+    total 3-D flight distance from ``positions_m`` (K, 3); ties go to the first permutation in
+    lexicographic order (so the identity wins among equals). Exact: K! orders, K <= 8."""
+    positions = np.asarray(positions_m, dtype=float)
+    targets = np.asarray(targets_m, dtype=float)
+    if positions.shape != targets.shape or positions.ndim != 2 or positions.shape[1] != 3:
+        raise ValueError(f"positions_m and targets_m: must both be (K, 3), got "
+                         f"{positions.shape} and {targets.shape}")  # fmt: skip
+    k = len(targets)
+    if k <= 1:
+        return targets.copy()
+    if k > 8:
+        raise ValueError(f"positions_m: at most 8 vehicles, got {k}")
+    cost = np.linalg.norm(positions[:, None, :] - targets[None, :, :], axis=-1)  # vehicle × target
+    orders = _permutations(k)
+    totals = cost[np.arange(k), orders].sum(axis=1)
+    return targets[orders[int(np.argmin(totals))]]
 
 
 def enforce_separation(targets_m: np.ndarray, separation_m: float, area: AreaConfig) -> np.ndarray:

@@ -38,6 +38,16 @@ the comparison checks is the MAC on a given mean channel, not the Al-Hourani mod
 how FqCoDel delays grow). A user that sends but receives nothing in a window gets the fast
 model's ``unserved_delay_s`` (1 s) as its delay.
 
+K access points (issue 16): :class:`FleetCase` holds K UAV positions (1..8), the users and
+each user's AP (given: ns-3 is not asked to pick one, so that it and
+:class:`sim.fleet.FleetModel` compare the same cells), and the channel mode: ``distinct`` (AP k
+on channel 36 + 4k, each on its own ns-3 channel object, so cells are independent) or
+``shared`` (all on channel 36, one channel object: cells contend and interfere as ns-3's PHY
+and MAC make them). :meth:`Ns3Runner.run_fleet` simulates it with the same protocol and
+counters; K = 1 gives :meth:`Ns3Runner.run`'s numbers exactly (same nodes, objects and random
+streams in the same order; tested). In an urban environment each AP gets its users' mean path
+loss as above, and AP to AP is free space (UAVs see each other in the air).
+
 Randomness: ns-3's ``RngSeedManager`` seed is ``seed + 1`` (ns-3 wants >= 1) and its run number
 ``index + 1`` for the case at position ``index`` of a file, and every random stream is pinned
 with ``AssignStreams``: the same case, seed and index give the same result.
@@ -76,6 +86,7 @@ from sim.config import (
 from sim.errors import InputError
 from sim.evaluate import RESULTS_FORMAT, CaseMetrics
 from sim.files import atomic_write_json, cases_document, load_cases
+from sim.fleet import CHANNEL_MODES, CHANNELS_5GHZ, MAX_UAVS
 from sim.scenarios import Case
 from sim.utility import network_utility
 
@@ -236,7 +247,7 @@ def _plain(value: float) -> float | int:
 
 
 def _metrics(
-    case: Case,
+    case: Case | FleetCase,
     start: dict[str, Any],
     end: dict[str, Any],
     settings: Ns3Settings,
@@ -300,6 +311,132 @@ def _request(case: Case, settings: Ns3Settings, index: int) -> dict[str, Any]:
         "packet_bytes": settings.traffic.packet_bytes,
         "nakagami_m": nakagami_m_for_rician(settings.radio.rician_k_db),
     }
+
+
+@dataclass(frozen=True)
+class FleetCase:
+    """A case with K access points (issue 16): UAV k at ``uav_xyz_m[k]`` (K, 3) carries AP k;
+    user i, at ``users_xy_m[i]`` offering ``load_bps[i]``, is a station of AP
+    ``association[i]`` (0..K−1: given, not decided in ns-3, so that ns-3 and the fast model
+    compare the same cells; a user that hears no AP is given one all the same and, out of
+    range in ns-3 too, never associates). ``channel_mode`` as in :class:`sim.fleet.FleetConfig`:
+    ``distinct`` puts AP k on 20 MHz channel 36 + 4k (its own channel object in ns-3: no
+    energy crosses between cells), ``shared`` puts every AP on channel 36 (one channel: cells
+    contend and interfere as the PHY and MAC decide). Bad values raise :class:`InputError`
+    naming the field. APs closer than the fleet's separation, even at one place, are accepted
+    (ns-3 simulates them; separation is the caller's constraint, as for ``FleetModel``).
+    """
+
+    id: str
+    uav_xyz_m: np.ndarray  # (K, 3)
+    users_xy_m: np.ndarray  # (U, 2)
+    load_bps: np.ndarray  # (U,)
+    association: np.ndarray  # (U,) AP index per user
+    channel_mode: str = "distinct"
+
+    def __post_init__(self) -> None:
+        uav = np.array(self.uav_xyz_m, dtype=np.float64)
+        if uav.ndim != 2 or uav.shape[1] != 3:
+            raise InputError(f"uav_xyz_m: must be (K, 3) UAV positions, got shape {uav.shape}")
+        if not 1 <= uav.shape[0] <= MAX_UAVS:
+            raise InputError(
+                f"uav_xyz_m: must hold 1..{MAX_UAVS} UAV positions (K), got {uav.shape[0]}"
+            )
+        if not np.all(np.isfinite(uav)):
+            raise InputError("uav_xyz_m: must be finite")
+        try:
+            scenario = Case(self.id, uav[0], self.users_xy_m, self.load_bps)  # checks users
+        except ValueError as exc:  # names the field (users_xy_m or load_bps)
+            raise InputError(str(exc)) from None
+        raw = np.asarray(self.association)
+        if raw.shape != (scenario.n_users,):
+            raise InputError(
+                f"association: must hold one AP index per user ({scenario.n_users}), "
+                f"got shape {raw.shape}"
+            )
+        if raw.dtype.kind not in "iu" and not (
+            raw.dtype.kind == "f" and np.all(np.isfinite(raw)) and np.all(raw == np.round(raw))
+        ):
+            raise InputError(f"association: must be integer AP indices, got {raw.tolist()}")
+        assoc = raw.astype(np.int64)
+        bad = np.flatnonzero((assoc < 0) | (assoc >= uav.shape[0]))
+        if bad.size:
+            raise InputError(
+                f"association: user {int(bad[0])}'s AP index {int(assoc[bad[0]])} is outside "
+                f"0..{uav.shape[0] - 1}"
+            )
+        if self.channel_mode not in CHANNEL_MODES:
+            raise InputError(
+                f"channel_mode: must be one of {', '.join(CHANNEL_MODES)}, "
+                f"got {self.channel_mode!r}"
+            )
+        for array in (uav, assoc):
+            array.setflags(write=False)
+        object.__setattr__(self, "uav_xyz_m", uav)
+        object.__setattr__(self, "users_xy_m", scenario.users_xy_m)
+        object.__setattr__(self, "load_bps", scenario.load_bps)
+        object.__setattr__(self, "association", assoc)
+
+    @property
+    def n_uavs(self) -> int:
+        return int(self.uav_xyz_m.shape[0])
+
+    @property
+    def n_users(self) -> int:
+        return int(self.load_bps.shape[0])
+
+    @property
+    def channels(self) -> tuple[int, ...]:
+        """Each AP's 5 GHz channel number (:attr:`sim.fleet.FleetConfig.channels`)."""
+        if self.channel_mode == "shared":
+            return (CHANNELS_5GHZ[0],) * self.n_uavs
+        return CHANNELS_5GHZ[: self.n_uavs]
+
+    def cell(self, k: int) -> Case:
+        """AP ``k`` and its own users as a single-AP :class:`Case` (id ``<id>-cell<k>``): what
+        that cell would be alone. :class:`InputError` if AP ``k`` serves nobody."""
+        mine = self.association == k
+        if not np.any(mine):
+            raise InputError(f"k: AP {k} serves no user (a case needs at least one)")
+        return Case(f"{self.id}-cell{k}", self.uav_xyz_m[k], self.users_xy_m[mine],
+                    self.load_bps[mine])  # fmt: skip
+
+
+def fleet_link_losses_db(
+    case: FleetCase, settings: Ns3Settings
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The losses the worker sets for a fleet case in an urban environment, as
+    :func:`link_losses_db` per AP: each AP to each user (K, U), the mean path loss of the fast
+    model's expected mode; AP to AP (K, K) and user to user (U, U), free space (3-D distance
+    between the UAVs: they see each other in the air, as :class:`sim.fleet.FleetModel`
+    assumes for carrier sense on a shared channel)."""
+    frequency_hz = settings.radio.frequency_hz
+    per_ap = []
+    for uav in case.uav_xyz_m:
+        single = Case(case.id, uav, case.users_xy_m, case.load_bps)
+        to_uav, between = link_losses_db(single, settings)
+        per_ap.append(to_uav)
+    gap = case.uav_xyz_m[:, None, :] - case.uav_xyz_m[None, :, :]
+    ap_ap = friis_path_loss_db(np.sqrt(np.sum(gap * gap, axis=-1)), frequency_hz)
+    return np.array(per_ap), np.asarray(ap_ap, dtype=float), between
+
+
+def _fleet_request(case: FleetCase, settings: Ns3Settings, index: int) -> dict[str, Any]:
+    single = Case(case.id, case.uav_xyz_m[0], case.users_xy_m, case.load_bps)
+    request = _request(single, settings, index)
+    request.pop("ap_loss_db", None)
+    request.pop("sta_loss_db", None)
+    if settings.environment != "open":
+        to_uavs, ap_ap, between = fleet_link_losses_db(case, settings)
+        request["ap_loss_db"] = to_uavs.ravel().tolist()
+        request["ap_ap_loss_db"] = ap_ap.ravel().tolist()
+        request["sta_loss_db"] = between.ravel().tolist()
+    request["fleet"] = {
+        "uavs": case.uav_xyz_m.tolist(),
+        "channels": list(case.channels),
+        "association": case.association.tolist(),
+    }
+    return request
 
 
 class Ns3Runner:
@@ -451,6 +588,28 @@ class Ns3Runner:
     ) -> Ns3CaseResult:
         """Simulate one case; raises :class:`Ns3CaseError` if the worker crashes, hangs or
         raises (the worker is then replaced on the next call)."""
+        return self._simulate(case, _request(case, settings, index), settings, utility)
+
+    def run_fleet(
+        self,
+        case: FleetCase,
+        settings: Ns3Settings = Ns3Settings(),
+        index: int = 0,
+        utility: UtilityConfig = UtilityConfig(),
+    ) -> Ns3CaseResult:
+        """Simulate one case with K access points (:class:`FleetCase`); the result's metrics
+        are per user over all users (utility: :func:`sim.utility.network_utility` over all of
+        them, as :class:`sim.fleet.FleetModel`'s). K = 1 gives :meth:`run`'s numbers for the
+        same users, UAV, settings and index. Raises :class:`Ns3CaseError` as :meth:`run`."""
+        return self._simulate(case, _fleet_request(case, settings, index), settings, utility)
+
+    def _simulate(
+        self,
+        case: Case | FleetCase,
+        request: dict[str, Any],
+        settings: Ns3Settings,
+        utility: UtilityConfig,
+    ) -> Ns3CaseResult:
         if self._start_failures >= self.max_start_failures:
             raise Ns3CaseError(case.id, f"not run: {self._start_error}")
         try:
@@ -463,7 +622,7 @@ class Ns3Runner:
                     raise
                 self._start_failures = 0
             assert self._requests is not None
-            self._requests.write(json.dumps(_request(case, settings, index)) + "\n")
+            self._requests.write(json.dumps(request) + "\n")
             self._requests.flush()
             reply = self._read_reply(
                 time.monotonic() + self.timeout_for(settings), f"case {case.id}"

@@ -38,6 +38,12 @@ docs/network-model.md and issue 3):
 * channel in an urban environment (the request carries ``ap_loss_db`` and ``sta_loss_db``):
   ``MatrixPropagationLossModel`` with those per-pair losses (symmetric) in place of Friis, then
   the same Nakagami model; see :mod:`sim.ns3_backend` for where the losses come from;
+* K access points (``RunFleetCase``, a request with a ``fleet`` entry): K AP nodes, AP k with
+  SSID ``tupa`` (k = 0) or ``tupa-k`` and its stations (the request says which) with the same
+  SSID; APs on the same channel number share one ``YansWifiChannel``, each other channel number
+  gets its own (distinct 20 MHz channels: no energy crosses); everything else as above, built
+  in the same order, so one AP reproduces ``RunCase`` exactly. The AP-side counters of a user
+  count only its own AP's receptions;
 * measurement: ``FlowMonitor`` on all nodes for transmitted / received packets and delay; drop
   counters from trace sources (queue disc ``Drop``, ``WifiMac::DroppedMpdu`` by reason,
   ``WifiMac::MacTxDrop``, ``ArpCache::Drop`` and ``ArpL3Protocol::Drop``: where the packets of a
@@ -124,8 +130,10 @@ PHY_DROP_REASONS: tuple[str, ...] = (
 N_FIELDS = len(FIELDS) + len(PHY_DROP_REASONS)
 
 _CPP = r"""
+#include <algorithm>
 #include <array>
 #include <map>
+#include <string>
 #include <vector>
 
 namespace tupa_ns3
@@ -535,6 +543,309 @@ std::vector<double> RunCase(double uavX, double uavY, double uavZ,
     g = nullptr;
     return result;
 }
+
+// ---------------------------------------------------------------- K access points (issue 16)
+// Each user's AP index (fleet cases only): the AP-side traces count a PPDU for a user only at
+// that user's own AP (on a shared channel the other APs hear it too).
+static std::vector<uint32_t> g_userAp;
+
+static void OnFleetApPpduDrop(uint32_t k, Ptr<const WifiPpdu> ppdu, WifiPhyRxfailureReason reason)
+{
+    Ptr<const WifiPsdu> psdu = ppdu->GetPsdu();
+    if (!psdu) { return; }
+    auto it = g->macToUser.find(psdu->GetAddr2());
+    if (it == g->macToUser.end() || g_userAp[it->second] != k) { return; }
+    g->cum[it->second][AP_RX_DROPS] += 1;
+    int r = static_cast<int>(reason);
+    if (r >= 0 && r < N_PHY_REASONS) { g->cum[it->second][PHY_DROP_BASE + r] += 1; }
+}
+
+static void OnFleetApRxBegin(uint32_t k, Ptr<const Packet> packet,
+                             RxPowerWattPerChannelBand rxPowersW)
+{
+    WifiMacHeader header;
+    if (packet->PeekHeader(header) == 0 || !header.IsQosData()) { return; }
+    auto it = g->macToUser.find(header.GetAddr2());
+    if (it == g->macToUser.end() || g_userAp[it->second] != k || rxPowersW.empty()) { return; }
+    double watts = 0;
+    for (const auto& [band, w] : rxPowersW) { watts = std::max(watts, static_cast<double>(w)); }
+    if (watts <= 0) { return; }
+    g->cum[it->second][AP_RX_DBM_SUM] += 10.0 * std::log10(watts) + 30.0;
+    g->cum[it->second][AP_RX_MPDUS] += 1;
+}
+
+// RunCase with K access points: AP k at (apX[k], apY[k], apZ[k]) on 20 MHz channel
+// channels[k], SSID "tupa" (k = 0) or "tupa-k", and user i a station of AP userAp[i] (its
+// SSID; no scanning of the others). APs on the same channel number share one YansWifiChannel
+// (they hear and interfere with each other and each other's stations); each other channel
+// number is a channel object of its own (no energy crosses between non-overlapping channels).
+// Built in RunCase's order (AP nodes first, then the stations; the same stream assignment), so
+// K = 1 reproduces RunCase exactly. apLossDb (K x U), apApLossDb (K x K) and staLossDb (U x U),
+// row-major, replace Friis when apLossDb is not empty.
+std::vector<double> RunFleetCase(std::vector<double> apX, std::vector<double> apY,
+                                 std::vector<double> apZ, std::vector<uint32_t> channels,
+                                 std::vector<uint32_t> userAp,
+                                 std::vector<double> xs, std::vector<double> ys,
+                                 std::vector<double> loads, double userHeight, bool macOnly,
+                                 double appStart, std::vector<double> snapshots, uint32_t seed,
+                                 uint64_t run, uint32_t packetBytes, double nakagamiM,
+                                 std::vector<double> apLossDb, std::vector<double> apApLossDb,
+                                 std::vector<double> staLossDb)
+{
+    const uint32_t k = apX.size();
+    const uint32_t n = xs.size();
+    if (k == 0 || apY.size() != k || apZ.size() != k || channels.size() != k)
+    {
+        NS_FATAL_ERROR("one position and one channel per AP");
+    }
+    if (userAp.size() != n) { NS_FATAL_ERROR("one AP index per user"); }
+    for (uint32_t a : userAp)
+    {
+        if (a >= k) { NS_FATAL_ERROR("AP index out of range"); }
+    }
+    State state;
+    g = &state;
+    g_userAp = userAp;
+    state.cum.assign(n, std::array<double, NF>{});
+    state.assocTime.assign(n, -1.0);
+    state.txCount.assign(n, {});
+    state.cw.assign(n, 15);
+    state.lastTx.assign(n, -1.0);
+
+    RngSeedManager::SetSeed(seed);
+    RngSeedManager::SetRun(run);
+
+    NodeContainer aps;
+    aps.Create(k);
+    state.stas.Create(n);
+
+    MobilityHelper mobility;
+    Ptr<ListPositionAllocator> pos = CreateObject<ListPositionAllocator>();
+    for (uint32_t a = 0; a < k; ++a) { pos->Add(Vector(apX[a], apY[a], apZ[a])); }
+    for (uint32_t i = 0; i < n; ++i) { pos->Add(Vector(xs[i], ys[i], userHeight)); }
+    mobility.SetPositionAllocator(pos);
+    mobility.SetMobilityModel("ns3::ConstantPositionMobilityModel");
+    mobility.Install(aps);
+    mobility.Install(state.stas);
+
+    const bool matrixLoss = !apLossDb.empty();
+    if (matrixLoss
+        && (apLossDb.size() != k * n || apApLossDb.size() != k * k || staLossDb.size() != n * n))
+    {
+        NS_FATAL_ERROR("apLossDb needs K x U values, apApLossDb K x K and staLossDb U x U");
+    }
+    // One channel object per distinct channel number, in order of first appearance.
+    std::vector<uint32_t> numbers;
+    std::vector<uint32_t> channelOfAp(k);
+    for (uint32_t a = 0; a < k; ++a)
+    {
+        auto it = std::find(numbers.begin(), numbers.end(), channels[a]);
+        channelOfAp[a] = it - numbers.begin();
+        if (it == numbers.end()) { numbers.push_back(channels[a]); }
+    }
+    std::vector<YansWifiChannelHelper> helpers(numbers.size());
+    std::vector<Ptr<YansWifiChannel>> media;
+    for (uint32_t c = 0; c < numbers.size(); ++c)
+    {
+        if (!matrixLoss)
+        {
+            helpers[c].SetPropagationDelay("ns3::ConstantSpeedPropagationDelayModel");
+            helpers[c].AddPropagationLoss("ns3::FriisPropagationLossModel",
+                                          "Frequency", DoubleValue(5.18e9));
+            helpers[c].AddPropagationLoss("ns3::NakagamiPropagationLossModel",
+                                          "m0", DoubleValue(nakagamiM),
+                                          "m1", DoubleValue(nakagamiM),
+                                          "m2", DoubleValue(nakagamiM));
+            media.push_back(helpers[c].Create());
+            continue;
+        }
+        Ptr<MatrixPropagationLossModel> matrix = CreateObject<MatrixPropagationLossModel>();
+        for (uint32_t a = 0; a < k; ++a)
+        {
+            Ptr<MobilityModel> am = aps.Get(a)->GetObject<MobilityModel>();
+            for (uint32_t i = 0; i < n; ++i)
+            {
+                matrix->SetLoss(am, state.stas.Get(i)->GetObject<MobilityModel>(),
+                                apLossDb[a * n + i], true);
+            }
+            for (uint32_t b = a + 1; b < k; ++b)
+            {
+                matrix->SetLoss(am, aps.Get(b)->GetObject<MobilityModel>(),
+                                apApLossDb[a * k + b], true);
+            }
+        }
+        for (uint32_t i = 0; i < n; ++i)
+        {
+            Ptr<MobilityModel> mi = state.stas.Get(i)->GetObject<MobilityModel>();
+            for (uint32_t j = i + 1; j < n; ++j)
+            {
+                matrix->SetLoss(mi, state.stas.Get(j)->GetObject<MobilityModel>(),
+                                staLossDb[i * n + j], true);
+            }
+        }
+        Ptr<NakagamiPropagationLossModel> nakagami =
+            CreateObjectWithAttributes<NakagamiPropagationLossModel>(
+                "m0", DoubleValue(nakagamiM), "m1", DoubleValue(nakagamiM),
+                "m2", DoubleValue(nakagamiM));
+        matrix->SetNext(nakagami);
+        Ptr<YansWifiChannel> medium = CreateObject<YansWifiChannel>();
+        medium->SetPropagationDelayModel(CreateObject<ConstantSpeedPropagationDelayModel>());
+        medium->SetPropagationLossModel(matrix);
+        media.push_back(medium);
+    }
+
+    // A PHY helper per device, configured as RunCase's (same attributes, same order).
+    auto phyOf = [&](uint32_t a) {
+        YansWifiPhyHelper phy;
+        phy.SetChannel(media[channelOfAp[a]]);
+        phy.Set("ChannelSettings",
+                StringValue("{" + std::to_string(channels[a]) + ", 20, BAND_5GHZ, 0}"));
+        phy.Set("TxPowerStart", DoubleValue(20.0));
+        phy.Set("TxPowerEnd", DoubleValue(20.0));
+        phy.Set("RxSensitivity", DoubleValue(-90.0));
+        phy.SetPreambleDetectionModel("ns3::ThresholdPreambleDetectionModel",
+                                      "MinimumRssi", DoubleValue(-90.0));
+        return phy;
+    };
+    auto ssidOf = [](uint32_t a) {
+        return Ssid(a == 0 ? std::string("tupa") : "tupa-" + std::to_string(a));
+    };
+
+    WifiHelper wifi;
+    wifi.SetStandard(WIFI_STANDARD_80211ac);
+    wifi.SetRemoteStationManager("ns3::IdealWifiManager");
+
+    WifiMacHelper mac;
+    for (uint32_t i = 0; i < n; ++i)
+    {
+        mac.SetType("ns3::StaWifiMac", "Ssid", SsidValue(ssidOf(userAp[i])));
+        state.staDevs.Add(wifi.Install(phyOf(userAp[i]), mac, state.stas.Get(i)));
+    }
+    NetDeviceContainer apDev;
+    for (uint32_t a = 0; a < k; ++a)
+    {
+        mac.SetType("ns3::ApWifiMac", "Ssid", SsidValue(ssidOf(a)));
+        apDev.Add(wifi.Install(phyOf(a), mac, aps.Get(a)));
+    }
+
+    NetDeviceContainer all;
+    all.Add(apDev);
+    all.Add(state.staDevs);
+    int64_t stream = 1000;
+    stream += WifiHelper::AssignStreams(all, stream);
+    for (uint32_t c = 0; c < media.size(); ++c)
+    {
+        stream += matrixLoss ? media[c]->AssignStreams(stream)
+                             : helpers[c].AssignStreams(media[c], stream);
+    }
+
+    InternetStackHelper internet;
+    internet.Install(aps);
+    internet.Install(state.stas);
+    NodeContainer allNodes(aps, state.stas);
+    stream += internet.AssignStreams(allNodes, stream);
+    Ipv4AddressHelper address;
+    address.SetBase("10.1.0.0", "255.255.0.0");
+    Ipv4InterfaceContainer apIf = address.Assign(apDev);
+    Ipv4InterfaceContainer staIf = address.Assign(state.staDevs);
+    if (macOnly)
+    {
+        TrafficControlHelper tch;
+        tch.Uninstall(apDev);
+        tch.Uninstall(state.staDevs);
+    }
+
+    const uint16_t port = 9;
+    PacketSinkHelper sink("ns3::UdpSocketFactory",
+                          InetSocketAddress(Ipv4Address::GetAny(), port));
+    ApplicationContainer sinkApp = sink.Install(aps);
+    sinkApp.Start(Seconds(0.0));
+
+    Ptr<UniformRandomVariable> jitter = CreateObject<UniformRandomVariable>();
+    jitter->SetAttribute("Min", DoubleValue(0.0));
+    jitter->SetAttribute("Max", DoubleValue(0.005));
+    jitter->SetStream(stream++);
+
+    for (uint32_t i = 0; i < n; ++i)
+    {
+        Ptr<Node> node = state.stas.Get(i);
+        Ptr<NetDevice> dev = state.staDevs.Get(i);
+        Ptr<WifiNetDevice> wdev = DynamicCast<WifiNetDevice>(dev);
+        state.macToUser[Mac48Address::ConvertFrom(dev->GetAddress())] = i;
+        state.ipToUser[staIf.GetAddress(i)] = i;
+        Ptr<WifiMac> wmac = wdev->GetMac();
+        wmac->TraceConnectWithoutContext("DroppedMpdu", MakeBoundCallback(&OnDropped, i));
+        wmac->TraceConnectWithoutContext("MacTxDrop", MakeBoundCallback(&OnMacTxDrop, i));
+        wmac->TraceConnectWithoutContext("NAckedMpdu", MakeBoundCallback(&OnNacked, i));
+        wmac->TraceConnectWithoutContext("AckedMpdu", MakeBoundCallback(&OnAcked, i));
+        wmac->TraceConnectWithoutContext("MpduResponseTimeout",
+                                         MakeBoundCallback(&OnMpduTimeout, i));
+        wmac->TraceConnectWithoutContext("PsduResponseTimeout",
+                                         MakeBoundCallback(&OnPsduTimeout, i));
+        wmac->TraceConnectWithoutContext("Assoc", MakeBoundCallback(&OnAssoc, i));
+        Ptr<QosTxop> be = wmac->GetQosTxop(AC_BE);
+        be->TraceConnectWithoutContext("CwTrace", MakeBoundCallback(&OnCw, i));
+        be->TraceConnectWithoutContext("BackoffTrace", MakeBoundCallback(&OnBackoff, i));
+        wdev->GetPhy()->TraceConnectWithoutContext("PhyTxPsduBegin",
+                                                   MakeBoundCallback(&OnPsduTx, i));
+        Ptr<TrafficControlLayer> tc = node->GetObject<TrafficControlLayer>();
+        tc->TraceConnectWithoutContext("TcDrop", MakeBoundCallback(&OnTcDrop, i));
+        Ptr<QueueDisc> root = tc->GetRootQueueDiscOnDevice(dev);
+        if (root)
+        {
+            root->TraceConnectWithoutContext("Drop", MakeBoundCallback(&OnQdiscDrop, i));
+        }
+        Ptr<Ipv4L3Protocol> ipv4 = node->GetObject<Ipv4L3Protocol>();
+        ipv4->TraceConnectWithoutContext("Drop", MakeBoundCallback(&OnIpDrop, i));
+        int32_t ifIndex = ipv4->GetInterfaceForDevice(dev);
+        ipv4->GetInterface(ifIndex)->GetArpCache()->TraceConnectWithoutContext(
+            "Drop", MakeBoundCallback(&OnArpDrop, i));
+        node->GetObject<ArpL3Protocol>()->TraceConnectWithoutContext(
+            "Drop", MakeBoundCallback(&OnArpDrop, i));
+
+        if (loads[i] <= 0) { continue; }
+        OnOffHelper onoff("ns3::UdpSocketFactory",
+                          InetSocketAddress(apIf.GetAddress(userAp[i]), port));
+        onoff.SetAttribute("OnTime", StringValue("ns3::ConstantRandomVariable[Constant=1e6]"));
+        onoff.SetAttribute("OffTime", StringValue("ns3::ConstantRandomVariable[Constant=0]"));
+        onoff.SetAttribute("DataRate", DataRateValue(DataRate(static_cast<uint64_t>(loads[i]))));
+        onoff.SetAttribute("PacketSize", UintegerValue(packetBytes));
+        ApplicationContainer app = onoff.Install(node);
+        stream += onoff.AssignStreams(node, stream);
+        app.Start(Seconds(appStart + jitter->GetValue()));
+        app.Get(0)->TraceConnectWithoutContext("Tx", MakeBoundCallback(&OnAppTx, i));
+    }
+    for (uint32_t a = 0; a < k; ++a)
+    {
+        Ptr<WifiPhy> apPhy = DynamicCast<WifiNetDevice>(apDev.Get(a))->GetPhy();
+        apPhy->TraceConnectWithoutContext("PhyRxPpduDrop",
+                                          MakeBoundCallback(&OnFleetApPpduDrop, a));
+        apPhy->TraceConnectWithoutContext("PhyRxBegin", MakeBoundCallback(&OnFleetApRxBegin, a));
+    }
+
+    FlowMonitorHelper flowmon;
+    state.monitor = flowmon.InstallAll();
+    state.classifier = DynamicCast<Ipv4FlowClassifier>(flowmon.GetClassifier());
+
+    double last = 0;
+    for (double t : snapshots)
+    {
+        Simulator::Schedule(Seconds(t), &Snapshot);
+        last = std::max(last, t);
+    }
+    Simulator::Stop(Seconds(last) + NanoSeconds(1));
+    Simulator::Run();
+
+    std::vector<double> result = state.out;
+    result.insert(result.end(), state.assocTime.begin(), state.assocTime.end());
+    state.monitor = nullptr;
+    state.classifier = nullptr;
+    Simulator::Destroy();
+    Ipv4AddressGenerator::Reset();
+    g = nullptr;
+    g_userAp.clear();
+    return result;
+}
 }  // namespace tupa_ns3
 """
 
@@ -579,11 +890,53 @@ def simulate(run_case: Any, request: dict[str, Any]) -> dict[str, Any]:
         vec([float(x) for x in request.get("ap_loss_db", [])]),
         vec([float(x) for x in request.get("sta_loss_db", [])]),
     )
+    return _unpack(flat, n_users, len(snapshot_times))
+
+
+def simulate_fleet(run_fleet_case: Any, request: dict[str, Any]) -> dict[str, Any]:
+    """Simulate one case with K access points (``request["fleet"]``: ``uavs`` [[x, y, z]] and
+    ``channels`` per AP, ``association`` per user; see :func:`sim.ns3_backend._fleet_request`)
+    with the compiled ``RunFleetCase``; the reply is :func:`simulate`'s."""
+    import cppyy
+
+    case = request["case"]
+    fleet = request["fleet"]
+    users = case["users"]
+    snapshot_times = [float(t) for t in request["snapshot_times_s"]]
+    vec = cppyy.gbl.std.vector["double"]
+    uvec = cppyy.gbl.std.vector["unsigned int"]
+    uavs = fleet["uavs"]
+    flat = run_fleet_case(
+        vec([float(p[0]) for p in uavs]),
+        vec([float(p[1]) for p in uavs]),
+        vec([float(p[2]) for p in uavs]),
+        uvec([int(c) for c in fleet["channels"]]),
+        uvec([int(a) for a in fleet["association"]]),
+        vec([float(u["x_m"]) for u in users]),
+        vec([float(u["y_m"]) for u in users]),
+        vec([float(u["load_bps"]) for u in users]),
+        float(request["user_height_m"]),
+        request["queueing"] == "mac-only",
+        float(request["app_start_s"]),
+        vec(snapshot_times),
+        int(request["seed"]),
+        int(request["run"]),
+        int(request["packet_bytes"]),
+        float(request["nakagami_m"]),
+        vec([float(x) for x in request.get("ap_loss_db", [])]),
+        vec([float(x) for x in request.get("ap_ap_loss_db", [])]),
+        vec([float(x) for x in request.get("sta_loss_db", [])]),
+    )
+    return _unpack(flat, len(users), len(snapshot_times))
+
+
+def _unpack(flat: Any, n_users: int, n_snapshots: int) -> dict[str, Any]:
+    """The flat vector a scenario returns as snapshots of named counters per user."""
     values = list(flat)
     row = 1 + n_users * N_FIELDS
     names = FIELDS + tuple(f"ap_phy_drop_{r.lower()}" for r in PHY_DROP_REASONS)
     snapshots = []
-    for k in range(len(snapshot_times)):
+    for k in range(n_snapshots):
         block = values[k * row : (k + 1) * row]
         snapshots.append(
             {
@@ -594,7 +947,7 @@ def simulate(run_case: Any, request: dict[str, Any]) -> dict[str, Any]:
                 ],
             }
         )
-    assoc = values[len(snapshot_times) * row :]
+    assoc = values[n_snapshots * row :]
     return {"snapshots": snapshots, "assoc_time_s": assoc}
 
 
@@ -621,7 +974,12 @@ def serve(request_fd: int, reply_fd: int) -> None:
         request = json.loads(line)
         started = time.perf_counter()
         try:
-            result = simulate(run_case, request)
+            if "fleet" in request:
+                import cppyy
+
+                result = simulate_fleet(cppyy.gbl.tupa_ns3.RunFleetCase, request)
+            else:
+                result = simulate(run_case, request)
         except Exception:
             reply({"ok": False, "error": traceback.format_exc(limit=3)})
             continue

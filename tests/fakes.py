@@ -46,11 +46,14 @@ class FakeLink(VehicleLink):
         climb_mps: float = 3.0,
         realtime: bool = False,
         tick_s: float = 0.02,
+        system_id: int = 1,
     ) -> None:
         """``position_m``: where the vehicle is (area frame); ``airborne`` (default: above 1 m)
         says whether it flies (armed) or stands on the ground (disarmed, deaf to setpoints until
         :meth:`arm_and_takeoff`); ``up``: the link is up from the start, else ``connecting``."""
         self.config = config if config is not None else LinkConfig("fake:")
+        self.system_id = system_id
+        """The MAVLink system id its HEARTBEATs would carry."""
         x_m, y_m, z_m = (float(v) for v in position_m)
         self.speed_mps = speed_mps
         self.climb_mps = climb_mps
@@ -124,6 +127,7 @@ class FakeLink(VehicleLink):
                 counters=dict(self.counters),
                 takeoff_phase="climbing" if self._takeoff == "running" else None,
                 takeoff_attempts=self._takeoff_attempts,
+                system_id=self.system_id if heard else None,
             )
 
     def set_target(self, target_m: Sequence[float]) -> tuple[float, float, float]:

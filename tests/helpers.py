@@ -10,7 +10,7 @@ from __future__ import annotations
 import socket
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 if TYPE_CHECKING:
     from sitl_mock.server import MockAutopilot
@@ -46,3 +46,22 @@ def free_udp_port() -> int:
 def tcp_url(mock: MockAutopilot) -> str:
     """The pymavlink connection string of a mock listening on loopback TCP."""
     return f"tcp:127.0.0.1:{mock.port}"
+
+
+def tiny_preset(algorithm: str = "ddpg", **overrides: Any) -> Any:
+    """The ``fast`` preset of ``algorithm`` shrunk for tests that train for real in seconds:
+    one 8-channel conv layer, a 32-unit head, a small buffer, 10-step training episodes
+    (``overrides`` replace any field)."""
+    from dataclasses import replace
+
+    from policies.presets import NetworkPreset, get_preset
+
+    fields: dict[str, Any] = {
+        "network": NetworkPreset(channels=(8,), hidden=32, features_dim=32, dropout=0.0),
+        "buffer_size": 5_000,
+        "learning_starts": 64,
+        "batch_size": 32,
+        "train_episode_steps": 10,
+        **overrides,
+    }
+    return replace(get_preset("fast", algorithm), **fields)

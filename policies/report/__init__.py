@@ -12,7 +12,8 @@ measure them). Summaries are recomputed from the per-scenario rows, not copied f
 
 The trainer writes the learning curve with :func:`policies.report.curves.write_learning_curve`;
 importing this package does not load matplotlib. Given a ``tupa sweep`` directory, the report
-merges the sweep instead (:mod:`.sweep`).
+merges the sweep instead (:mod:`.sweep`); given fleet evaluations (``tupa eval --uavs K``), the
+fleet figures and tables (:mod:`.fleet`).
 """
 
 from __future__ import annotations
@@ -57,6 +58,10 @@ def build_report(results_dir: Path, out_dir: Path, warn: Warn = stderr_warning) 
         from policies.report.sweep import build_sweep_report
 
         return build_sweep_report(results_dir, out_dir, warn)
+    from policies.report.fleet import build_fleet_report, holds_fleet_results
+
+    if holds_fleet_results(results_dir):  # tupa eval --uavs K files: policies/report/fleet.py
+        return build_fleet_report(results_dir, out_dir, warn)
     results, learning = load_inputs(results_dir, warn)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out: {out_dir}: exists and is not a directory")

@@ -386,7 +386,8 @@ def test_metrics_in_prometheus_text(client: TestClient) -> None:
 def test_openapi_documents_every_route_with_examples(client: TestClient) -> None:
     schema = client.get("/openapi.json").json()
     paths = schema["paths"]
-    for path in ("/v1/reports", "/v1/setpoint", "/v1/vehicle", "/v1/policy", "/healthz"):
+    for path in ("/v1/reports", "/v1/setpoint", "/v1/vehicle", "/v1/vehicles", "/v1/policy",
+                 "/v1/vehicles/{vehicle_id}", "/healthz"):  # fmt: skip
         assert path in paths
     components = schema["components"]["schemas"]
     for model in ("ReportIn", "DecisionOut", "VehicleOut", "PolicyOut", "PolicyIn"):
@@ -406,6 +407,7 @@ def test_report_while_the_link_is_down_is_accepted_and_waits() -> None:
             "source": "none",
             "policy": None,
             "decided_at": None,
+            "targets": None,
         }
         ready = test_client.get("/readyz")
         assert ready.status_code == 503

@@ -190,7 +190,7 @@ def test_events_are_well_formed_and_follow_the_service(running: Running) -> None
     assert [u.id for u in last.users] == ["ue-1", "ue-2", "ue-3"]
     assert last.users[0].served == pytest.approx(0.8)
     (vehicle,) = last.vehicles
-    assert vehicle.id == "uav-1" and vehicle.link == "up" and vehicle.position_m is not None
+    assert vehicle.id == "uav1" and vehicle.link == "up" and vehicle.position_m is not None
     assert vehicle.decision is not None and vehicle.target_m is not None
     assert last.geofence.z_m == [25.0, 100.0] and last.area.zone_m == 25.0
     utility = last.utility

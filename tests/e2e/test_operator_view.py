@@ -183,7 +183,7 @@ def test_the_page_follows_the_closed_loop(
 
 def _walk_through(page: Any, loop: dict[str, Any], tmp_path: Path) -> None:
     base = loop["base"]
-    vehicle = 'g.vehicle[data-vehicle-id="uav-1"]'
+    vehicle = 'g.vehicle[data-vehicle-id="uav1"]'
 
     # 1. The page loads without a token in its address; the first live frame arrives.
     page.goto(f"{base}/ui")
@@ -241,9 +241,9 @@ def _walk_through(page: Any, loop: dict[str, Any], tmp_path: Path) -> None:
         timeout=30_000,
     )
     assert page.evaluate("window.tupaView.reconnects") >= 1
-    link = page.locator('[data-testid="link-uav-1"]')
+    link = page.locator('[data-testid="link-uav1"]')
     page.wait_for_function(
-        "() => document.querySelector('[data-testid=\"link-uav-1\"]')?.dataset.state === 'up'",
+        "() => document.querySelector('[data-testid=\"link-uav1\"]')?.dataset.state === 'up'",
         timeout=30_000,
     )
 
@@ -253,7 +253,7 @@ def _walk_through(page: Any, loop: dict[str, Any], tmp_path: Path) -> None:
     loop["vehicle"].close()
     loop["mock"].proc.kill()
     page.wait_for_function(
-        "() => document.querySelector('[data-testid=\"link-uav-1\"]')?.dataset.state === 'lost'",
+        "() => document.querySelector('[data-testid=\"link-uav1\"]')?.dataset.state === 'lost'",
         timeout=20_000,
         polling=200,
     )

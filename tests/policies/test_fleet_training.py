@@ -14,13 +14,12 @@ import pytest
 
 from policies.checkpoints import CheckpointError, load_checkpoint
 from policies.fleet_baselines import KMeansPlacement
+from policies.fleet_evaluation import evaluate_fleet
 from policies.fleet_training import (
     FleetCheckpointPolicy,
     FleetTrainConfig,
-    evaluate_fleet,
     train_fleet,
 )
-from policies.presets import NetworkPreset, get_preset
 from service.cli import main
 from sim.config import AreaConfig
 from sim.errors import InputError
@@ -28,16 +27,10 @@ from sim.fleet import FleetConfig
 from sim.fleet_env import FleetParallelEnv
 from sim.scenarios import generate_scenarios
 from sim.world import get_world
+from tests.helpers import tiny_preset
 
 AREA = AreaConfig()
-TINY_PRESET = replace(
-    get_preset("fast", "ddpg"),
-    network=NetworkPreset(channels=(8,), hidden=32, features_dim=32, dropout=0.0),
-    buffer_size=5_000,
-    learning_starts=64,
-    batch_size=32,
-    train_episode_steps=10,
-)
+TINY_PRESET = tiny_preset()
 SHORT_WORLD = replace(get_world("closed-loop"), episode_steps=8)
 
 
@@ -157,7 +150,7 @@ def test_evaluation_refuses_bad_input(trained):
     [
         ({"n_uavs": 9}, "--uavs"),
         ({"n_uavs": 0}, "--uavs"),
-        ({"algorithm": "ddqn"}, "--uavs"),
+        ({"algorithm": "sac"}, "--algo: fleets train with ddpg or ddqn"),
         ({"episodes": 0}, "--episodes"),
         ({"world": "moon"}, "world"),
         ({"families": ("nope",)}, "families"),
@@ -174,7 +167,10 @@ def test_config_refuses_bad_fields(tmp_path, changes, field):
     [
         (["--uavs", "9", "--algo", "ddpg"], "--uavs: must be in 1..8"),
         (["--uavs", "0", "--algo", "ddpg"], "--uavs: must be in 1..8"),
-        (["--uavs", "2", "--algo", "ddqn"], "--uavs: fleets train with --algo ddpg for now"),
+        (
+            ["--uavs", "2", "--algo", "ddqn", "--action", "residual"],
+            "--action: residual actions are DDPG's",
+        ),
     ],
 )
 def test_cli_refuses_bad_fleet_sizes_and_writes_nothing(tmp_path, capsys, extra, message):
@@ -228,6 +224,7 @@ def test_training_is_deterministic_given_the_seed(tmp_path):
 
 def test_the_update_ratio_is_kept_per_transition():
     from policies.fleet_training import _vector_preset
+    from policies.presets import get_preset
 
     preset = get_preset("fast", "ddpg")  # one gradient step per 8 transitions
     assert (preset.train_freq, preset.gradient_steps) == (8, 1)
@@ -241,6 +238,6 @@ def test_a_checkpoint_acting_otherwise_is_refused(trained):
     out, _ = trained
     policy = FleetCheckpointPolicy.load(out, AREA)
     with pytest.raises(InputError, match="action"):
-        FleetCheckpointPolicy(policy.model, {**policy.metadata, "action": "residual"}, AREA)
+        FleetCheckpointPolicy(policy.model, {**policy.metadata, "action": "moves"}, AREA)
     with pytest.raises(InputError, match="separation_m"):
         FleetCheckpointPolicy(policy.model, policy.metadata, AREA, separation_m=0.0)

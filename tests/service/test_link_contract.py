@@ -135,6 +135,7 @@ def test_link_comes_up_and_reports_flavour_mode_and_position(
     )
     assert state.flavour == flavour
     assert state.mode == mode
+    assert state.system_id == 1  # the mock's: what a fleet tells its vehicles apart by
     assert not state.armed
     assert state.heartbeat_age_s is not None and state.heartbeat_age_s < 1.5
     assert math.dist(state.position_m, HOME_AREA_M) < 0.1

@@ -144,7 +144,7 @@ def test_a_frame_shows_a_lost_link_and_no_numbers_it_cannot_carry() -> None:
     state = _state(link="link_lost", heading_deg=float("nan"), heartbeat_age_s=float("inf"))
     frame = json.loads(view.frame(_moment(state)).data)
     (vehicle,) = frame["vehicles"]
-    assert vehicle["link"] == "link_lost" and vehicle["id"] == "uav-1"
+    assert vehicle["link"] == "link_lost" and vehicle["id"] == "uav1"
     assert vehicle["heading_deg"] is None and vehicle["heartbeat_age_s"] is None
     assert frame["utility"] is None and frame["users"] == [] and frame["report"] is None
 

@@ -1,0 +1,201 @@
+"""Which vehicles ``tupa serve`` drives: one, or a fleet of 1–8 from a fleet file or repeated
+``--mavlink`` options.
+
+A fleet file is YAML (JSON is YAML too)::
+
+    separation_m: 10            # optional (default 10): the minimum 3-D distance between targets
+    vehicles:                   # 1..8, in priority order (the first keeps its target in a conflict)
+      - id: uav1                # letters, digits, '-' and '_'; unique
+        mavlink: tcp:127.0.0.1:5760
+        system_id: 1            # optional: the MAVLink system id this vehicle must have
+        area_origin_north_m: 0  # optional: where the area's south-west corner at z = 0 lies
+        area_origin_east_m: 0   #   from THIS vehicle's home, local NED (homes differ)
+        area_origin_down_m: 0
+
+Every problem is one :class:`~service.errors.InputError` naming the field
+(``vehicles[1].mavlink: ...``): a fleet outside 1–8 vehicles, two vehicles with the same id,
+connection or system id, a connection string pymavlink would not know, a separation that is not
+a positive number, an unknown key.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from service.errors import InputError
+from service.frames import FrameConfig
+from sim.fleet import MAX_UAVS
+
+DEFAULT_SEPARATION_M = 10.0
+"""The fleet's default minimum distance between any two targets, metres (3-D)."""
+
+_ID = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
+_NETWORK_SCHEMES = ("tcp", "tcpin", "udp", "udpin", "udpout", "udpbcast")
+_VEHICLE_KEYS = frozenset(
+    {
+        "id",
+        "mavlink",
+        "system_id",
+        "area_origin_north_m",
+        "area_origin_east_m",
+        "area_origin_down_m",
+    }
+)
+_FLEET_KEYS = frozenset({"separation_m", "vehicles"})
+
+
+@dataclass(frozen=True)
+class VehicleSpec:
+    """One vehicle of the fleet: its name in the API, its connection and its frame."""
+
+    id: str
+    mavlink: str
+    system_id: int | None = None
+    frames: FrameConfig = FrameConfig()  # noqa: RUF009 (frozen, so sharing it is safe)
+
+
+@dataclass(frozen=True)
+class FleetSpec:
+    """The vehicles, in priority order, and the separation every set of targets keeps."""
+
+    vehicles: tuple[VehicleSpec, ...]
+    separation_m: float = DEFAULT_SEPARATION_M
+
+    def __post_init__(self) -> None:
+        check_fleet(self)
+
+    @property
+    def ids(self) -> tuple[str, ...]:
+        return tuple(v.id for v in self.vehicles)
+
+    def __len__(self) -> int:
+        return len(self.vehicles)
+
+
+def check_connection(url: str, field: str) -> str:
+    """``url`` if pymavlink can open it (``tcp:HOST:PORT``, ``udpin:``, ``udpout:``, ``udp:``,
+    ``tcpin:``, ``udpbcast:``, or a serial device path with an optional ``,BAUD``); otherwise
+    InputError naming ``field``."""
+    text = url.strip() if isinstance(url, str) else ""
+    if not text:
+        raise InputError(f"{field}: must be a MAVLink connection string, got {url!r}")
+    if text.startswith(("/", "COM")):  # a serial device (optionally ",BAUD")
+        baud = text.partition(",")[2]
+        if baud and not baud.isdigit():
+            raise InputError(f"{field}: serial baud rate {baud!r} is not a number")
+        return text
+    scheme, sep, rest = text.partition(":")
+    if not sep or scheme not in _NETWORK_SCHEMES:
+        raise InputError(
+            f"{field}: unknown connection {text!r}: expected one of "
+            f"{', '.join(s + ':HOST:PORT' for s in _NETWORK_SCHEMES)} or a serial device path"
+        )
+    host, sep, port = rest.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) <= 65535:
+        raise InputError(f"{field}: {text!r} needs {scheme}:HOST:PORT with a port in 1..65535")
+    return text
+
+
+def check_fleet(fleet: FleetSpec) -> None:
+    """InputError naming the field for a fleet the service cannot drive (module doc)."""
+    k = len(fleet.vehicles)
+    if not 1 <= k <= MAX_UAVS:
+        raise InputError(f"vehicles: a fleet has 1..{MAX_UAVS} vehicles, got {k}")
+    sep = fleet.separation_m
+    if isinstance(sep, bool) or not isinstance(sep, int | float) or not math.isfinite(sep):
+        raise InputError(f"separation_m: must be a number, got {sep!r}")
+    if sep <= 0:
+        raise InputError(f"separation_m: must be > 0, got {sep!r}")
+    seen: dict[str, dict[object, int]] = {"id": {}, "mavlink": {}, "system_id": {}}
+    for i, vehicle in enumerate(fleet.vehicles):
+        if not isinstance(vehicle.id, str) or not _ID.match(vehicle.id):
+            raise InputError(
+                f"vehicles[{i}].id: 1-32 letters, digits, '-' or '_', got {vehicle.id!r}"
+            )
+        check_connection(vehicle.mavlink, f"vehicles[{i}].mavlink")
+        sid = vehicle.system_id
+        if sid is not None and (
+            isinstance(sid, bool) or not isinstance(sid, int) or not 1 <= sid <= 255
+        ):
+            raise InputError(f"vehicles[{i}].system_id: must be an integer in 1..255, got {sid!r}")
+        unique = (("id", vehicle.id), ("mavlink", vehicle.mavlink.strip()), ("system_id", sid))
+        for key, value in unique:
+            if value is None:
+                continue
+            if value in seen[key]:
+                raise InputError(
+                    f"vehicles[{i}].{key}: {value!r} is also vehicles[{seen[key][value]}]'s"
+                )
+            seen[key][value] = i
+
+
+def single_vehicle(mavlink: str, frames: FrameConfig) -> FleetSpec:
+    """The one-vehicle fleet of a plain ``tupa serve --mavlink URL`` (id ``uav1``)."""
+    return FleetSpec((VehicleSpec("uav1", mavlink, None, frames),))
+
+
+def fleet_from_urls(
+    urls: list[str] | tuple[str, ...], frames: FrameConfig, separation_m: float
+) -> FleetSpec:
+    """A fleet from repeated ``--mavlink`` options: ids ``uav1``, ``uav2``, ..., all in the same
+    frame (vehicles that share a home or an EKF origin; otherwise use a fleet file)."""
+    vehicles = tuple(VehicleSpec(f"uav{i + 1}", url, None, frames) for i, url in enumerate(urls))
+    return FleetSpec(vehicles, separation_m)
+
+
+def parse_fleet(data: Any, default_separation_m: float = DEFAULT_SEPARATION_M) -> FleetSpec:
+    """A :class:`FleetSpec` from a fleet file's parsed content (module doc)."""
+    if not isinstance(data, dict):
+        raise InputError("fleet file: must be a mapping with a 'vehicles' list")
+    unknown = sorted(set(map(str, data)) - _FLEET_KEYS)
+    if unknown:
+        raise InputError(f"{unknown[0]}: unknown key (expected {', '.join(sorted(_FLEET_KEYS))})")
+    items = data.get("vehicles")
+    if not isinstance(items, list):
+        raise InputError("vehicles: must be a list of vehicles")
+    vehicles = []
+    for i, item in enumerate(items):
+        if not isinstance(item, dict):
+            raise InputError(f"vehicles[{i}]: must be a mapping with 'id' and 'mavlink'")
+        extra = sorted(set(map(str, item)) - _VEHICLE_KEYS)
+        if extra:
+            raise InputError(f"vehicles[{i}].{extra[0]}: unknown key")
+        for key in ("id", "mavlink"):
+            if not isinstance(item.get(key), str):
+                raise InputError(f"vehicles[{i}].{key}: required, a string")
+        origin = []
+        for axis in ("north", "east", "down"):
+            key = f"area_origin_{axis}_m"
+            value = item.get(key, 0.0)
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise InputError(f"vehicles[{i}].{key}: must be a number, got {value!r}")
+            if not math.isfinite(value):
+                raise InputError(f"vehicles[{i}].{key}: must be finite, got {value!r}")
+            origin.append(float(value))
+        vehicles.append(
+            VehicleSpec(item["id"], item["mavlink"], item.get("system_id"), FrameConfig(*origin))
+        )
+    return FleetSpec(tuple(vehicles), data.get("separation_m", default_separation_m))
+
+
+def load_fleet_file(
+    path: Path | str, default_separation_m: float = DEFAULT_SEPARATION_M
+) -> FleetSpec:
+    """Read and check a fleet file (InputError naming the file or the field)."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"fleet_file: cannot read {path}: {exc}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" (line {mark.line + 1})" if mark is not None else ""
+        raise InputError(f"fleet_file: {path} is not valid YAML{where}") from None
+    return parse_fleet(data, default_separation_m)

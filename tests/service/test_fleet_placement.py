@@ -1,0 +1,259 @@
+"""The fleet's placement loop (:mod:`service.fleet_placement`) on in-memory vehicles
+(:class:`tests.fakes.FakeLink`): one report, one separated target per vehicle; degraded mode
+(a lost vehicle's users covered by the others at the next decision, its stream cleared, its last
+position kept clear; it rejoins when its link returns); two connections to one vehicle; a system
+id the fleet file does not name; fleet policy swaps and refusals."""
+
+from __future__ import annotations
+
+import itertools
+import shutil
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from policies.fleet_baselines import KMeansPlacement
+from policies.fleet_training import FleetTrainConfig, train_fleet
+from policies.interface import ReportedUsers
+from policies.training import zero_actor_output
+from service.errors import InputError
+from service.fleet_placement import FleetPlacementService, load_fleet_policy
+from service.fleet_spec import FleetSpec, VehicleSpec
+from service.placement import Report
+from service.policy_runtime import SHIPPED_CHECKPOINTS
+from service.settings import ServiceSettings
+from service.vehicle_link import LinkConfig
+from sim.geometry import assign_targets
+from sim.observation import UserReports
+from tests.fakes import FakeLink
+from tests.helpers import tiny_preset
+
+HOT_SPOTS = ((100.0, 100.0), (400.0, 400.0), (100.0, 400.0))
+TINY_PRESET = tiny_preset(learning_starts=16, batch_size=16, train_episode_steps=5)
+
+
+def hot_spot_report(timestamp_s: float, seed: int = 0) -> Report:
+    """Ten users around each of three hot spots, 2 Mbit/s each."""
+    rng = np.random.default_rng(seed)
+    xy = np.concatenate([rng.normal(c, 15.0, (10, 2)) for c in HOT_SPOTS]).clip(0.0, 500.0)
+    n = len(xy)
+    users = UserReports(
+        xy[:, 0], xy[:, 1], np.full(n, 2e6), np.full(n, 2e6), np.full(n, 0.01), np.zeros(n)
+    )
+    return Report(timestamp_s, tuple(f"u{i}" for i in range(n)), users)
+
+
+Fleet = tuple[FleetPlacementService, dict[str, FakeLink]]
+
+
+@pytest.fixture
+def make_fleet() -> Iterator[Callable[..., Fleet]]:
+    """Factory: ``make_fleet(k, policy=..., system_ids=..., expected=...)``: a started
+    ``on-report`` fleet service over k FakeLinks airborne 60 m apart; stopped at teardown."""
+    services: list[FleetPlacementService] = []
+
+    def _make(
+        k: int = 3,
+        policy: str = "kmeans-load-weighted",
+        system_ids: list[int] | None = None,
+        expected: list[int | None] | None = None,
+        **settings: Any,
+    ) -> Fleet:
+        urls = tuple(f"tcp:127.0.0.1:{5760 + i}" for i in range(k))
+        config = ServiceSettings(
+            fleet_mavlink=urls if k > 1 else (),
+            mavlink=urls[0],
+            insecure=True,
+            decision_mode="on-report",
+            **settings,
+        )
+        expected = expected or [None] * k
+        fleet = FleetSpec(
+            tuple(VehicleSpec(f"uav{i + 1}", urls[i], expected[i]) for i in range(k)),
+            config.separation_m,
+        )
+        world = config.policy_world()
+        system_ids = system_ids or list(range(1, k + 1))
+        links = {
+            v.id: FakeLink(
+                LinkConfig(v.mavlink, area=world.area),
+                position_m=(200.0 + 60.0 * i, 250.0, 30.0),
+                system_id=system_ids[i],
+            )
+            for i, v in enumerate(fleet.vehicles)
+        }
+        policy_object = load_fleet_policy(policy, world, fleet.separation_m)
+        service = FleetPlacementService(config, links, policy_object, fleet, world).start()
+        services.append(service)
+        return service, links
+
+    yield _make
+    for service in services:
+        service.stop()
+
+
+def _min_gap(points: list[tuple[float, float, float]]) -> float:
+    return min(np.linalg.norm(np.subtract(a, b)) for a, b in itertools.combinations(points, 2))
+
+
+def test_one_report_gives_every_vehicle_a_separated_target_on_a_hot_spot(
+    make_fleet: Callable[..., Fleet],
+) -> None:
+    service, links = make_fleet(3)
+    service.submit_report(hot_spot_report(time.time()))
+    decisions = service.decisions()
+    assert list(decisions) == ["uav1", "uav2", "uav3"]
+    targets = [d.target_m for d in decisions.values()]
+    assert _min_gap(targets) >= 10.0
+    # One vehicle per hot spot (the load-weighted k-means clusters), each within 30 m of it.
+    for spot in HOT_SPOTS:
+        assert min(np.hypot(t[0] - spot[0], t[1] - spot[1]) for t in targets) < 30.0
+    # What each link streams is its decision.
+    for vid, link in links.items():
+        assert link.state().target_m == decisions[vid].target_m
+    assert service.readiness() == (True, [])
+
+
+def test_a_lost_vehicle_is_covered_by_the_others_and_rejoins_when_it_returns(
+    make_fleet: Callable[..., Fleet],
+) -> None:
+    service, links = make_fleet(3)
+    report = hot_spot_report(time.time())
+    service.submit_report(report)
+    full = service.decisions()
+    lost_at = links["uav2"].state().position_m
+
+    links["uav2"].set_link(False)
+    service.submit_report(hot_spot_report(time.time(), seed=0))
+    degraded = service.decisions()
+    assert list(degraded) == ["uav1", "uav3"]
+    # The two that fly now take the placement the same policy gives two vehicles, for all users.
+    wanted = KMeansPlacement(2, service.area, load_weighted=True).place(
+        ReportedUsers.of(report.users)
+    )
+    got = np.array([d.target_m for d in degraded.values()])
+    assert sorted(map(tuple, np.round(got, 6))) == sorted(map(tuple, np.round(wanted, 6)))
+    # Its stream is cleared (nothing stale flies when its link returns) and it is kept clear of.
+    assert links["uav2"].state().target_m is None
+    assert all(np.linalg.norm(np.subtract(t, lost_at)) >= 10.0 for t in got)
+    ready, reasons = service.readiness()
+    assert ready and reasons == ["uav2: mavlink link is link_lost"]
+    views = {v.id: v for v in service.vehicles()}
+    assert views["uav2"].problem == "mavlink link is link_lost" and views["uav2"].decision is None
+    assert service.snapshot_counters()["decisions_degraded"] == 1
+
+    links["uav2"].set_link(True)
+    service.submit_report(hot_spot_report(time.time()))
+    rejoined = service.decisions()
+    assert list(rejoined) == ["uav1", "uav2", "uav3"]
+    assert sorted(d.target_m for d in rejoined.values()) == sorted(
+        d.target_m for d in full.values()
+    )
+
+
+def test_all_vehicles_lost_holds_and_the_report_is_decided_when_one_returns(
+    make_fleet: Callable[..., Fleet],
+) -> None:
+    service, links = make_fleet(2)
+    for link in links.values():
+        link.set_link(False)
+    service.submit_report(hot_spot_report(time.time()))
+    assert service.decisions() == {}
+    assert service.snapshot_counters()["decisions_waiting_link"] == 1
+    assert service.readiness()[0] is False
+    links["uav2"].set_link(True)
+    # The on-report watcher decides the waiting report once a vehicle can be commanded.
+    deadline = time.monotonic() + 10.0
+    while not service.decisions() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert list(service.decisions()) == ["uav2"]
+
+
+def test_two_connections_to_one_vehicle_command_it_once(
+    make_fleet: Callable[..., Fleet],
+) -> None:
+    service, links = make_fleet(3, system_ids=[1, 2, 1])
+    service.submit_report(hot_spot_report(time.time()))
+    assert list(service.decisions()) == ["uav1", "uav2"]
+    assert links["uav3"].state().target_m is None
+    ready, reasons = service.readiness()
+    assert ready and reasons == [
+        "uav3: system id 1 is also uav1's: two connections reach one vehicle; not commanded"
+    ]
+    assert service.snapshot_counters()["duplicate_system_id"] == 1
+
+
+def test_a_vehicle_with_another_system_id_than_the_fleet_files_is_not_commanded(
+    make_fleet: Callable[..., Fleet],
+) -> None:
+    service, _ = make_fleet(2, system_ids=[1, 7], expected=[1, 2])
+    service.submit_report(hot_spot_report(time.time()))
+    assert list(service.decisions()) == ["uav1"]
+    assert service.readiness()[1] == [
+        "uav2: system id 7 heard, the fleet file says 2: not commanded"
+    ]
+
+
+def test_fleet_policies_swap_and_bad_ones_are_refused(make_fleet: Callable[..., Fleet]) -> None:
+    service, _ = make_fleet(2)
+    assert service.swap_policy("kmeans-min-distance").name == "kmeans-min-distance"
+    for spec in ("oracle", "min-distance", ""):
+        with pytest.raises(InputError, match="policy: a fleet is served by one of"):
+            service.swap_policy(spec)
+    # Single-vehicle checkpoints are not fleet ones (and only the allowed dirs are read).
+    for name in ("ddqn-dr", "ddpg-residual-dr"):
+        with pytest.raises(InputError, match="policy: observation_shape: built for another"):
+            service.swap_policy(str(SHIPPED_CHECKPOINTS / f"{name}.zip"))
+    assert service.policy.name == "kmeans-min-distance"
+    service.submit_report(hot_spot_report(time.time()))
+    assert len(service.decisions()) == 2
+
+
+def test_a_fleet_uses_its_own_default_policy_unless_one_is_named(tmp_path: Any) -> None:
+    path = tmp_path / "fleet.yaml"
+    path.write_text("vehicles: [{id: a, mavlink: 'tcp:127.0.0.1:1'}]\n")
+    service = FleetPlacementService.from_settings(ServiceSettings(fleet_file=path, insecure=True))
+    try:
+        assert service.policy.name == "kmeans-load-weighted" and service.is_fleet
+    finally:
+        service.close_links()
+    with pytest.raises(InputError, match="policy: a fleet is served by one of"):
+        FleetPlacementService.from_settings(
+            ServiceSettings(fleet_file=path, insecure=True, policy="oracle")
+        )
+
+
+def test_a_fleet_checkpoint_is_served_from_the_allowed_dirs(
+    make_fleet: Callable[..., Fleet], tmp_path: Path
+) -> None:
+    """A residual fleet checkpoint (tiny, trained here) flies the fleet through the service's
+    observation path; with its actor's output at zero it places as load-weighted k-means."""
+    out = tmp_path / "allowed" / "fleet-run"
+    train_fleet(
+        FleetTrainConfig(
+            n_uavs=2, episodes=4, out_dir=out, preset=TINY_PRESET, users=(10, 12),
+            action="residual", command="test",
+        )
+    )  # fmt: skip
+    service, links = make_fleet(3, policy_dirs=(tmp_path / "allowed",))
+    outside = shutil.copytree(out, tmp_path / "outside")
+    with pytest.raises(InputError, match="outside the checkpoint directories"):
+        service.swap_policy(str(outside))
+    policy = service.swap_policy(str(out))
+    assert policy.describe()["metadata"]["action"] == "residual"
+    report = hot_spot_report(time.time())
+    service.submit_report(report)
+    targets = np.array([d.target_m for d in service.decisions().values()])
+    assert targets.shape == (3, 3) and _min_gap([tuple(t) for t in targets]) >= 10.0
+    zero_actor_output(policy.policy.model)  # type: ignore[attr-defined]
+    service.submit_report(hot_spot_report(time.time() + 0.001))
+    got = np.array([d.target_m for d in service.decisions().values()])
+    here = np.array([link.state().position_m for link in links.values()])
+    wanted = KMeansPlacement(3, service.area, load_weighted=True).place(
+        ReportedUsers.of(report.users)
+    )
+    np.testing.assert_allclose(got, assign_targets(here, wanted), atol=1e-9)

@@ -1,0 +1,132 @@
+"""The fleet's last step before streaming (:mod:`service.fleet_targets`), property-tested: the
+guard never lets two targets closer than the separation, a target near a vehicle that cannot be
+commanded, or a target outside the area volume (the geofence) through, whatever the policy
+asked for; the assignment is the least-travel one."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from service.fleet_targets import (
+    SEPARATION_TOLERANCE_M,
+    assign_targets,
+    check_targets,
+    guard_targets,
+    inside_volume,
+)
+from sim.config import AreaConfig
+from sim.geometry import volume_bounds
+
+AREA = AreaConfig()
+SMALL = AreaConfig(size_x_m=60.0, size_y_m=60.0, zone_m=5.0, z_min_m=5.0, z_max_m=20.0)
+
+anywhere = st.floats(-200.0, 800.0, allow_nan=False)  # inside and well outside the volume
+point = st.tuples(anywhere, anywhere, st.floats(-50.0, 200.0, allow_nan=False))
+
+
+def _inside(area: AreaConfig) -> st.SearchStrategy[tuple[float, float, float]]:
+    lower, upper = volume_bounds(area)
+    return st.tuples(
+        *(st.floats(float(lo), float(hi)) for lo, hi in zip(lower, upper, strict=True))
+    )
+
+
+def _min_gap(points: np.ndarray) -> float:
+    if len(points) < 2:
+        return np.inf
+    return min(np.linalg.norm(a - b) for a, b in itertools.combinations(points, 2))
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    wanted=st.lists(point, min_size=1, max_size=8),
+    lost=st.lists(_inside(AREA), max_size=3),
+    separation_m=st.floats(0.5, 40.0),
+)
+def test_guarded_targets_are_separated_fenced_and_clear_of_lost_vehicles(
+    wanted: list[tuple[float, float, float]],
+    lost: list[tuple[float, float, float]],
+    separation_m: float,
+) -> None:
+    targets = guard_targets(np.array(wanted), np.array(lost).reshape(-1, 3), separation_m, AREA)
+    assert targets.shape == (len(wanted), 3)
+    assert np.all(inside_volume(targets, AREA))
+    assert _min_gap(targets) >= separation_m - SEPARATION_TOLERANCE_M
+    # Clear of every lost vehicle that is itself clear of the lost ones listed before it
+    # (two lost vehicles closer than the separation count as one obstacle: the first).
+    kept: list[np.ndarray] = []
+    for obstacle in np.array(lost).reshape(-1, 3):
+        if all(np.linalg.norm(obstacle - k) >= separation_m for k in kept):
+            kept.append(obstacle)
+    for obstacle in kept:
+        assert np.min(np.linalg.norm(targets - obstacle, axis=1)) >= (
+            separation_m - SEPARATION_TOLERANCE_M
+        )
+
+
+@settings(max_examples=200, deadline=None)
+@given(wanted=st.lists(_inside(SMALL), min_size=1, max_size=6), separation_m=st.floats(1.0, 10.0))
+def test_targets_already_safe_are_streamed_as_asked(
+    wanted: list[tuple[float, float, float]], separation_m: float
+) -> None:
+    targets = np.array(wanted)
+    if _min_gap(targets) < separation_m:
+        targets = guard_targets(targets, np.empty((0, 3)), separation_m, SMALL)
+        assert _min_gap(targets) >= separation_m - SEPARATION_TOLERANCE_M
+    else:  # nothing to fix: nothing moves
+        np.testing.assert_array_equal(guard_targets(targets, np.empty((0, 3)), separation_m, SMALL),
+                                      targets)  # fmt: skip
+
+
+def test_a_lost_vehicle_on_the_ground_is_no_obstacle() -> None:
+    target = np.array([[100.0, 100.0, 25.0]])
+    grounded = np.array([[100.0, 100.0, 0.0]])  # below the volume: below every target
+    np.testing.assert_array_equal(guard_targets(target, grounded, 10.0, AREA), target)
+    hovering = np.array([[100.0, 100.0, 30.0]])  # 5 m from the target: it must move away
+    moved = guard_targets(target, hovering, 10.0, AREA)
+    assert np.linalg.norm(moved[0] - hovering[0]) >= 10.0 - SEPARATION_TOLERANCE_M
+
+
+def test_the_check_refuses_what_must_not_be_streamed() -> None:
+    with pytest.raises(ValueError, match="apart"):
+        check_targets(np.array([[100.0, 100.0, 30.0], [104.0, 100.0, 30.0]]), 10.0, AREA)
+    with pytest.raises(ValueError, match="outside"):
+        check_targets(np.array([[100.0, 100.0, 10.0]]), 10.0, AREA)
+    with pytest.raises(ValueError, match="not finite"):
+        check_targets(np.array([[np.nan, 100.0, 30.0]]), 10.0, AREA)
+    with pytest.raises(ValueError, match="cannot be commanded"):
+        check_targets(np.array([[100.0, 100.0, 30.0]]), 10.0, AREA, np.array([[100, 105, 30.0]]))
+    with pytest.raises(ValueError, match="finite"):
+        guard_targets(np.array([[100.0, 100.0, 30.0]]), np.array([[np.inf, 0, 30]]), 10.0, AREA)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    positions=st.lists(_inside(AREA), min_size=1, max_size=6),
+    seed=st.integers(0, 2**16),
+)
+def test_assignment_is_the_least_total_travel(
+    positions: list[tuple[float, float, float]], seed: int
+) -> None:
+    here = np.array(positions)
+    targets = np.random.default_rng(seed).permutation(
+        np.random.default_rng(seed + 1).uniform(0, 500, here.shape)
+    )
+    assigned = assign_targets(here, targets)
+    # The same targets, each once ...
+    assert sorted(map(tuple, assigned)) == sorted(map(tuple, targets))
+    # ... in the order no other order beats.
+    travel = np.linalg.norm(assigned - here, axis=1).sum()
+    for order in itertools.permutations(range(len(here))):
+        assert travel <= np.linalg.norm(targets[list(order)] - here, axis=1).sum() + 1e-9
+
+
+def test_each_vehicle_keeps_the_target_above_it() -> None:
+    here = np.array([[100.0, 100.0, 30.0], [400.0, 400.0, 30.0], [100.0, 400.0, 30.0]])
+    swapped = here[[2, 0, 1]]
+    np.testing.assert_array_equal(assign_targets(here, swapped), here)
