@@ -48,7 +48,7 @@ from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
 from policies.checkpoints import git_commit, load_checkpoint, save_checkpoint
 from policies.fleet_residual import FleetResidualActions, KMeansPrior, fleet_residual_targets
 from policies.presets import PRESET_NAMES, Preset, get_preset
-from policies.residual import residual_metadata, residual_radius
+from policies.residual import RESIDUAL_RADIUS_M, residual_metadata, residual_radius
 from policies.training import TRAIN_SEED_OFFSET, build_model, episode_bar, zero_actor_output
 from sim.config import AreaConfig
 from sim.errors import InputError
@@ -108,6 +108,8 @@ class FleetTrainConfig:
     action: str = "coordinates"
     """``coordinates`` (each agent's absolute target) or ``residual`` (a correction to its
     place in the ``kmeans-load-weighted`` placement: :mod:`policies.fleet_residual`)."""
+    residual_radius_m: float = RESIDUAL_RADIUS_M
+    """How far (m, per axis) a residual action may move a UAV from its k-means place."""
     command: str | None = None
     progress: bool = True
     """A progress bar on stderr (fleet episodes, recent utility, ETA)."""
@@ -130,6 +132,8 @@ class FleetTrainConfig:
             raise InputError(f"--seed: must be >= 0, got {self.seed}")
         if self.action not in ("coordinates", "residual"):
             raise InputError(f"--action: 'coordinates' or 'residual', got {self.action!r}")
+        if not (np.isfinite(self.residual_radius_m) and self.residual_radius_m > 0):
+            raise InputError(f"--residual-radius-m: must be > 0, got {self.residual_radius_m!r}")
         if self.algorithm == "ddqn" and self.action != "coordinates":
             raise InputError("--action: residual actions are DDPG's (DDQN moves by zones)")
         if self.n_fleets < 1:
@@ -179,7 +183,7 @@ def make_fleet_vec_env(config: FleetTrainConfig) -> Any:
         world=world,
     )
     if config.action == "residual":
-        fleet = FleetResidualActions(fleet)
+        fleet = FleetResidualActions(fleet, config.residual_radius_m)
     # concat_vec_envs_v1 copies the fleet n_fleets times (each copy its own generator).
     vec = ss.pettingzoo_env_to_vec_env_v1(fleet)
     vec = ss.concat_vec_envs_v1(vec, config.n_fleets, num_cpus=0, base_class="stable_baselines3")
@@ -243,7 +247,8 @@ class _FleetProgress(BaseCallback):
     def _on_training_start(self) -> None:
         if self.config.progress:
             c = self.config
-            self.bar = episode_bar(c.episodes, f"fleet-{c.algorithm}-{c.action} K={c.n_uavs}")
+            residual = "-residual" if c.action == "residual" else ""
+            self.bar = episode_bar(c.episodes, f"fleet-{c.algorithm}{residual} K={c.n_uavs}")
 
     def _on_step(self) -> bool:
         for info in self.locals.get("infos", []):
@@ -301,7 +306,12 @@ def train_fleet(config: FleetTrainConfig) -> dict[str, Any]:
         **(
             {"action": "moves", "residual_radius_m": None}
             if config.algorithm == "ddqn"
-            else residual_metadata(config.action)
+            else {
+                **residual_metadata(config.action),
+                "residual_radius_m": config.residual_radius_m
+                if config.action == "residual"
+                else None,
+            }
         ),
         "preset": preset.to_dict(),
         "episodes": config.episodes,

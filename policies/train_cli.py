@@ -70,6 +70,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "load-weighted placement (policies/residual.py)",
     )
     parser.add_argument(
+        "--residual-radius-m",
+        type=float,
+        default=None,
+        metavar="M",
+        help="with --uavs K > 1 and --action residual: how far (m, per axis) each UAV may move "
+        "from its place in the load-weighted k-means placement (default 125)",
+    )
+    parser.add_argument(
         "--envs",
         type=int,
         default=1,
@@ -137,6 +145,8 @@ def _train(args: argparse.Namespace) -> int:
         raise InputError(f"--uavs: must be in 1..8, got {args.uavs}")
     if args.uavs > 1:
         return _train_fleet(args)
+    if args.residual_radius_m is not None:
+        raise InputError("--residual-radius-m: for fleets only (--uavs K > 1)")
     if args.world is None:
         args.world = "paper"
     if args.resume is not None:
@@ -224,6 +234,11 @@ def _train_fleet(args: argparse.Namespace) -> int:
         users=_user_range(args.users) or (20, 20),
         n_fleets=args.envs,
         action=args.action,
+        **(
+            {"residual_radius_m": args.residual_radius_m}
+            if args.residual_radius_m is not None
+            else {}
+        ),
         command=shlex.join(args.command_line),
         progress=not args.no_progress,
     )

@@ -171,6 +171,11 @@ def test_config_refuses_bad_fields(tmp_path, changes, field):
             ["--uavs", "2", "--algo", "ddqn", "--action", "residual"],
             "--action: residual actions are DDPG's",
         ),
+        (
+            ["--uavs", "2", "--algo", "ddpg", "--action", "residual", "--residual-radius-m", "0"],
+            "--residual-radius-m: must be > 0",
+        ),
+        (["--algo", "ddpg", "--residual-radius-m", "40"], "--residual-radius-m: for fleets only"),
     ],
 )
 def test_cli_refuses_bad_fleet_sizes_and_writes_nothing(tmp_path, capsys, extra, message):

@@ -219,8 +219,11 @@ def test_ctrl_c_leaves_a_resumable_sweep_and_the_rerun_skips_finished_trials(
     tmp_path: Path,
 ) -> None:
     """One worker, two trials: Ctrl-C after the first is done; the rerun trains only the
-    second; then tupa report merges the sweep."""
-    spec = tiny_spec(tmp_path)
+    second; then tupa report merges the sweep. The trials are long enough (40 episodes, several
+    seconds) that the second is still training when the interrupt arrives, even on a loaded
+    machine (with 6 episodes it once finished first: the sweep ended before the Ctrl-C)."""
+    episodes = 40
+    spec = tiny_spec(tmp_path, train={"strategy": "spec", **TINY_TRAIN, "episodes": episodes})
     out = tmp_path / "out"
     env = {**os.environ, "PYTHONWARNINGS": "ignore"}
     command = [sys.executable, "-m", "service.cli", "sweep", str(spec), "--out", str(out),
@@ -264,7 +267,7 @@ def test_ctrl_c_leaves_a_resumable_sweep_and_the_rerun_skips_finished_trials(
             assert (trial_dir / name).is_file()
         assert any((trial_dir / "tb").rglob("events.out.tfevents.*"))
         metadata = json.loads((trial_dir / "model.json").read_text())
-        assert metadata["episodes"] == 6
+        assert metadata["episodes"] == episodes
         assert metadata["evaluation"] == entry["result"]["evaluation"]
 
     # Nothing left to do: the third run trains nothing.
@@ -277,9 +280,9 @@ def test_ctrl_c_leaves_a_resumable_sweep_and_the_rerun_skips_finished_trials(
     assert "`ddqn-spec`" in text and "`ddpg-spec`" in text
     assert (report / "sweep_learning_curve.png").stat().st_size > 1000
     exported = sorted(p.name for p in (report / "best").glob("*.zip"))
-    assert exported == ["ddpg-spec-e6.zip", "ddqn-spec-e6.zip"]
-    note = json.loads((report / "best" / "ddqn-spec-e6.json").read_text())
-    assert note["sweep"]["trial"].startswith("ddqn-spec-e6-s1-")
+    assert exported == [f"ddpg-spec-e{episodes}.zip", f"ddqn-spec-e{episodes}.zip"]
+    note = json.loads((report / "best" / f"ddqn-spec-e{episodes}.json").read_text())
+    assert note["sweep"]["trial"].startswith(f"ddqn-spec-e{episodes}-s1-")
     assert "exported_from" in note
 
 

@@ -29,8 +29,10 @@ from service.settings import ServiceSettings
 from service.vehicle_link import LinkConfig
 from sim.geometry import assign_targets
 from sim.observation import UserReports
+from sitl_mock.config import VehicleConfig
+from sitl_mock.fleet import MockFleet
 from tests.fakes import FakeLink
-from tests.helpers import tiny_preset
+from tests.helpers import tiny_preset, wait_for
 
 HOT_SPOTS = ((100.0, 100.0), (400.0, 400.0), (100.0, 400.0))
 TINY_PRESET = tiny_preset(learning_starts=16, batch_size=16, train_episode_steps=5)
@@ -257,3 +259,38 @@ def test_a_fleet_checkpoint_is_served_from_the_allowed_dirs(
         ReportedUsers.of(report.users)
     )
     np.testing.assert_allclose(got, assign_targets(here, wanted), atol=1e-9)
+
+
+@pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
+def test_a_fleet_of_real_links_streams_each_vehicle_its_target(backend: str) -> None:
+    """Real MAVLink links on either backend (one per vehicle, each its own MAVSDK instance) to
+    an in-process mock fleet: every vehicle heard with its own system id and streamed its own
+    target."""
+    config = VehicleConfig(ready_delay_s=0.3)
+    with MockFleet(2, "tcp:127.0.0.1:0", flavour="px4", config=config) as mocks:
+        urls = tuple(f"tcp:127.0.0.1:{port}" for port in mocks.ports)
+        settings = ServiceSettings(
+            fleet_mavlink=urls, insecure=True, mavlink_backend=backend, decision_mode="on-report"
+        )
+        service = FleetPlacementService.from_settings(settings).start()
+        try:
+            wait_for(
+                lambda: all(
+                    v.state.link == "up" and v.state.position_m for v in service.vehicles()
+                ),
+                30.0,
+                message="both links up with positions",
+            )
+            assert [v.state.system_id for v in service.vehicles()] == list(mocks.system_ids)
+            service.submit_report(hot_spot_report(time.time()))
+            decisions = service.decisions()
+            assert list(decisions) == ["uav1", "uav2"]
+            wait_for(
+                lambda: all(v.state.streaming for v in service.vehicles()),
+                15.0,
+                message="both targets streaming",
+            )
+            for view in service.vehicles():
+                assert view.state.target_m == decisions[view.id].target_m
+        finally:
+            service.stop()
