@@ -39,8 +39,6 @@ import httpx
 import numpy as np
 import yaml
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 from closed_loop.processes import TupaProcess, mock_fleet_file, start_mock_fleet, start_service
 from policies.fleet_oracle import FleetOracle, FleetOracleConfig
 from policies.interface import ReportedUsers

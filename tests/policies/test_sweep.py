@@ -219,9 +219,11 @@ def test_ctrl_c_leaves_a_resumable_sweep_and_the_rerun_skips_finished_trials(
     tmp_path: Path,
 ) -> None:
     """One worker, two trials: Ctrl-C after the first is done; the rerun trains only the
-    second; then tupa report merges the sweep. The trials are long enough (40 episodes, several
-    seconds) that the second is still training when the interrupt arrives, even on a loaded
-    machine (with 6 episodes it once finished first: the sweep ended before the Ctrl-C)."""
+    second; then tupa report merges the sweep. The second trial must still be training when
+    the interrupt arrives: the trials are long enough (40 episodes, seconds), and the sweep runs
+    at the lowest CPU priority, so that on a loaded machine it is the sweep that slows down
+    and not this test's watch of its state (at normal priority, with 3- and 5-second trials,
+    the sweep finished before the Ctrl-C twice on a 2-core machine running other jobs)."""
     episodes = 40
     spec = tiny_spec(tmp_path, train={"strategy": "spec", **TINY_TRAIN, "episodes": episodes})
     out = tmp_path / "out"
@@ -229,7 +231,8 @@ def test_ctrl_c_leaves_a_resumable_sweep_and_the_rerun_skips_finished_trials(
     command = [sys.executable, "-m", "service.cli", "sweep", str(spec), "--out", str(out),
                "--workers", "1"]  # fmt: skip
     process = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                               stderr=subprocess.STDOUT, text=True)  # fmt: skip
+                               stderr=subprocess.STDOUT, text=True,
+                               preexec_fn=lambda: os.nice(19))  # fmt: skip
     try:
         first = wait_for(
             lambda: (

@@ -1,0 +1,121 @@
+"""Fleet checkpoints against the k-means baselines on validation scenarios (no oracle: quick).
+
+Picks between trained fleet checkpoints before the held-out benchmark
+(``benchmarks/fleet_policy.py``, whose scenario seeds these never share): K = 2 and 3 UAVs,
+20 and 50 users, the uniform, hot-spot and mixture families (``--per-family`` each, seeds from
+4242), static (``closed-loop``) and moving (``closed-loop-moving``) users; one episode each,
+from the fleet's homes, every checkpoint deciding every step, the k-means placements held
+(static users) or re-placed every decision (moving users). Prints and writes
+``benchmarks/results/fleet_checkpoints.json``: mean utility per world and policy, each
+checkpoint's training command and time, and for DDPG the mean of each agent's raw action over
+a few hot-spot episodes (a saturated actor shows as ±1 with no spread).
+
+    python benchmarks/fleet_checkpoints.py runs/fleet-residual-k3 runs/fleet-ddqn-k3
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from policies.fleet_evaluation import build_fleet_candidate, evaluate_fleet
+from policies.fleet_training import FleetCheckpointPolicy
+from sim.fleet import FleetConfig
+from sim.fleet_env import FleetParallelEnv
+from sim.scenarios import generate_scenarios
+from sim.world import get_world
+
+RESULTS = Path(__file__).resolve().parent / "results" / "fleet_checkpoints.json"
+BASELINES = ("kmeans-load-weighted", "kmeans-min-distance")
+FAMILIES = ("uniform", "hotspots", "mixture")
+
+
+def validate(names: list[str], per_family: int) -> dict[str, dict[str, float]]:
+    """Mean utility per world and policy over the validation cells."""
+    utilities: dict[str, dict[str, list[float]]] = {}
+    for world_name in ("closed-loop", "closed-loop-moving"):
+        world = get_world(world_name)
+        every = 1 if world.mobility.model != "static" else world.episode_steps
+        for k in (2, 3):
+            fleet = FleetConfig(n_uavs=k)
+            for users in (20, 50):
+                for f, family in enumerate(FAMILIES):
+                    seed = 4242 + 100 * k + users + f
+                    scenarios = generate_scenarios(
+                        per_family, users, seed, family=family, total_load_bps=40e6 * k
+                    )
+                    for name in names:
+                        candidate = build_fleet_candidate(name, k, world, fleet)[1]
+                        summary = evaluate_fleet(candidate, scenarios, k, world, fleet, every,
+                                                 0, name=name, progress=False)  # fmt: skip
+                        per_world = utilities.setdefault(world_name, {})
+                        per_world.setdefault(name, []).extend(summary["utilities"])
+    return {
+        world: {name: round(float(np.mean(v)), 4) for name, v in per_name.items()}
+        for world, per_name in utilities.items()
+    }
+
+
+def raw_actions(path: str, episodes: int = 4, steps: int = 30) -> dict[str, Any]:
+    """The mean and spread of a checkpoint's raw actions on hot-spot episodes (K = 3)."""
+    policy = FleetCheckpointPolicy.load(path)
+    world = get_world("closed-loop")
+    actions = []
+    scenarios = generate_scenarios(episodes, 30, 99, family="hotspots", total_load_bps=120e6)
+    for i, scenario in enumerate(scenarios):
+        env = FleetParallelEnv(3, "continuous", scenarios=[scenario], world=world)
+        observations, _ = env.reset(seed=i, options={"scenario": scenario})
+        for _ in range(steps):
+            joint = np.stack([observations[a] for a in env.possible_agents])
+            action, _ = policy.model.predict(joint.astype(np.float32), deterministic=True)
+            actions.append(np.asarray(action, dtype=float).reshape(3, -1))
+            observations, *_ = env.step_to(policy.targets(joint, env.reports, env.uav_xyz_m))
+    stacked = np.concatenate(actions)
+    return {"mean": stacked.mean(0).round(3).tolist(), "std": stacked.std(0).round(3).tolist()}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("checkpoints", nargs="+", help="fleet checkpoint directories")
+    parser.add_argument("--per-family", type=int, default=2)
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args()
+    results = validate([*args.checkpoints, *BASELINES], args.per_family)
+    checkpoints = {}
+    for path in args.checkpoints:
+        meta = json.loads((Path(path) / "model.json").read_text())
+        checkpoints[path] = {
+            **{
+                key: meta.get(key)
+                for key in (
+                    "algorithm",
+                    "action",
+                    "residual_radius_m",
+                    "episodes",
+                    "wall_time_s",
+                    "command",
+                )
+            },
+            # DDPG's continuous actions (DDQN's are move numbers: nothing to saturate)
+            "raw_actions": raw_actions(path) if meta.get("algorithm") == "ddpg" else None,
+        }
+    document = {
+        "benchmark": "fleet_checkpoints",
+        "command": "python benchmarks/fleet_checkpoints.py " + " ".join(sys.argv[1:]),
+        "scenarios_per_world": 2 * 2 * len(FAMILIES) * args.per_family,
+        "mean_utility": results,
+        "checkpoints": checkpoints,
+    }
+    print(json.dumps(document, indent=2))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(document, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
