@@ -41,9 +41,9 @@ docs/network-model.md and issue 3):
 * K access points (``RunFleetCase``, a request with a ``fleet`` entry): K AP nodes, AP k with
   SSID ``tupa`` (k = 0) or ``tupa-k`` and its stations (the request says which) with the same
   SSID; APs on the same channel number share one ``YansWifiChannel``, each other channel number
-  gets its own (distinct 20 MHz channels: no energy crosses); everything else as above, built
-  in the same order, so one AP reproduces ``RunCase`` exactly. The AP-side counters of a user
-  count only its own AP's receptions;
+  gets its own (distinct 20 MHz channels: no energy crosses); everything else as above. One AP
+  (``RunCase``) is this with K = 1 on channel 36: one scenario for both. The AP-side counters
+  of a user count only its own AP's receptions;
 * measurement: ``FlowMonitor`` on all nodes for transmitted / received packets and delay; drop
   counters from trace sources (queue disc ``Drop``, ``WifiMac::DroppedMpdu`` by reason,
   ``WifiMac::MacTxDrop``, ``ArpCache::Drop`` and ``ArpL3Protocol::Drop``: where the packets of a
@@ -252,30 +252,6 @@ static void OnPsduTx(uint32_t u, WifiConstPsduMap psduMap, WifiTxVector txVector
     }
 }
 
-static void OnApPpduDrop(Ptr<const WifiPpdu> ppdu, WifiPhyRxfailureReason reason)
-{
-    Ptr<const WifiPsdu> psdu = ppdu->GetPsdu();
-    if (!psdu) { return; }
-    auto it = g->macToUser.find(psdu->GetAddr2());
-    if (it == g->macToUser.end()) { return; }
-    g->cum[it->second][AP_RX_DROPS] += 1;
-    int r = static_cast<int>(reason);
-    if (r >= 0 && r < N_PHY_REASONS) { g->cum[it->second][PHY_DROP_BASE + r] += 1; }
-}
-
-static void OnApRxBegin(Ptr<const Packet> packet, RxPowerWattPerChannelBand rxPowersW)
-{
-    WifiMacHeader header;
-    if (packet->PeekHeader(header) == 0 || !header.IsQosData()) { return; }
-    auto it = g->macToUser.find(header.GetAddr2());
-    if (it == g->macToUser.end() || rxPowersW.empty()) { return; }
-    double watts = 0;
-    for (const auto& [band, w] : rxPowersW) { watts = std::max(watts, static_cast<double>(w)); }
-    if (watts <= 0) { return; }
-    g->cum[it->second][AP_RX_DBM_SUM] += 10.0 * std::log10(watts) + 30.0;
-    g->cum[it->second][AP_RX_MPDUS] += 1;
-}
-
 static void OnCw(uint32_t u, uint32_t cw, uint8_t) { g->cw[u] = cw; }
 
 static void OnBackoff(uint32_t u, uint32_t slots, uint8_t)
@@ -333,220 +309,9 @@ static void Snapshot()
     }
 }
 
-// Simulates one case; returns [n_snapshots x (1 + U x NF)] then U association times (-1: never).
-// apLossDb empty: Friis (the open environment). Otherwise apLossDb (U) is each user's loss to
-// the AP and staLossDb (U x U, row-major) the loss between users, set in a
-// MatrixPropagationLossModel (symmetric) ahead of the same Nakagami fading.
-std::vector<double> RunCase(double uavX, double uavY, double uavZ,
-                            std::vector<double> xs, std::vector<double> ys,
-                            std::vector<double> loads, double userHeight, bool macOnly,
-                            double appStart, std::vector<double> snapshots, uint32_t seed,
-                            uint64_t run, uint32_t packetBytes, double nakagamiM,
-                            std::vector<double> apLossDb, std::vector<double> staLossDb)
-{
-    State state;
-    g = &state;
-    const uint32_t n = xs.size();
-    state.cum.assign(n, std::array<double, NF>{});
-    state.assocTime.assign(n, -1.0);
-    state.txCount.assign(n, {});
-    state.cw.assign(n, 15);
-    state.lastTx.assign(n, -1.0);
-
-    RngSeedManager::SetSeed(seed);
-    RngSeedManager::SetRun(run);
-
-    NodeContainer ap;
-    ap.Create(1);
-    state.stas.Create(n);
-
-    MobilityHelper mobility;
-    Ptr<ListPositionAllocator> pos = CreateObject<ListPositionAllocator>();
-    pos->Add(Vector(uavX, uavY, uavZ));
-    for (uint32_t i = 0; i < n; ++i) { pos->Add(Vector(xs[i], ys[i], userHeight)); }
-    mobility.SetPositionAllocator(pos);
-    mobility.SetMobilityModel("ns3::ConstantPositionMobilityModel");
-    mobility.Install(ap);
-    mobility.Install(state.stas);
-
-    const bool matrixLoss = !apLossDb.empty();
-    if (matrixLoss && (apLossDb.size() != n || staLossDb.size() != n * n))
-    {
-        NS_FATAL_ERROR("apLossDb needs one value per user and staLossDb one per pair");
-    }
-    YansWifiChannelHelper channelHelper;
-    Ptr<YansWifiChannel> channel;
-    if (!matrixLoss)
-    {
-        channelHelper.SetPropagationDelay("ns3::ConstantSpeedPropagationDelayModel");
-        channelHelper.AddPropagationLoss("ns3::FriisPropagationLossModel",
-                                         "Frequency", DoubleValue(5.18e9));
-        channelHelper.AddPropagationLoss("ns3::NakagamiPropagationLossModel",
-                                         "m0", DoubleValue(nakagamiM),
-                                         "m1", DoubleValue(nakagamiM),
-                                         "m2", DoubleValue(nakagamiM));
-        channel = channelHelper.Create();
-    }
-    else
-    {
-        // The same chain as the helper builds, with the per-pair losses in place of Friis.
-        Ptr<MatrixPropagationLossModel> matrix = CreateObject<MatrixPropagationLossModel>();
-        Ptr<MobilityModel> apMob = ap.Get(0)->GetObject<MobilityModel>();
-        for (uint32_t i = 0; i < n; ++i)
-        {
-            Ptr<MobilityModel> mi = state.stas.Get(i)->GetObject<MobilityModel>();
-            matrix->SetLoss(apMob, mi, apLossDb[i], true);
-            for (uint32_t j = i + 1; j < n; ++j)
-            {
-                matrix->SetLoss(mi, state.stas.Get(j)->GetObject<MobilityModel>(),
-                                staLossDb[i * n + j], true);
-            }
-        }
-        Ptr<NakagamiPropagationLossModel> nakagami =
-            CreateObjectWithAttributes<NakagamiPropagationLossModel>(
-                "m0", DoubleValue(nakagamiM), "m1", DoubleValue(nakagamiM),
-                "m2", DoubleValue(nakagamiM));
-        matrix->SetNext(nakagami);
-        channel = CreateObject<YansWifiChannel>();
-        channel->SetPropagationDelayModel(CreateObject<ConstantSpeedPropagationDelayModel>());
-        channel->SetPropagationLossModel(matrix);
-    }
-
-    YansWifiPhyHelper phy;
-    phy.SetChannel(channel);
-    phy.Set("ChannelSettings", StringValue("{36, 20, BAND_5GHZ, 0}"));
-    phy.Set("TxPowerStart", DoubleValue(20.0));
-    phy.Set("TxPowerEnd", DoubleValue(20.0));
-    phy.Set("RxSensitivity", DoubleValue(-90.0));
-    phy.SetPreambleDetectionModel("ns3::ThresholdPreambleDetectionModel",
-                                  "MinimumRssi", DoubleValue(-90.0));
-
-    WifiHelper wifi;
-    wifi.SetStandard(WIFI_STANDARD_80211ac);
-    wifi.SetRemoteStationManager("ns3::IdealWifiManager");
-
-    WifiMacHelper mac;
-    Ssid ssid("tupa");
-    mac.SetType("ns3::StaWifiMac", "Ssid", SsidValue(ssid));
-    state.staDevs = wifi.Install(phy, mac, state.stas);
-    mac.SetType("ns3::ApWifiMac", "Ssid", SsidValue(ssid));
-    NetDeviceContainer apDev = wifi.Install(phy, mac, ap);
-
-    NetDeviceContainer all;
-    all.Add(apDev);
-    all.Add(state.staDevs);
-    int64_t stream = 1000;
-    stream += WifiHelper::AssignStreams(all, stream);
-    stream += matrixLoss ? channel->AssignStreams(stream)
-                         : channelHelper.AssignStreams(channel, stream);
-
-    InternetStackHelper internet;
-    internet.Install(ap);
-    internet.Install(state.stas);
-    NodeContainer allNodes(ap, state.stas);
-    stream += internet.AssignStreams(allNodes, stream);  // ARP request jitter and others
-    Ipv4AddressHelper address;
-    address.SetBase("10.1.0.0", "255.255.0.0");
-    Ipv4InterfaceContainer apIf = address.Assign(apDev);
-    Ipv4InterfaceContainer staIf = address.Assign(state.staDevs);
-    if (macOnly)
-    {
-        TrafficControlHelper tch;
-        tch.Uninstall(apDev);
-        tch.Uninstall(state.staDevs);
-    }
-
-    const uint16_t port = 9;
-    PacketSinkHelper sink("ns3::UdpSocketFactory",
-                          InetSocketAddress(Ipv4Address::GetAny(), port));
-    ApplicationContainer sinkApp = sink.Install(ap.Get(0));
-    sinkApp.Start(Seconds(0.0));
-
-    Ptr<UniformRandomVariable> jitter = CreateObject<UniformRandomVariable>();
-    jitter->SetAttribute("Min", DoubleValue(0.0));
-    jitter->SetAttribute("Max", DoubleValue(0.005));
-    jitter->SetStream(stream++);
-
-    for (uint32_t i = 0; i < n; ++i)
-    {
-        Ptr<Node> node = state.stas.Get(i);
-        Ptr<NetDevice> dev = state.staDevs.Get(i);
-        Ptr<WifiNetDevice> wdev = DynamicCast<WifiNetDevice>(dev);
-        state.macToUser[Mac48Address::ConvertFrom(dev->GetAddress())] = i;
-        state.ipToUser[staIf.GetAddress(i)] = i;
-        Ptr<WifiMac> wmac = wdev->GetMac();
-        wmac->TraceConnectWithoutContext("DroppedMpdu", MakeBoundCallback(&OnDropped, i));
-        wmac->TraceConnectWithoutContext("MacTxDrop", MakeBoundCallback(&OnMacTxDrop, i));
-        wmac->TraceConnectWithoutContext("NAckedMpdu", MakeBoundCallback(&OnNacked, i));
-        wmac->TraceConnectWithoutContext("AckedMpdu", MakeBoundCallback(&OnAcked, i));
-        wmac->TraceConnectWithoutContext("MpduResponseTimeout",
-                                         MakeBoundCallback(&OnMpduTimeout, i));
-        wmac->TraceConnectWithoutContext("PsduResponseTimeout",
-                                         MakeBoundCallback(&OnPsduTimeout, i));
-        wmac->TraceConnectWithoutContext("Assoc", MakeBoundCallback(&OnAssoc, i));
-        Ptr<QosTxop> be = wmac->GetQosTxop(AC_BE);
-        be->TraceConnectWithoutContext("CwTrace", MakeBoundCallback(&OnCw, i));
-        be->TraceConnectWithoutContext("BackoffTrace", MakeBoundCallback(&OnBackoff, i));
-        wdev->GetPhy()->TraceConnectWithoutContext("PhyTxPsduBegin",
-                                                   MakeBoundCallback(&OnPsduTx, i));
-        Ptr<TrafficControlLayer> tc = node->GetObject<TrafficControlLayer>();
-        tc->TraceConnectWithoutContext("TcDrop", MakeBoundCallback(&OnTcDrop, i));
-        Ptr<QueueDisc> root = tc->GetRootQueueDiscOnDevice(dev);
-        if (root)
-        {
-            root->TraceConnectWithoutContext("Drop", MakeBoundCallback(&OnQdiscDrop, i));
-        }
-        Ptr<Ipv4L3Protocol> ipv4 = node->GetObject<Ipv4L3Protocol>();
-        ipv4->TraceConnectWithoutContext("Drop", MakeBoundCallback(&OnIpDrop, i));
-        int32_t ifIndex = ipv4->GetInterfaceForDevice(dev);
-        ipv4->GetInterface(ifIndex)->GetArpCache()->TraceConnectWithoutContext(
-            "Drop", MakeBoundCallback(&OnArpDrop, i));
-        node->GetObject<ArpL3Protocol>()->TraceConnectWithoutContext(
-            "Drop", MakeBoundCallback(&OnArpDrop, i));
-
-        if (loads[i] <= 0) { continue; }
-        OnOffHelper onoff("ns3::UdpSocketFactory",
-                          InetSocketAddress(apIf.GetAddress(0), port));
-        onoff.SetAttribute("OnTime", StringValue("ns3::ConstantRandomVariable[Constant=1e6]"));
-        onoff.SetAttribute("OffTime", StringValue("ns3::ConstantRandomVariable[Constant=0]"));
-        onoff.SetAttribute("DataRate", DataRateValue(DataRate(static_cast<uint64_t>(loads[i]))));
-        onoff.SetAttribute("PacketSize", UintegerValue(packetBytes));
-        ApplicationContainer app = onoff.Install(node);
-        stream += onoff.AssignStreams(node, stream);
-        app.Start(Seconds(appStart + jitter->GetValue()));
-        app.Get(0)->TraceConnectWithoutContext("Tx", MakeBoundCallback(&OnAppTx, i));
-    }
-    DynamicCast<WifiNetDevice>(apDev.Get(0))->GetPhy()->TraceConnectWithoutContext(
-        "PhyRxPpduDrop", MakeCallback(&OnApPpduDrop));
-    DynamicCast<WifiNetDevice>(apDev.Get(0))->GetPhy()->TraceConnectWithoutContext(
-        "PhyRxBegin", MakeCallback(&OnApRxBegin));
-
-    FlowMonitorHelper flowmon;
-    state.monitor = flowmon.InstallAll();
-    state.classifier = DynamicCast<Ipv4FlowClassifier>(flowmon.GetClassifier());
-
-    double last = 0;
-    for (double t : snapshots)
-    {
-        Simulator::Schedule(Seconds(t), &Snapshot);
-        last = std::max(last, t);
-    }
-    Simulator::Stop(Seconds(last) + NanoSeconds(1));
-    Simulator::Run();
-
-    std::vector<double> result = state.out;
-    result.insert(result.end(), state.assocTime.begin(), state.assocTime.end());
-    state.monitor = nullptr;
-    state.classifier = nullptr;
-    Simulator::Destroy();
-    Ipv4AddressGenerator::Reset();
-    g = nullptr;
-    return result;
-}
-
-// ---------------------------------------------------------------- K access points (issue 16)
-// Each user's AP index (fleet cases only): the AP-side traces count a PPDU for a user only at
-// that user's own AP (on a shared channel the other APs hear it too).
+// ---------------------------------------------------------------- K access points
+// Each user's AP index: the AP-side traces count a PPDU for a user only at that user's own AP
+// (on a shared channel the other APs hear it too).
 static std::vector<uint32_t> g_userAp;
 
 static void OnFleetApPpduDrop(uint32_t k, Ptr<const WifiPpdu> ppdu, WifiPhyRxfailureReason reason)
@@ -574,13 +339,13 @@ static void OnFleetApRxBegin(uint32_t k, Ptr<const Packet> packet,
     g->cum[it->second][AP_RX_MPDUS] += 1;
 }
 
-// RunCase with K access points: AP k at (apX[k], apY[k], apZ[k]) on 20 MHz channel
+// Simulates one case with K access points: AP k at (apX[k], apY[k], apZ[k]) on 20 MHz channel
 // channels[k], SSID "tupa" (k = 0) or "tupa-k", and user i a station of AP userAp[i] (its
 // SSID; no scanning of the others). APs on the same channel number share one YansWifiChannel
 // (they hear and interfere with each other and each other's stations); each other channel
 // number is a channel object of its own (no energy crosses between non-overlapping channels).
-// Built in RunCase's order (AP nodes first, then the stations; the same stream assignment), so
-// K = 1 reproduces RunCase exactly. apLossDb (K x U), apApLossDb (K x K) and staLossDb (U x U),
+// AP nodes first, then the stations; RunCase is K = 1. apLossDb (K x U), apApLossDb (K x K) and
+// staLossDb (U x U),
 // row-major, replace Friis when apLossDb is not empty.
 std::vector<double> RunFleetCase(std::vector<double> apX, std::vector<double> apY,
                                  std::vector<double> apZ, std::vector<uint32_t> channels,
@@ -694,7 +459,7 @@ std::vector<double> RunFleetCase(std::vector<double> apX, std::vector<double> ap
         media.push_back(medium);
     }
 
-    // A PHY helper per device, configured as RunCase's (same attributes, same order).
+    // A PHY helper per AP (the same attributes for every device; its channel object differs).
     auto phyOf = [&](uint32_t a) {
         YansWifiPhyHelper phy;
         phy.SetChannel(media[channelOfAp[a]]);
@@ -845,6 +610,25 @@ std::vector<double> RunFleetCase(std::vector<double> apX, std::vector<double> ap
     g = nullptr;
     g_userAp.clear();
     return result;
+}
+
+// Simulates one case; returns [n_snapshots x (1 + U x NF)] then U association times (-1: never).
+// apLossDb empty: Friis (the open environment). Otherwise apLossDb (U) is each user's loss to
+// the AP and staLossDb (U x U, row-major) the loss between users, set in a
+// MatrixPropagationLossModel (symmetric) ahead of the same Nakagami fading.
+std::vector<double> RunCase(double uavX, double uavY, double uavZ,
+                            std::vector<double> xs, std::vector<double> ys,
+                            std::vector<double> loads, double userHeight, bool macOnly,
+                            double appStart, std::vector<double> snapshots, uint32_t seed,
+                            uint64_t run, uint32_t packetBytes, double nakagamiM,
+                            std::vector<double> apLossDb, std::vector<double> staLossDb)
+{
+    // One AP on channel 36, every user its station: RunFleetCase with K = 1.
+    std::vector<double> apApLossDb;
+    if (!apLossDb.empty()) { apApLossDb.assign(1, 0.0); }
+    return RunFleetCase({uavX}, {uavY}, {uavZ}, {36u}, std::vector<uint32_t>(xs.size(), 0u),
+                        xs, ys, loads, userHeight, macOnly, appStart, snapshots, seed, run,
+                        packetBytes, nakagamiM, apLossDb, apApLossDb, staLossDb);
 }
 }  // namespace tupa_ns3
 """

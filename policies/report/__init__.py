@@ -23,12 +23,12 @@ from pathlib import Path
 
 from policies.report.altitude import FIGURE_FILE as ALTITUDE_FIGURE
 from policies.report.altitude import altitude_figure, altitude_lines, load_altitude_profiles
+from policies.report.checks import write_report_files
 from policies.report.figures import line_styles, render_figures
 from policies.report.inputs import Warn, load_inputs, stderr_warning
 from policies.report.markdown import render_markdown
 from policies.report.stats import headlines, heterogeneity_bins
 from sim.errors import InputError
-from sim.files import atomic_write_bytes, atomic_write_text
 
 __all__ = ["REPORT_FILE", "ReportFiles", "build_report"]
 
@@ -71,15 +71,6 @@ def build_report(results_dir: Path, out_dir: Path, warn: Warn = stderr_warning) 
         styles = line_styles([r.policy for r in results])
         figures[ALTITUDE_FIGURE] = altitude_figure(profiles, results, styles)
     markdown = render_markdown(results, learning, results_dir, altitude_lines(profiles))
-    written = []
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        for name, data in figures.items():
-            atomic_write_bytes(out_dir / name, data)
-            written.append(out_dir / name)
-        atomic_write_text(out_dir / REPORT_FILE, markdown)
-        written.append(out_dir / REPORT_FILE)
-    except OSError as exc:
-        raise InputError(f"--out: {out_dir}: cannot write: {exc.strerror or exc}") from None
+    written = write_report_files(out_dir, {**figures, REPORT_FILE: markdown})
     lines = headlines(results, heterogeneity_bins(results))
     return ReportFiles(written=tuple(written), headlines=tuple(lines))

@@ -34,11 +34,17 @@ import numpy as np
 
 from policies.evaluation import HETEROGENEITY_BIN_WIDTH, heterogeneity_bin
 from policies.fleet_evaluation import FLEET_EVAL_FORMAT, FLEET_METRICS, FLEET_ORACLE
-from policies.report.checks import fail, finite_number, non_empty_text, read_json
+from policies.report.checks import (
+    check_scenario_ids,
+    fail,
+    finite_number,
+    non_empty_text,
+    read_json,
+    write_report_files,
+)
 from policies.report.curves import LEARNING_CURVE_FILE
 from policies.report.inputs import Warn, _is_eval_document
 from sim.errors import InputError
-from sim.files import atomic_write_bytes, atomic_write_text
 from sim.fleet import MAX_UAVS
 
 __all__ = [
@@ -172,13 +178,7 @@ def _parse(raw: Any, path: Path, where: str) -> FleetResult:
             if value < 0:
                 raise fail(label, where, f"{at}.{key}", f"must be >= 0, got {value}")
             values[key].append(value)
-    if len(set(ids)) != len(ids):
-        repeated = sorted({x for x in ids if ids.count(x) > 1})
-        raise fail(label, where, "scenarios", f"ids repeated: {', '.join(repeated[:5])}")
-    if "n_scenarios" in raw and raw["n_scenarios"] != len(rows):
-        raise fail(
-            label, where, "n_scenarios", f"says {raw['n_scenarios']!r}, the list has {len(rows)}"
-        )
+    check_scenario_ids(ids, raw, label, where)
     return FleetResult(
         policy=name,
         source=path,
@@ -520,14 +520,5 @@ def build_fleet_report(results_dir: Path, out_dir: Path, warn: Warn) -> Any:
         HETEROGENEITY_FIGURE: _heterogeneity_figure(results, colours),
     }
     markdown = _markdown(results, results_dir)
-    written = []
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        for name, data in files.items():
-            atomic_write_bytes(out_dir / name, data)
-            written.append(out_dir / name)
-        atomic_write_text(out_dir / REPORT_FILE, markdown)
-        written.append(out_dir / REPORT_FILE)
-    except OSError as exc:
-        raise InputError(f"--out: {out_dir}: cannot write: {exc.strerror or exc}") from None
+    written = write_report_files(out_dir, {**files, REPORT_FILE: markdown})
     return ReportFiles(written=tuple(written), headlines=tuple(_headlines(results)))

@@ -27,7 +27,13 @@ from typing import Any
 
 import numpy as np
 
-from policies.report.checks import fail, finite_number, non_empty_text, read_json
+from policies.report.checks import (
+    check_scenario_ids,
+    fail,
+    finite_number,
+    non_empty_text,
+    read_json,
+)
 from policies.report.curves import LEARNING_CURVE_FILE, LearningCurves, load_learning_curve
 from sim.errors import InputError
 
@@ -134,13 +140,7 @@ def _parse_policy(raw: Any, path: Path, where: str) -> PolicyResult:
             if not isinstance(xyz, list) or len(xyz) != 3:
                 raise fail(label, where, f"{at}.uav_xyz_m", "must be [x, y, z]")
             altitudes.append(finite_number(xyz[2], label, f"{where}: {at}.uav_xyz_m[2]"))
-    if len(set(ids)) != len(ids):
-        repeated = sorted({x for x in ids if ids.count(x) > 1})
-        raise fail(label, where, "scenarios", f"ids repeated: {', '.join(repeated[:5])}")
-    if "n_scenarios" in raw and raw["n_scenarios"] != len(rows):
-        raise fail(
-            label, where, "n_scenarios", f"says {raw['n_scenarios']!r}, the list has {len(rows)}"
-        )
+    check_scenario_ids(ids, raw, label, where)
     return PolicyResult(
         policy=name,
         source=path,
