@@ -660,6 +660,21 @@ def simulate(run_case: Any, request: dict[str, Any]) -> dict[str, Any]:
         float(case["uav"]["x_m"]),
         float(case["uav"]["y_m"]),
         float(case["uav"]["z_m"]),
+        *_users_and_protocol(request, snapshot_times),
+        vec([float(x) for x in request.get("ap_loss_db", [])]),
+        vec([float(x) for x in request.get("sta_loss_db", [])]),
+    )
+    return _unpack(flat, n_users, len(snapshot_times))
+
+
+def _users_and_protocol(request: dict[str, Any], snapshot_times: list[float]) -> tuple:
+    """The arguments ``RunCase`` and ``RunFleetCase`` share, in their order: the users'
+    positions and loads, then the protocol (user height to Nakagami m)."""
+    import cppyy
+
+    vec = cppyy.gbl.std.vector["double"]
+    users = request["case"]["users"]
+    return (
         vec([float(u["x_m"]) for u in users]),
         vec([float(u["y_m"]) for u in users]),
         vec([float(u["load_bps"]) for u in users]),
@@ -671,10 +686,7 @@ def simulate(run_case: Any, request: dict[str, Any]) -> dict[str, Any]:
         int(request["run"]),
         int(request["packet_bytes"]),
         float(request["nakagami_m"]),
-        vec([float(x) for x in request.get("ap_loss_db", [])]),
-        vec([float(x) for x in request.get("sta_loss_db", [])]),
     )
-    return _unpack(flat, n_users, len(snapshot_times))
 
 
 def simulate_fleet(run_fleet_case: Any, request: dict[str, Any]) -> dict[str, Any]:
@@ -696,17 +708,7 @@ def simulate_fleet(run_fleet_case: Any, request: dict[str, Any]) -> dict[str, An
         vec([float(p[2]) for p in uavs]),
         uvec([int(c) for c in fleet["channels"]]),
         uvec([int(a) for a in fleet["association"]]),
-        vec([float(u["x_m"]) for u in users]),
-        vec([float(u["y_m"]) for u in users]),
-        vec([float(u["load_bps"]) for u in users]),
-        float(request["user_height_m"]),
-        request["queueing"] == "mac-only",
-        float(request["app_start_s"]),
-        vec(snapshot_times),
-        int(request["seed"]),
-        int(request["run"]),
-        int(request["packet_bytes"]),
-        float(request["nakagami_m"]),
+        *_users_and_protocol(request, snapshot_times),
         vec([float(x) for x in request.get("ap_loss_db", [])]),
         vec([float(x) for x in request.get("ap_ap_loss_db", [])]),
         vec([float(x) for x in request.get("sta_loss_db", [])]),
