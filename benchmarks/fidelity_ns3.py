@@ -888,15 +888,20 @@ def fifo_delay_s(load_bps: float, tput_bps: float, rule: str, warmup_s: float = 
                  measure_s: float = 2.0) -> float:  # fmt: skip
     """Mean queueing delay over the window of an overloaded FIFO flow filling from empty at
     the start of the warm-up, backlog B(t) = min((L − T)·t, limit) packets. ``departure``:
-    the delay of the packets *delivered* in the window (what FlowMonitor measures), B/L (a
-    packet delivered now arrived when the backlog was shorter; at the limit FqCoDel drops from
-    the head, so survivors cross it at the arrival rate too); ``arrival``: B/T, the delay a
-    packet arriving now will see (the fast model's Little's-law rule)."""
+    the delay of the packets *delivered* in the window (what FlowMonitor measures, and the
+    fast model's rule since issue 19, :mod:`sim.queues`): a packet delivered at t arrived when
+    the backlog was shorter, so it waited (L − T)·t / L, until that reaches limit / T (the
+    packets let in once the flow's CoDel queue tail-drops at the limit); ``arrival``: B/T,
+    the delay a packet arriving now will see (the fast model's rule before)."""
     bits = 8.0 * PACKET_BYTES
     arrival, service = load_bps / bits, tput_bps / bits
     t = np.linspace(warmup_s, warmup_s + measure_s, 401)
-    backlog = np.minimum(np.maximum(arrival - service, 0.0) * t, QDISC_LIMIT_PKTS)
-    return float(np.mean(backlog / (arrival if rule == "departure" else max(service, 1e-9))))
+    growth = max(arrival - service, 0.0)
+    if rule == "departure":
+        delay = np.minimum(growth * t / arrival, QDISC_LIMIT_PKTS / max(service, 1e-9))
+    else:
+        delay = np.minimum(growth * t, QDISC_LIMIT_PKTS) / max(service, 1e-9)
+    return float(np.mean(delay))
 
 
 def few_stations_mechanism(config: NetworkConfig) -> dict[str, Any]:

@@ -50,7 +50,6 @@ from sim.config import AreaConfig, NetworkConfig, UtilityConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig, FleetModel, FleetState
 from sim.geometry import clip_to_volume, enforce_separation
-from sim.network import QueueState
 
 __all__ = [
     "FleetOracle",
@@ -145,10 +144,8 @@ def fleet_episode_utility(
             total[live] += result.utility
         new = result.state
         if state is not None and t < horizon - 1:
-            settled = (
-                np.all(new.queues.backlog_pkts == state.queues.backlog_pkts, axis=1)
-                & np.all(new.queues.codel_count == state.queues.codel_count, axis=1)
-                & np.all(new.association == state.association, axis=1)
+            settled = new.queues.same_as(state.queues) & np.all(
+                new.association == state.association, axis=1
             )
             if settled.any():
                 left = horizon - 1 - t
@@ -163,7 +160,7 @@ def fleet_episode_utility(
 
 def _take(state: FleetState, keep: np.ndarray) -> FleetState:
     return FleetState(
-        QueueState(state.queues.backlog_pkts[keep], state.queues.codel_count[keep]),
+        state.queues.map(lambda a: a[keep]),
         state.association[keep],
         state.handovers[keep],
     )

@@ -216,29 +216,27 @@ class _Episodes:
         self.throughput, self.delay, self.plr = np.empty(shape), np.empty(shape), np.empty(shape)
         self.index = np.arange(shape[1])  # the positions still simulated
         self.live: slice | np.ndarray = slice(None)  # the same, indexing the metric arrays
-        self.backlog, self.codel = np.zeros(shape[1:]), np.zeros(shape[1:])
+        self.queues = QueueState.empty(*shape[1:])
         self.t = 0  # steps simulated
 
     def advance(self, until: int) -> None:
         """Simulate the live positions up to step ``until`` (exclusive)."""
         model, users, load, step_s = self.model, self.users, self.load, self.step_s
         positions, index, live = self.positions, self.index, self.live
-        backlog, codel = self.backlog, self.codel
+        queues = self.queues
         last = self.horizon - 1
         t = self.t
         while t < until and len(index):
-            result = model.step(positions, users, load, QueueState(backlog, codel), None, step_s)
+            result = model.step(positions, users, load, queues, None, step_s)
             throughput, delay, plr = result.throughput_bps, result.delay_s, result.plr
             self.throughput[t, live], self.delay[t, live], self.plr[t, live] = (
                 throughput,
                 delay,
                 plr,
             )
-            new_backlog, new_codel = result.state.backlog_pkts, result.state.codel_count
+            new_queues = result.state
             if t < last and t in _SETTLE_CHECKS:
-                settled = np.all(new_backlog == backlog, axis=1) & np.all(
-                    new_codel == codel, axis=1
-                )
+                settled = new_queues.same_as(queues)
                 if settled.any():
                     # A fixed point: this step's metrics stand for every step left.
                     done = index[settled]
@@ -248,11 +246,11 @@ class _Episodes:
                     keep = ~settled
                     index = live = index[keep]
                     positions = positions[keep]
-                    new_backlog, new_codel = new_backlog[keep], new_codel[keep]
-            backlog, codel = new_backlog, new_codel
+                    new_queues = new_queues.map(lambda a, keep=keep: a[keep])
+            queues = new_queues
             t += 1
         self.positions, self.index, self.live = positions, index, live
-        self.backlog, self.codel = backlog, codel
+        self.queues = queues
         self.t = until
 
     def keep(self, wanted: np.ndarray) -> None:
@@ -260,7 +258,7 @@ class _Episodes:
         mask = np.isin(self.index, wanted)
         self.index = self.live = self.index[mask]
         self.positions = self.positions[mask]
-        self.backlog, self.codel = self.backlog[mask], self.codel[mask]
+        self.queues = self.queues.map(lambda a: a[mask])
 
     def mean_utility(
         self, warmup_steps: int, utility: UtilityConfig, rows: np.ndarray | slice = slice(None)

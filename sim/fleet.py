@@ -265,15 +265,15 @@ class FleetModel:
             self.fleet.hysteresis_db,
             radio.min_rssi_dbm,
         )
-        backlog, codel = state.queues.backlog_pkts, state.queues.codel_count
+        queues = state.queues
         if self.fleet.channel_mode == "shared" and k > 1:
             per_user, domain, interference = self._step_shared(
-                uav, users, load, backlog, codel, assoc, rng, step_s
+                uav, users, load, queues, assoc, rng, step_s
             )
         else:
-            per_user = self._step_distinct(uav, users, load, backlog, codel, assoc, rng, step_s)
+            per_user = self._step_distinct(uav, users, load, queues, assoc, rng, step_s)
             domain, interference = _separate_domains(batch, k)
-        throughput, delay, plr, backlog_out, codel_out, snr, connected = per_user
+        throughput, delay, plr, queues_out, snr, connected = per_user
         c = self.utility
         # Throughput and loss are fresh arrays: the handover outage is applied in place.
         uav_utility, served, served_fraction, jain, min_throughput, handovers = _fleet_metrics(
@@ -281,9 +281,7 @@ class FleetModel:
             min(self._outage / step_s, 1.0), k, self.fleet.served_ratio,
             c.weight_throughput, c.weight_delay, c.weight_loss, c.delay_ref_s,
         )  # fmt: skip
-        new_state = FleetState(
-            QueueState(backlog_out, codel_out), assoc, state.handovers + handovers
-        )
+        new_state = FleetState(queues_out, assoc, state.handovers + handovers)
         return FleetStepResult(
             throughput_bps=throughput,
             delay_s=delay,
@@ -309,8 +307,7 @@ class FleetModel:
         uav: np.ndarray,
         users: np.ndarray,
         load: np.ndarray,
-        backlog: np.ndarray,
-        codel: np.ndarray,
+        queues: QueueState,
         assoc: np.ndarray,
         rng: np.random.Generator | None,
         step_s: float,
@@ -327,7 +324,7 @@ class FleetModel:
                 uav.reshape(batch, 3),
                 np.broadcast_to(users, (batch, n_users, 2)),
                 np.broadcast_to(load, (batch, n_users)),
-                QueueState(backlog, codel),
+                queues,
                 rng,
                 step_s,
             )
@@ -335,8 +332,7 @@ class FleetModel:
                 result.throughput_bps,
                 result.delay_s,
                 result.plr,
-                result.state.backlog_pkts,
-                result.state.codel_count,
+                result.state,
                 result.snr_db,
                 result.connected,
             )
@@ -345,9 +341,7 @@ class FleetModel:
             uav.reshape(batch * k, 3),
             _gather_users(users, index),
             _gather(load[None, :], index, k, 0.0, True),
-            QueueState(
-                _gather(backlog, index, k, 0.0, False), _gather(codel, index, k, 0.0, False)
-            ),
+            queues.map(lambda a: _gather(a, index, k, 0.0, False)),
             rng,
             step_s,
         )
@@ -358,8 +352,7 @@ class FleetModel:
         uav: np.ndarray,
         users: np.ndarray,
         load: np.ndarray,
-        backlog: np.ndarray,
-        codel: np.ndarray,
+        queues: QueueState,
         assoc: np.ndarray,
         rng: np.random.Generator | None,
         step_s: float,
@@ -378,7 +371,9 @@ class FleetModel:
         hears = ap_rx >= self.fleet.cca_threshold_dbm
         hears |= np.eye(k, dtype=bool)
         domain = _components(hears)  # (B, K)
-        active = np.any(member & ((load > 0) | (backlog > 0))[:, None, :], axis=2)  # (B, K)
+        active = np.any(
+            member & ((load > 0) | (queues.backlog_pkts > 0))[:, None, :], axis=2
+        )  # (B, K)
         other = domain[:, :, None] != domain[:, None, :]  # [b, i, j]: j interferes at i
         power_mw = np.where(other & active[:, None, :], 10.0 ** (ap_rx / 10.0), 0.0)
         interference_mw = power_mw.sum(axis=2)  # (B, K)
@@ -402,9 +397,7 @@ class FleetModel:
             gains,
             _gather_users(users, index),
             _gather(load[None, :], index, k, 0.0, True),
-            QueueState(
-                _gather(backlog, index, k, 0.0, False), _gather(codel, index, k, 0.0, False)
-            ),
+            queues.map(lambda a: _gather(a, index, k, 0.0, False)),
             step_s,
         )
         return _scatter_result(index, batch, n_users, result), domain, interference_dbm
@@ -535,25 +528,24 @@ def _scatter(rows: np.ndarray, index: np.ndarray, k: int, out: np.ndarray) -> No
 
 def _scatter_result(
     index: np.ndarray, batch: int, n_users: int, result: StepResult
-) -> tuple[np.ndarray, ...]:
-    """The rows' step (B·K, n) back to per-user arrays (B, U): throughput, delay, loss,
-    backlog, CoDel count, SNR and connected, in that order."""
+) -> tuple[np.ndarray | QueueState, ...]:
+    """The rows' step (B·K, n) back to per-user arrays (B, U): throughput, delay, loss, the
+    queue state, SNR and connected, in that order."""
     k = index.shape[0] // batch
-    rows = (
-        result.throughput_bps,
-        result.delay_s,
-        result.plr,
-        result.state.backlog_pkts,
-        result.state.codel_count,
-        result.snr_db,
-        result.connected,
+
+    def back(values: np.ndarray) -> np.ndarray:
+        out = np.empty((batch, n_users), dtype=values.dtype)
+        _scatter(values, index, k, out)
+        return out
+
+    return (
+        back(result.throughput_bps),
+        back(result.delay_s),
+        back(result.plr),
+        result.state.map(back),
+        back(result.snr_db),
+        back(result.connected),
     )
-    out = []
-    for values in rows:
-        back = np.empty((batch, n_users), dtype=values.dtype)
-        _scatter(values, index, k, back)
-        out.append(back)
-    return tuple(out)
 
 
 @njit(cache=True)

@@ -13,7 +13,8 @@ every position at once. For each position and user the pipeline is:
 3. ``mac``: fair sharing of transmit opportunities among stations with traffic, solved exactly,
    with contention and collisions folded into the TXOP overhead (two passes: the number of
    contenders depends on who turns out to be backlogged).
-4. ``queues``: each station's backlog over the step, drops, and its mean (for the delay).
+4. ``queues``: each station's backlog over the step, its drops, and its delivered packets'
+   wait (for the delay).
 
 The per-position work is one compiled (numba) kernel: a step of 3 users costs microseconds, so
 training needs no lookup tables or approximations beyond the model itself. Expected mode
@@ -27,6 +28,7 @@ position each) through the same kernel in one call: the model side of a vectoris
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -68,14 +70,34 @@ STALL_TOLERANCE = 1e-2
 
 @dataclass(frozen=True)
 class QueueState:
-    """What carries over between steps, arrays (B, U): packets queued, CoDel's drop count."""
+    """What carries over between steps, arrays (B, U): packets queued, CoDel's drop count, and
+    how long each queue has been full (:mod:`sim.queues`: it sets the delivered packets' wait)."""
 
     backlog_pkts: np.ndarray
     codel_count: np.ndarray
+    at_cap_s: np.ndarray
 
     @classmethod
     def empty(cls, batch: int, n_users: int) -> QueueState:
-        return cls(np.zeros((batch, n_users)), np.zeros((batch, n_users)))
+        return cls(
+            np.zeros((batch, n_users)), np.zeros((batch, n_users)), np.zeros((batch, n_users))
+        )
+
+    @property
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The three arrays, in field order."""
+        return self.backlog_pkts, self.codel_count, self.at_cap_s
+
+    def map(self, f: Callable[[np.ndarray], np.ndarray]) -> QueueState:
+        """The same state with ``f`` applied to every array (a selection, a gather ...)."""
+        return QueueState(*(f(a) for a in self.arrays))
+
+    def same_as(self, other: QueueState) -> np.ndarray:
+        """Per row (B,): whether every queue of the row is exactly as in ``other``."""
+        return np.all(
+            [np.all(a == b, axis=1) for a, b in zip(self.arrays, other.arrays, strict=True)],
+            axis=0,
+        )
 
 
 @dataclass(frozen=True)
@@ -258,9 +280,11 @@ class NetworkModel:
     ) -> StepResult:
         """Check values, draw the fading, run the kernel: ``users`` (1 or N, U, 2), ``load`` (1
         or N, U) with the shapes already checked."""
+        shape = (batch, n_users)
         bad_state = state is not None and (
-            state.backlog_pkts.shape != (batch, n_users)
-            or state.codel_count.shape != (batch, n_users)
+            state.backlog_pkts.shape != shape
+            or state.codel_count.shape != shape
+            or state.at_cap_s.shape != shape
         )
         values_ok = _values_ok(uav, users, load)
         if bad_state or not values_ok or not (math.isfinite(step_s) and step_s > 0):
@@ -270,14 +294,13 @@ class NetworkModel:
                 assert state is not None
                 raise InputError(
                     f"state: queue arrays must be ({batch}, {n_users}) for {batch} {rows} and "
-                    f"{n_users} users, got {state.backlog_pkts.shape} and "
-                    f"{state.codel_count.shape}"
+                    f"{n_users} users, got {', '.join(str(a.shape) for a in state.arrays)}"
                 )
-        if state is None:
-            backlog = codel = np.zeros((batch, n_users))
+        if state is None:  # one array of zeros serves all three (the kernel only reads them)
+            zeros = np.zeros(shape)
+            queues = QueueState(zeros, zeros, zeros)
         else:
-            backlog = np.ascontiguousarray(state.backlog_pkts, dtype=float)
-            codel = np.ascontiguousarray(state.codel_count, dtype=float)
+            queues = state
         path_loss = _FREE_SPACE
         if self._urban:
             path_loss, log_gains = self._urban_channel(uav, users, rng, batch, n_users)
@@ -289,22 +312,21 @@ class NetworkModel:
             )
         if rng is not None:
             np.log10(log_gains, out=log_gains)  # the kernel scales by 10: gains in dB
-        return self._kernel(uav, users, load, backlog, codel, log_gains, path_loss, step_s)
+        return self._kernel(uav, users, load, queues, log_gains, path_loss, step_s)
 
     def _kernel(
         self,
         uav: np.ndarray,
         users: np.ndarray,
         load: np.ndarray,
-        backlog: np.ndarray,
-        codel: np.ndarray,
+        queues: QueueState,
         log_gains: np.ndarray,
         path_loss: np.ndarray,
         step_s: float,
     ) -> StepResult:
         """The compiled step over (N, U) rows, its outputs as a :class:`StepResult`."""
-        batch, n_users = backlog.shape
-        out = np.empty((6, batch, n_users))
+        batch, n_users = queues.backlog_pkts.shape
+        out = np.empty((7, batch, n_users))
         connected = np.empty((batch, n_users), dtype=np.bool_)
         _simulate(
             self._kt,
@@ -312,20 +334,21 @@ class NetworkModel:
             uav,
             users,
             load,
-            backlog,
-            codel,
+            np.ascontiguousarray(queues.backlog_pkts, dtype=float),
+            np.ascontiguousarray(queues.codel_count, dtype=float),
+            np.ascontiguousarray(queues.at_cap_s, dtype=float),
             log_gains,
             path_loss,
             float(step_s),
             out,
             connected,
         )
-        throughput, delay, plr, backlog_out, codel_out, snr = out
+        throughput, delay, plr, backlog_out, codel_out, at_cap_out, snr = out
         return StepResult(
             throughput_bps=throughput,
             delay_s=delay,
             plr=plr,
-            state=QueueState(backlog_out, codel_out),
+            state=QueueState(backlog_out, codel_out, at_cap_out),
             snr_db=snr,
             connected=connected,
         )
@@ -392,8 +415,7 @@ class NetworkModel:
             np.zeros((loss.shape[0], 3)),  # unused: the kernel takes the path loss given
             np.ascontiguousarray(users_xy_m, dtype=float),
             np.ascontiguousarray(load_bps, dtype=float),
-            np.ascontiguousarray(state.backlog_pkts, dtype=float),
-            np.ascontiguousarray(state.codel_count, dtype=float),
+            state,
             _NO_DRAWS if gains is None else np.log10(gains),
             loss,
             step_s,
@@ -496,20 +518,21 @@ def _simulate(
     load_bps: np.ndarray,
     backlog_in: np.ndarray,
     codel_in: np.ndarray,
+    at_cap_in: np.ndarray,
     log_gains: np.ndarray,
     path_loss_db: np.ndarray,
     step_s: float,
     out: np.ndarray,
     connected_out: np.ndarray,
 ) -> None:
-    """One step for each row b of ``uav`` (N, 3), into ``out`` (6, N, U) and ``connected_out``.
+    """One step for each row b of ``uav`` (N, 3), into ``out`` (7, N, U) and ``connected_out``.
 
     ``users`` (S, U, 2) and ``load_bps`` (S, U) hold one scenario shared by every row (S = 1,
     :meth:`NetworkModel.step`) or one per row (S = N, :meth:`NetworkModel.step_many`).
     ``log_gains`` (N, U, draws) are log10 of the fading power gains, or (0, 0, 0) in expected
     mode. ``path_loss_db`` (N, U) is each link's path loss (urban environments), or (0, 0): the
     kernel computes free-space loss. ``out`` rows: throughput (bit/s), delay (s), loss ratio,
-    backlog, CoDel count, SNR.
+    backlog, CoDel count, time at the cap, SNR.
     """
     k = _Constants(*kt)
     batch, n_users = uav.shape[0], users.shape[1]
@@ -546,7 +569,7 @@ def _simulate(
                 distance = max(np.sqrt(dx * dx + dy * dy + dz * dz), 1.0)
                 rssi = k.tx_power_dbm - k.path_loss_1m_db - 20.0 * np.log10(distance)
             snr = rssi - k.noise_dbm
-            out[5, b, u] = snr
+            out[6, b, u] = snr
             connected = rssi >= k.min_rssi_dbm
             connected_out[b, u] = connected
             if n_draws == 0:
@@ -609,9 +632,10 @@ def _simulate(
             served_attempts = min(attempt_rate[u], nu * max_mpdus[u])
             txop_rate = max(min(attempt_rate[u], nu), 1e-12)
             service = min(served_attempts / attempts_per_packet[u], demand[u])
-            dropped, mean_backlog, backlog, count = advance_queue(
+            dropped, queue_wait_s, backlog, count, at_cap = advance_queue(
                 backlog_in[b, u],
                 codel_in[b, u],
+                at_cap_in[b, u],
                 arrival,
                 service,
                 step_s,
@@ -623,6 +647,7 @@ def _simulate(
             )
             out[3, b, u] = backlog
             out[4, b, u] = count
+            out[5, b, u] = at_cap
             delivered = service * (1.0 - residual[u])
             out[0, b, u] = delivered * packet_bits
             arrived = arrival_pps[u] * step_s
@@ -635,7 +660,7 @@ def _simulate(
             elif delivered <= 0.0:
                 out[1, b, u] = k.unserved_delay_s
             else:
-                # Waiting in the queue (Little's law), for the next TXOP while the A-MPDU
+                # Waiting in the queues (sim.queues), for the next TXOP while the A-MPDU
                 # fills, the TXOP itself, and one TXOP interval per retransmission.
                 # A stalled station's packets wait for the end of its backoff stall instead.
                 mpdus_per_txop = max(served_attempts / txop_rate, 1.0)
@@ -643,7 +668,7 @@ def _simulate(
                     attempts_per_packet[u] - 1.0
                 ) / txop_rate
                 out[1, b, u] = (
-                    mean_backlog / service
+                    queue_wait_s
                     + max(waiting, stall_wait[u])  # the last stall pass's: not damped
                     + overhead[u]
                     + mpdus_per_txop * mpdu_air[u]

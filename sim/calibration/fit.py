@@ -346,19 +346,41 @@ def coordinate_search(
 
 
 def run_fit(
-    path: Path = FITTED_PATH, rounds: int = 20, log=print, calib: Calibration | None = None
+    path: Path = FITTED_PATH,
+    rounds: int = 20,
+    log=print,
+    calib: Calibration | None = None,
+    start: str = "hand-set",
 ) -> dict[str, Any]:
-    """Fit on the fit cases, score both parts, write ``path``; returns the document."""
+    """Fit on the fit cases, score both parts, write ``path``; returns the document.
+
+    ``start``: ``hand-set`` (issue 2's constants) or ``fitted`` (the values in ``path`` now).
+    ``rounds=0`` with ``start="fitted"`` keeps the constants and only re-scores them, which is
+    what a model change that leaves the constants alone needs (the error figures move).
+    """
+    if start not in ("hand-set", "fitted"):
+        raise ValueError(f"start: must be hand-set or fitted, got {start!r}")
+    if rounds < 0:
+        raise ValueError(f"rounds: must be >= 0, got {rounds}")
     started = time.perf_counter()
     calib = calib or load_calibration()
     fit_ids = calib.ids("fit")
-    values, value, history = coordinate_search(calib, HAND_SET_VALUES, fit_ids, rounds, log=log)
+    previous = load_fitted(path) if start == "fitted" else None
+    first = HAND_SET_VALUES if previous is None else dict(previous["fitted"])
+    values, value, history = coordinate_search(calib, first, fit_ids, rounds, log=log)
     config = make_config(values)
+    if rounds > 0:
+        how = f"searched from the {start} constants"
+    elif start == "fitted":
+        how = "found by the search in earlier_history and re-scored under the current model"
+    else:
+        how = "the hand-set constants, scored, not searched"
     doc = {
         "format": FITTED_FORMAT,
         "description": "fast-model constants fitted to the fit part of the ns-3 calibration "
-        "set (sim/calibration/fit.py), starting from the hand-set constants of issue 2; the "
-        "model's defaults in sim/config.py are these values",
+        f"set (sim/calibration/fit.py), {how}; the model's defaults in sim/config.py are "
+        "these values",
+        "start": {"from": start, "values": first, "rounds": rounds},
         "fit_cases": len(fit_ids),
         "held_out_cases": len(calib.ids("held_out")),
         "objective": {
@@ -387,6 +409,8 @@ def run_fit(
             for part in ("fit", "held_out")
         },
         "history": history,
+        # How the starting values were found, when they come from earlier fits.
+        "earlier_history": None if previous is None else _searches(previous),
         "wall_s": 0.0,
     }
     doc["wall_s"] = round(time.perf_counter() - started, 1)
@@ -395,12 +419,28 @@ def run_fit(
     return doc
 
 
+def _searches(doc: dict[str, Any]) -> list[dict[str, Any]]:
+    """The search rounds behind a fit document: its earlier ones, then its own unless it only
+    re-scored (``rounds`` 0)."""
+    earlier = list(doc.get("earlier_history") or [])
+    own = [] if doc.get("start", {}).get("rounds") == 0 else list(doc.get("history", []))
+    return earlier + own
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=FITTED_PATH)
-    parser.add_argument("--rounds", type=int, default=20)
+    parser.add_argument("--rounds", type=int, default=20, help="0: re-score only")
+    parser.add_argument(
+        "--start",
+        choices=("hand-set", "fitted"),
+        default="hand-set",
+        help="where the search starts: issue 2's constants, or the values in --out now",
+    )
     args = parser.parse_args(argv)
-    doc = run_fit(args.out, args.rounds)
+    if args.rounds < 0:
+        parser.error(f"--rounds: must be >= 0, got {args.rounds}")
+    doc = run_fit(args.out, args.rounds, start=args.start)
     for part, by_config in doc["errors"].items():
         for name, by_variant in by_config.items():
             for variant, f in by_variant.items():

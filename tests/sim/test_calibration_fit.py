@@ -90,6 +90,31 @@ def test_fit_never_reads_the_held_out_results(calib, tmp_path):
     assert a["errors"]["held_out"] != b["errors"]["held_out"]
 
 
+def test_rescoring_keeps_the_committed_values_and_reproduces_its_figures(calib, tmp_path):
+    """``--start fitted --rounds 0``: the constants stay, the figures are recomputed, and the
+    search that found them is kept beside the (empty) new one."""
+    path = tmp_path / "fitted.json"
+    path.write_bytes(fit.FITTED_PATH.read_bytes())
+    committed = fit.load_fitted()
+    doc = fit.run_fit(path, rounds=0, log=lambda *a: None, calib=calib, start="fitted")
+    assert doc["fitted"] == committed["fitted"]
+    assert doc["start"] == {"from": "fitted", "values": committed["fitted"], "rounds": 0}
+    assert doc["errors"] == committed["errors"]
+    assert len(doc["history"]) == 1 and doc["earlier_history"] == committed["earlier_history"]
+    assert len(doc["earlier_history"]) > 1  # the search that found the constants
+    assert fit.load_fitted(path)["config_fields"] == committed["config_fields"]
+
+
+def test_fit_refuses_a_bad_start_or_round_count(tmp_path, capsys):
+    with pytest.raises(ValueError, match="start"):
+        fit.run_fit(tmp_path / "x.json", start="best")
+    with pytest.raises(SystemExit) as exit_info:
+        fit.main(["--out", str(tmp_path / "x.json"), "--rounds", "-1"])
+    assert exit_info.value.code == 2
+    assert "--rounds: must be >= 0" in capsys.readouterr().err
+    assert not (tmp_path / "x.json").exists()
+
+
 @pytest.mark.parametrize("environment", build.URBAN_ENVIRONMENTS)
 def test_urban_case_files_are_the_generated_sets(environment):
     """``python -m sim.calibration.build cases`` rewrites these files; a hand edit fails here."""

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from sim.config import AreaConfig, NetworkConfig, RadioConfig
+from sim.files import load_cases
 from sim.network import NetworkModel
 from sim.utility import network_utility
 
@@ -142,26 +145,48 @@ def test_same_seed_same_result_and_expected_mode_is_deterministic():
     np.testing.assert_array_equal(e1.delay_s, e2.delay_s)
 
 
-def test_fq_codel_delay_grows_over_an_episode_and_mac_only_stays_bounded():
-    """ns-3 3.44: a saturated user at 450 m sees 0.53 s mean delay over its first 2 s and
-    1.17 s over 8 s with FqCoDel; without the queue disc delays stay below ~0.3 s."""
+def _ns3_long_runs(queueing: str) -> dict[str, dict]:
+    path = Path(__file__).resolve().parents[2] / "sim/calibration" / f"ns3_long_{queueing}.json"
+    return {c["id"]: c for c in json.loads(path.read_text(encoding="utf-8"))["cases"]}
+
+
+@pytest.mark.parametrize("case_id", ["single-d450-z25-L40", "light-far-2far"])
+def test_fq_codel_delay_follows_ns3_over_ten_seconds(case_id):
+    """The committed ns-3 3.44 10-s runs (1-s intervals after a 0.5-s warm-up): an overloaded
+    FqCoDel flow's delivered-packet delay grows by about 0.3 s per second, then levels off at
+    the disc's limit (~1.5 s for the saturated user at 450 m). The model, stepping 1 s with
+    its queue state carried over, follows it within 15 % in the median interval; the old
+    arrival-side rule (backlog / service rate) was 43 % off on ``light-far-2far``."""
+    _, cases = load_cases(Path(__file__).resolve().parents[2] / "sim/calibration/cases.json")
+    case = next(c for c in cases if c.id == case_id)
+    intervals = _ns3_long_runs("fq-codel")[case_id]["per_seed"][0]["intervals"]
+    ns3 = np.array([np.mean([u["delay_s"] for u in i["users"]]) for i in intervals])
+    uav = case.uav_xyz_m[None, :]
+    state = MODEL.step(uav, case.users_xy_m, case.load_bps, None, None, 0.5).state
+    fast = []
+    for _ in intervals:
+        r = MODEL.step(uav, case.users_xy_m, case.load_bps, state, None, 1.0)
+        state = r.state
+        fast.append(r.delay_s[0].mean())
+    fast = np.array(fast)
+    assert np.median(np.abs(fast - ns3) / ns3) < 0.15
+    assert np.all(np.diff(fast[:4]) > 0)  # the backlog keeps growing while the UAV stays
+    assert ns3[0] < 0.5 < ns3[-1] and fast[0] < 0.5 < fast[-1]
+
+
+def test_mac_only_delay_stays_bounded_and_overload_shows_as_loss():
+    """Without the queue disc the 500-packet MAC queue (500 ms lifetime) bounds the delay:
+    ns-3 3.44 shows 0.07 s for the saturated user at 450 m, every second of 10."""
     uav, xy, load = np.array([[450.0, 0.0, 25.0]]), np.array([[0.0, 0.0]]), np.array([40e6])
-    first_2s = MODEL.step(uav, xy, load, step_s=2.0).delay_s[0, 0]
-    assert 0.3 < first_2s < 0.8
-    delays, loss = [], []
-    for model in (MODEL, MAC_ONLY):
-        state, per_step = None, []
-        for _ in range(8):
-            r = model.step(uav, xy, load, state)
-            state = r.state
-            per_step.append(r.delay_s[0, 0])
-        delays.append(per_step)
-        loss.append(r.plr[0, 0])
-    fq, mac = np.array(delays[0]), np.array(delays[1])
-    assert 0.9 < fq.mean() < 1.5
-    assert np.all(np.diff(fq[:4]) > 0)  # the backlog keeps growing while the UAV stays
-    assert mac.max() < 0.3
-    assert loss[1] > 0.2  # mac-only: the overload shows as loss instead
+    ns3 = _ns3_long_runs("mac-only")["single-d450-z25-L40"]["per_seed"][0]["intervals"]
+    assert max(i["users"][0]["delay_s"] for i in ns3) < 0.1
+    state, delays = None, []
+    for _ in range(8):
+        r = MAC_ONLY.step(uav, xy, load, state)
+        state = r.state
+        delays.append(r.delay_s[0, 0])
+    assert max(delays) < 0.3
+    assert r.plr[0, 0] > 0.2  # mac-only: the overload shows as loss instead
 
 
 def test_queue_drains_after_the_uav_moves_closer():

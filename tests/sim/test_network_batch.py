@@ -54,7 +54,7 @@ class DrawStream:
 def state_row(state: QueueState | None, e: int) -> QueueState | None:
     if state is None:
         return None
-    return QueueState(state.backlog_pkts[e : e + 1], state.codel_count[e : e + 1])
+    return state.map(lambda a: a[e : e + 1])
 
 
 def assert_rows_equal(batch, e: int, one) -> None:
@@ -62,6 +62,7 @@ def assert_rows_equal(batch, e: int, one) -> None:
         np.testing.assert_array_equal(getattr(batch, name)[e], getattr(one, name)[0], name)
     np.testing.assert_array_equal(batch.state.backlog_pkts[e], one.state.backlog_pkts[0])
     np.testing.assert_array_equal(batch.state.codel_count[e], one.state.codel_count[0])
+    np.testing.assert_array_equal(batch.state.at_cap_s[e], one.state.at_cap_s[0])
 
 
 @pytest.mark.parametrize("model", [MODEL, MAC_ONLY], ids=["fq-codel", "mac-only"])
