@@ -1151,6 +1151,20 @@ def refit_check() -> dict[str, Any]:
     }
 
 
+def few_station_rows(config: NetworkConfig) -> dict[str, list[dict[str, Any]]]:
+    """Per variant, the per-user rows of the few-station set (issue 19; every case held out)."""
+    sets = _regime_sets()
+    if "few_stations" not in sets:
+        return {}
+    cases, meta, docs = sets["few_stations"]
+    out: dict[str, list[dict[str, Any]]] = {}
+    for variant, ns3 in docs.items():
+        model = NetworkModel(config.with_queueing(variant))
+        fast = {c["id"]: evaluate_case(model, cases[c["id"]], None) for c in ns3["cases"]}
+        out[variant] = user_rows(cases, ns3, fast, meta)
+    return out
+
+
 def urban_rows(config: NetworkConfig) -> dict[str, list[dict[str, Any]]]:
     """Per variant, the per-user rows of every urban set (key ``environment`` added)."""
     out: dict[str, list[dict[str, Any]]] = {v: [] for v in VARIANTS}
@@ -1194,17 +1208,20 @@ def scatter(
     rows_by_config: dict[str, dict[str, list[dict[str, Any]]]],
     path: Path,
     urban: dict[str, list[dict[str, Any]]] | None = None,
+    few: dict[str, list[dict[str, Any]]] | None = None,
 ) -> None:
-    """Fast vs ns-3 per user: throughput (top) and delay (middle), log axes, one column per
-    queueing variant and set of constants (default, hand-set); held-out users filled, congested
-    users (ns-3 loss > 1 %) in red. Bottom row: the urban sets (default constants), throughput
-    and delay per variant, one colour per environment, held-out users filled."""
+    """Fast vs ns-3 per user: throughput (top) and delay (second row), log axes, one column
+    per queueing variant and set of constants (default, hand-set); held-out users filled,
+    congested users (ns-3 loss > 1 %) in red. Third row: the urban sets (default constants),
+    throughput and delay per variant, one colour per environment, held-out users filled.
+    Bottom row: the few-station set (issue 19, all held out, default constants), throughput and
+    delay per variant, congested users in red."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(20, 15), dpi=90)
+    fig = Figure(figsize=(20, 20), dpi=90)
     FigureCanvasAgg(fig)
-    axes = fig.subplots(3, 4)
+    axes = fig.subplots(4, 4)
     colours = {
         "suburban": "tab:green",
         "urban": "tab:orange",
@@ -1235,6 +1252,30 @@ def scatter(
         ax.set_xlabel(f"ns-3 {label}")
         ax.set_ylabel(f"fast model {label}")
         ax.set_title(f"{variant}, urban sets: per-user {label.split(' (')[0]}")
+        ax.grid(True, which="major", lw=0.3)
+        if col == 0:
+            ax.legend(fontsize=7, loc="upper left")
+    for col, (variant, key) in enumerate(urban_columns):
+        ax = axes[3][col]
+        scale, floor, hi = (1e-6, 1e-2, 100.0) if key == "tput" else (1.0, 1e-4, 10.0)
+        for congested, colour in ((False, "tab:blue"), (True, "tab:red")):
+            sel = [
+                r
+                for r in (few or {}).get(variant, [])
+                if (r["ns3_plr"] > CONGESTED_PLR) == congested
+            ]
+            if sel:
+                legend = "congested" if congested else "uncongested"
+                _scatter_users(ax, sel, key, scale, floor, colour, colour, legend)
+        ax.plot([floor, hi], [floor, hi], color="black", lw=0.8)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlim(floor, hi)
+        ax.set_ylim(floor, hi)
+        label = "throughput (Mbit/s)" if key == "tput" else "mean delay (s)"
+        ax.set_xlabel(f"ns-3 {label}")
+        ax.set_ylabel(f"fast model {label}")
+        ax.set_title(f"{variant}, few-station set: per-user {label.split(' (')[0]}")
         ax.grid(True, which="major", lw=0.3)
         if col == 0:
             ax.legend(fontsize=7, loc="upper left")
@@ -1278,10 +1319,10 @@ def scatter(
             if row_i == 0 and col == 0:
                 ax.legend(fontsize=8, loc="upper left")
     fig.suptitle(
-        "Fast model vs ns-3 3.44, calibration set (dashed: ±25 %); bottom: urban sets, "
-        "ns-3 on the model's per-user mean path loss"
+        "Fast model vs ns-3 3.44, calibration set (dashed: ±25 %); third row: urban sets, "
+        "ns-3 on the model's per-user mean path loss; bottom: the few-station set (held out)"
     )
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.98))
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
 
@@ -1391,7 +1432,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"speed: fast model {result['speed']['speedup_min']}x+ faster per simulated second")
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
-    scatter(rows_by_config, FIGURE, urban_rows(NetworkConfig()))
+    scatter(rows_by_config, FIGURE, urban_rows(NetworkConfig()), few_station_rows(NetworkConfig()))
     print(f"wrote {RESULTS} and {FIGURE}")
     return 0
 
