@@ -29,7 +29,15 @@ A decision, once per period (or per report in ``on-report`` mode):
    link returns it flies nothing stale until the next decision includes it.
 
 The operator view (``GET /v1/live``, the page) shows every vehicle with its own track and
-target. Not (yet) for a fleet: a ``state_file`` (refused at start).
+target.
+
+Restarts, with a ``state_file``: as for one vehicle (:mod:`service.placement`), the serving
+policy and every commanded vehicle's last target are written after each decision and swap. On
+start the policy is restored under the checks of a swap, and each vehicle of the fleet file
+that has a saved target shows it (source ``restored``, with why it is not commanded) but is
+*not* streamed; ``arm_and_takeoff`` waits for the first decision from a fresh report, which
+commands the fleet afresh. A saved vehicle the fleet file no longer names is ignored and
+counted (``state_restore_errors``).
 """
 
 from __future__ import annotations
@@ -37,8 +45,9 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -46,7 +55,14 @@ from policies.fleet_policy import DEFAULT_FLEET_POLICY, FleetPolicy, resolve_fle
 from service.fleet_spec import FleetSpec
 from service.fleet_targets import assign_targets, guard_targets
 from service.live_view import Moment
-from service.placement import Decision, PlacementService, VehicleView, link_problem
+from service.placement import (
+    STATE_FORMAT,
+    Decision,
+    PlacementService,
+    VehicleView,
+    link_problem,
+    restored_decision,
+)
 from service.policy_runtime import synthetic_report
 from service.settings import ServiceSettings
 from service.vehicle_link import LinkConfig, LinkState, VehicleLink
@@ -54,6 +70,8 @@ from sim.errors import InputError
 from sim.world import World
 
 log = logging.getLogger(__name__)
+
+RESTORED = "restored from the state file: not streamed until the next decision (a fresh report)"
 
 
 class FleetPlacementService(PlacementService):
@@ -110,11 +128,20 @@ class FleetPlacementService(PlacementService):
     def start(self) -> FleetPlacementService:
         for link in self.links.values():
             link.start()
+        restarted = self._restore()
         if self.settings.arm_and_takeoff:
-            for link in self.links.values():
-                link.arm_and_takeoff(timeout_s=self.settings.takeoff_timeout_s)
+            if restarted:
+                # A restart: arm and take off only once a fresh report leads to a decision.
+                self._takeoff_deferred = True
+                log.info("restarted (state file found): arm-and-takeoff waits for a decision")
+            else:
+                self._arm_and_take_off()
         self._start_loop()
         return self
+
+    def _arm_and_take_off(self) -> None:
+        for link in self.links.values():
+            link.arm_and_takeoff(timeout_s=self.settings.takeoff_timeout_s)
 
     def close_links(self) -> None:
         for link in self.links.values():
@@ -135,9 +162,13 @@ class FleetPlacementService(PlacementService):
         for vehicle in self.fleet.vehicles:
             vid = vehicle.id
             problem = problems.get(vid)
-            if problem is None and vid not in decisions:
+            decision = decisions.get(vid)
+            if problem is None and decision is None:
                 problem = "not commanded yet: waiting for the next decision (a fresh report)"
-            decision = decisions.get(vid) if problem is None else None
+            elif decision is not None and decision.source == "restored":
+                problem = problem or RESTORED
+            elif problem is not None:
+                decision = None
             views.append(VehicleView(vid, vehicle.system_id, states[vid], decision, problem))
         return views
 
@@ -173,6 +204,52 @@ class FleetPlacementService(PlacementService):
         moment = super()._moment()
         fleet = tuple((v.id, v.state, v.decision) for v in self.vehicles())
         return replace(moment, link=fleet[0][1], decision=fleet[0][2], fleet=fleet)
+
+    # ------------------------------------------------------------------ persistence
+
+    def _state_document(self) -> dict[str, Any]:
+        """The serving policy and each commanded vehicle's last decision, by id."""
+        with self._lock:
+            decisions, policy = dict(self._decisions), self._policy
+        return {
+            "format": STATE_FORMAT,
+            "policy": policy.spec,
+            "decisions": {vid: asdict(d) for vid, d in decisions.items()},
+        }
+
+    def _restore_targets(self, state: dict[str, Any], path: object) -> None:
+        """Show each saved vehicle's target (source ``restored``, never streamed)."""
+        saved = state.get("decisions")
+        if saved is None:
+            if state.get("decision") is not None:
+                log.warning(
+                    "ignoring the state file %s's target: one vehicle's, not a fleet's", path
+                )
+                self._count("state_restore_errors")
+            return
+        if not isinstance(saved, dict):
+            log.warning("ignoring the targets in the state file %s: not an object by vehicle", path)
+            self._count("state_restore_errors")
+            return
+        restored = {}
+        for vid, entry in saved.items():
+            if vid not in self.links:
+                log.warning("state file %s: %r is not in the fleet file; ignored", path, vid)
+                self._count("state_restore_errors")
+                continue
+            try:
+                restored[vid] = restored_decision(entry)
+            except (ValueError, KeyError, TypeError) as exc:
+                log.warning("ignoring %s's target in the state file %s: %s", vid, path, exc)
+                self._count("state_restore_errors")
+        with self._lock:
+            self._decisions = restored
+        if restored:
+            log.info(
+                "restored the last targets of %s from %s (not streamed until a decision)",
+                ", ".join(restored),
+                path,
+            )
 
     # ------------------------------------------------------------------ deciding
 
@@ -223,6 +300,9 @@ class FleetPlacementService(PlacementService):
             return None
         if problems:
             self._count("decisions_degraded")
+        if self._takeoff_deferred:  # the first decision after a restart (see start())
+            self._takeoff_deferred = False
+            self._arm_and_take_off()
         positions = np.array([states[vid].position_m for vid in flying], dtype=float)
         obstacles = np.array(
             [states[vid].position_m for vid in problems if states[vid].position_m is not None],
@@ -249,6 +329,7 @@ class FleetPlacementService(PlacementService):
             self._decisions = decisions
             self.counters["decisions"] += 1
             self.counters["decision_time_us_total"] += int((time.perf_counter() - started) * 1e6)
+        self._persist()
         return next(iter(decisions.values()))
 
     def _load_allowed(self, spec: str) -> FleetPolicy:  # type: ignore[override]

@@ -51,6 +51,7 @@ import time
 from collections import Counter
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -64,6 +65,7 @@ from sim.files import atomic_write_json
 from sim.observation import UserReports
 from sim.world import World
 
+STATE_FORMAT = "tupa-service-state/1"
 log = logging.getLogger(__name__)
 
 LINK_POLL_S = 0.05
@@ -97,6 +99,15 @@ class Decision:
     policy: str
     decided_at: float
     """Unix time, seconds."""
+
+
+def restored_decision(saved: Any) -> Decision:
+    """A decision as the state file keeps it (``asdict``), shown again with source
+    ``restored``; ValueError, KeyError or TypeError when it is not one."""
+    target = tuple(float(v) for v in saved["target_m"])
+    if len(target) != 3 or not all(math.isfinite(v) for v in target):
+        raise ValueError(f"target_m: not three finite numbers: {target}")
+    return Decision(target, "restored", str(saved.get("policy", "")), time.time())  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True)
@@ -501,17 +512,21 @@ class PlacementService:
 
     # ------------------------------------------------------------------ persistence
 
+    def _state_document(self) -> dict[str, Any]:
+        """What the state file holds: the serving policy and the last decision."""
+        with self._lock:
+            decision, policy = self._decision, self._policy
+        return {
+            "format": STATE_FORMAT,
+            "policy": policy.spec,
+            "decision": asdict(decision) if decision else None,
+        }
+
     def _persist(self) -> None:
         path = self.settings.state_file
         if path is None:
             return
-        with self._lock:
-            decision, policy = self._decision, self._policy
-        state = {
-            "format": "tupa-service-state/1",
-            "policy": policy.spec,
-            "decision": asdict(decision) if decision else None,
-        }
+        state = self._state_document()
         try:
             atomic_write_json(Path(path), state)
         except OSError as exc:
@@ -534,23 +549,27 @@ class PlacementService:
             self._count("state_restore_errors")
             return True
         self._restore_policy(state.get("policy"), path)
+        self._restore_targets(state, path)
+        return True
+
+    def _restore_targets(self, state: dict[str, Any], path: object) -> None:
+        """Show the persisted target as the current decision (source ``restored``)."""
         try:
             saved = state["decision"]
             if saved is None:
-                return True
-            target = tuple(float(v) for v in saved["target_m"])
-            if len(target) != 3 or not all(math.isfinite(v) for v in target):
-                raise ValueError(f"target_m: not three finite numbers: {target}")
+                return
+            decision = restored_decision(saved)
         except (ValueError, KeyError, TypeError) as exc:
             log.warning("ignoring the target in the state file %s: %s", path, exc)
             self._count("state_restore_errors")
-            return True
+            return
         with self._lock:
-            self._decision = Decision(target, "restored", str(saved.get("policy", "")), time.time())
+            self._decision = decision
         log.info(
-            "restored the last target %s from %s (not streamed until a decision)", target, path
+            "restored the last target %s from %s (not streamed until a decision)",
+            decision.target_m,
+            path,
         )
-        return True
 
     def _load_allowed(self, spec: str) -> Policy:
         """``spec`` loaded under the checks a client's choice gets: from ``policy_dirs`` only,

@@ -206,8 +206,6 @@ class ServiceSettings(BaseSettings):
         """Refuse to serve without a token unless ``insecure`` (ValueError naming the field)."""
         if self.fleet_file is not None and self.fleet_mavlink:
             raise ValueError("fleet_file: give a fleet file or repeated --mavlink, not both")
-        if self.is_fleet and self.state_file is not None:
-            raise ValueError("state_file: not supported with a fleet yet (one vehicle only)")
         token = self.api_token.get_secret_value() if self.api_token else ""
         if not token and not self.insecure:
             raise ValueError(

@@ -7,6 +7,7 @@ id the fleet file does not name; fleet policy swaps and refusals."""
 from __future__ import annotations
 
 import itertools
+import json
 import shutil
 import time
 from collections.abc import Callable, Iterator
@@ -294,3 +295,119 @@ def test_a_fleet_of_real_links_streams_each_vehicle_its_target(backend: str) -> 
                 assert view.state.target_m == decisions[view.id].target_m
         finally:
             service.stop()
+
+
+def _fleet_with_state(
+    state_file: Path, policy: str = "kmeans-load-weighted", **settings: Any
+) -> tuple[FleetPlacementService, dict[str, FakeLink], list[str]]:
+    """An ``on-report`` fleet of three airborne FakeLinks with a state file, not started; the
+    third item lists the vehicles ``arm_and_takeoff`` was called on, in order."""
+    urls = tuple(f"tcp:127.0.0.1:{5760 + i}" for i in range(3))
+    config = ServiceSettings(
+        fleet_mavlink=urls,
+        mavlink=urls[0],
+        insecure=True,
+        decision_mode="on-report",
+        state_file=state_file,
+        **settings,
+    )
+    fleet = FleetSpec(
+        tuple(VehicleSpec(f"uav{i + 1}", url, None) for i, url in enumerate(urls)),
+        config.separation_m,
+    )
+    world = config.policy_world()
+    armed: list[str] = []
+    links = {}
+    for i, vehicle in enumerate(fleet.vehicles):
+        link = FakeLink(
+            LinkConfig(vehicle.mavlink, area=world.area),
+            position_m=(200.0 + 60.0 * i, 250.0, 30.0),
+            system_id=i + 1,
+        )
+        arm = link.arm_and_takeoff
+
+        def record(*args: Any, _vid: str = vehicle.id, _arm: Any = arm, **kwargs: Any) -> Any:
+            armed.append(_vid)
+            return _arm(*args, **kwargs)
+
+        link.arm_and_takeoff = record  # type: ignore[method-assign]
+        links[vehicle.id] = link
+    policy_object = load_fleet_policy(policy, world, fleet.separation_m)
+    return FleetPlacementService(config, links, policy_object, fleet, world), links, armed
+
+
+def test_a_restarted_fleet_shows_its_saved_targets_streams_nothing_and_arms_on_a_decision(
+    tmp_path: Path,
+) -> None:
+    state_file = tmp_path / "state.json"
+    first, _, armed = _fleet_with_state(state_file, arm_and_takeoff=True)
+    first.start()
+    try:
+        assert armed == ["uav1", "uav2", "uav3"]  # a cold start arms at once
+        first.submit_report(hot_spot_report(time.time()))
+        first.swap_policy("kmeans-min-distance")
+        saved = first.decisions()
+    finally:
+        first.stop()
+    assert set(saved) == {"uav1", "uav2", "uav3"}
+
+    again, links, armed = _fleet_with_state(state_file, arm_and_takeoff=True)
+    again.start()
+    try:
+        assert again.policy.spec == "kmeans-min-distance"  # the swap survived the restart
+        restored = again.decisions()
+        assert {vid: d.target_m for vid, d in restored.items()} == {
+            vid: d.target_m for vid, d in saved.items()
+        }
+        assert {d.source for d in restored.values()} == {"restored"}
+        for view in again.vehicles():
+            assert view.decision is not None and view.decision.source == "restored"
+            assert view.problem is not None and "not streamed" in view.problem
+        assert all(link.state().target_m is None for link in links.values())
+        assert armed == []  # a restart arms nothing by itself
+        again.submit_report(hot_spot_report(time.time(), seed=1))
+        assert armed == ["uav1", "uav2", "uav3"]
+        fresh = again.decisions()
+        assert {d.source for d in fresh.values()} == {"policy"}
+        for vid, link in links.items():
+            assert link.state().target_m == fresh[vid].target_m
+    finally:
+        again.stop()
+
+
+def test_a_fleet_state_file_naming_other_vehicles_or_bad_targets_restores_the_rest(
+    tmp_path: Path,
+) -> None:
+    state_file = tmp_path / "state.json"
+    good = {"target_m": [120.0, 130.0, 40.0], "source": "policy", "policy": "x", "decided_at": 1}
+    state_file.write_text(
+        json.dumps(
+            {
+                "format": "tupa-service-state/1",
+                "policy": "kmeans-load-weighted",
+                "decisions": {
+                    "uav1": good,
+                    "uav2": {**good, "target_m": ["nan", 1, 2]},
+                    "gone": good,
+                },
+            }
+        )
+    )
+    service, links, _ = _fleet_with_state(state_file)
+    service.start()
+    try:
+        assert list(service.decisions()) == ["uav1"]
+        assert service.decisions()["uav1"].target_m == (120.0, 130.0, 40.0)
+        assert service.snapshot_counters()["state_restore_errors"] == 2
+        assert all(link.state().target_m is None for link in links.values())
+    finally:
+        service.stop()
+    # A single vehicle's state file: its one target is no fleet's; ignored and counted.
+    state_file.write_text(json.dumps({"policy": "kmeans-load-weighted", "decision": good}))
+    service, _, _ = _fleet_with_state(state_file)
+    service.start()
+    try:
+        assert service.decisions() == {}
+        assert service.snapshot_counters()["state_restore_errors"] == 1
+    finally:
+        service.stop()

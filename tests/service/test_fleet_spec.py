@@ -158,10 +158,6 @@ def _serve(*args: str) -> subprocess.CompletedProcess[str]:
             ["--fleet-file", "{path}", "--mavlink", "tcp:127.0.0.1:1"],
             "fleet_file: give a fleet file or --mavlink, not both",
         ),
-        (
-            ["--fleet-file", "{path}", "--state-file", "s.json"],
-            "state_file: not supported with a fleet",
-        ),
     ],
 )
 def test_tupa_serve_refuses_a_bad_fleet_in_one_line(
