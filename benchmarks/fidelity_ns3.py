@@ -1204,6 +1204,23 @@ def _scatter_users(
     ax.scatter(x, y, s=14, facecolors=face, edgecolors=colour, linewidths=0.8, label=label)
 
 
+def _style_panel(ax: Any, key: str, floor: float, hi: float, title: str, legend: bool) -> None:
+    """A log-log fast-vs-ns-3 panel of ``key`` (``tput`` or ``delay``): diagonal, limits,
+    labels, ``title: per-user ...``, grid, and (``legend``) a small legend."""
+    ax.plot([floor, hi], [floor, hi], color="black", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlim(floor, hi)
+    ax.set_ylim(floor, hi)
+    label = "throughput (Mbit/s)" if key == "tput" else "mean delay (s)"
+    ax.set_xlabel(f"ns-3 {label}")
+    ax.set_ylabel(f"fast model {label}")
+    ax.set_title(f"{title}: per-user {label.split(' (')[0]}")
+    ax.grid(True, which="major", lw=0.3)
+    if legend:
+        ax.legend(fontsize=7, loc="upper left")
+
+
 def scatter(
     rows_by_config: dict[str, dict[str, list[dict[str, Any]]]],
     path: Path,
@@ -1243,18 +1260,7 @@ def scatter(
                     continue
                 legend = environment + (", held out" if held else "")
                 _scatter_users(ax, sel, key, scale, floor, colour, face, legend)
-        ax.plot([floor, hi], [floor, hi], color="black", lw=0.8)
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.set_xlim(floor, hi)
-        ax.set_ylim(floor, hi)
-        label = "throughput (Mbit/s)" if key == "tput" else "mean delay (s)"
-        ax.set_xlabel(f"ns-3 {label}")
-        ax.set_ylabel(f"fast model {label}")
-        ax.set_title(f"{variant}, urban sets: per-user {label.split(' (')[0]}")
-        ax.grid(True, which="major", lw=0.3)
-        if col == 0:
-            ax.legend(fontsize=7, loc="upper left")
+        _style_panel(ax, key, floor, hi, f"{variant}, urban sets", legend=col == 0)
     for col, (variant, key) in enumerate(urban_columns):
         ax = axes[3][col]
         scale, floor, hi = (1e-6, 1e-2, 100.0) if key == "tput" else (1.0, 1e-4, 10.0)
@@ -1267,18 +1273,7 @@ def scatter(
             if sel:
                 legend = "congested" if congested else "uncongested"
                 _scatter_users(ax, sel, key, scale, floor, colour, colour, legend)
-        ax.plot([floor, hi], [floor, hi], color="black", lw=0.8)
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.set_xlim(floor, hi)
-        ax.set_ylim(floor, hi)
-        label = "throughput (Mbit/s)" if key == "tput" else "mean delay (s)"
-        ax.set_xlabel(f"ns-3 {label}")
-        ax.set_ylabel(f"fast model {label}")
-        ax.set_title(f"{variant}, few-station set: per-user {label.split(' (')[0]}")
-        ax.grid(True, which="major", lw=0.3)
-        if col == 0:
-            ax.legend(fontsize=7, loc="upper left")
+        _style_panel(ax, key, floor, hi, f"{variant}, few-station set", legend=col == 0)
     columns = [(v, name) for v in VARIANTS for name in rows_by_config]
     for col, (variant, name) in enumerate(columns):
         rows = rows_by_config[name].get(variant, [])
