@@ -337,13 +337,9 @@ class FleetModel:
                 result.connected,
             )
         index = _row_index(assoc, k)
+        rows_users, rows_load, rows_queues = _gather_cells(users, load, *queues.arrays, index, k)
         result = self.model.step_many(
-            uav.reshape(batch * k, 3),
-            _gather_users(users, index),
-            _gather(load[None, :], index, k, 0.0, True),
-            queues.map(lambda a: _gather(a, index, k, 0.0, False)),
-            rng,
-            step_s,
+            uav.reshape(batch * k, 3), rows_users, rows_load, QueueState(*rows_queues), rng, step_s
         )
         return _scatter_result(index, batch, users.shape[0], result)
 
@@ -387,18 +383,14 @@ class FleetModel:
         ground = np.hypot(own[..., 0] - users[:, 0], own[..., 1] - users[:, 1])
         height = np.maximum(own[..., 2] - self.area.user_height_m, 0.0)
         index = _row_index(np.take_along_axis(domain, assoc, axis=1), k)
-        rows_ground = _gather(ground, index, k, 0.0, False)
-        rows_height = _gather(height, index, k, 1.0, False)
-        rows_penalty = _gather(np.take_along_axis(penalty_db, assoc, axis=1), index, k, 0.0, False)
+        rows_ground = _gather(ground, index, k, 0.0)
+        rows_height = _gather(height, index, k, 1.0)
+        rows_penalty = _gather(np.take_along_axis(penalty_db, assoc, axis=1), index, k, 0.0)
         assert self.model is not None
         loss, gains = self.model.link_channel(rows_ground, rows_height, rng)
+        rows_users, rows_load, rows_queues = _gather_cells(users, load, *queues.arrays, index, k)
         result = self.model.step_links(
-            loss + rows_penalty,
-            gains,
-            _gather_users(users, index),
-            _gather(load[None, :], index, k, 0.0, True),
-            queues.map(lambda a: _gather(a, index, k, 0.0, False)),
-            step_s,
+            loss + rows_penalty, gains, rows_users, rows_load, QueueState(*rows_queues), step_s
         )
         return _scatter_result(index, batch, n_users, result), domain, interference_dbm
 
@@ -490,11 +482,11 @@ def _row_index(row_of_user: np.ndarray, k: int) -> np.ndarray:
 
 
 @njit(cache=True)
-def _gather(values: np.ndarray, index: np.ndarray, k: int, pad: float, shared: bool) -> np.ndarray:
-    """Per-user values (B, U) (or (1, U) shared by every fleet) laid out in rows (B·K, n)."""
+def _gather(values: np.ndarray, index: np.ndarray, k: int, pad: float) -> np.ndarray:
+    """Per-user values (B, U) laid out in rows (B·K, n), ``pad`` where a row has no user."""
     out = np.full(index.shape, pad)
     for r in range(index.shape[0]):
-        b = 0 if shared else r // k
+        b = r // k
         for j in range(index.shape[1]):
             u = index[r, j]
             if u >= 0:
@@ -503,49 +495,91 @@ def _gather(values: np.ndarray, index: np.ndarray, k: int, pad: float, shared: b
 
 
 @njit(cache=True)
-def _gather_users(users: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """Users' positions (U, 2) laid out in rows (B·K, n, 2); padding at the origin (it offers
-    nothing, so where it stands does not matter)."""
-    out = np.zeros((index.shape[0], index.shape[1], 2))
-    for r in range(index.shape[0]):
-        for j in range(index.shape[1]):
+def _gather_cells(
+    users: np.ndarray,
+    load: np.ndarray,
+    backlog: np.ndarray,
+    codel: np.ndarray,
+    at_cap: np.ndarray,
+    index: np.ndarray,
+    k: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What a cell's row needs, laid out in rows (B·K, n) by ``index``: the users' positions
+    (B·K, n, 2) from (U, 2), their offered load from (U,), and the three queue arrays (3,
+    B·K, n) from (B, U) each. Padding offers nothing, at the origin, with empty queues (where
+    it stands does not matter). One pass: a compiled call per array cost more than the work."""
+    rows, width = index.shape
+    xy = np.zeros((rows, width, 2))
+    offered = np.zeros((rows, width))
+    queues = np.zeros((3, rows, width))
+    for r in range(rows):
+        b = r // k
+        for j in range(width):
             u = index[r, j]
             if u >= 0:
-                out[r, j, 0] = users[u, 0]
-                out[r, j, 1] = users[u, 1]
-    return out
+                xy[r, j, 0] = users[u, 0]
+                xy[r, j, 1] = users[u, 1]
+                offered[r, j] = load[u]
+                queues[0, r, j] = backlog[b, u]
+                queues[1, r, j] = codel[b, u]
+                queues[2, r, j] = at_cap[b, u]
+    return xy, offered, queues
 
 
 @njit(cache=True)
-def _scatter(rows: np.ndarray, index: np.ndarray, k: int, out: np.ndarray) -> None:
+def _scatter_cells(
+    index: np.ndarray,
+    k: int,
+    n_users: int,
+    throughput: np.ndarray,
+    delay: np.ndarray,
+    plr: np.ndarray,
+    backlog: np.ndarray,
+    codel: np.ndarray,
+    at_cap: np.ndarray,
+    snr: np.ndarray,
+    connected: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The rows' outputs (B·K, n) back to per-user arrays: one block (7, B, U) in the order
+    of the arguments, and connected (B, U). Every user is in exactly one row."""
+    batch = index.shape[0] // k
+    out = np.empty((7, batch, n_users))
+    linked = np.empty((batch, n_users), dtype=np.bool_)
     for r in range(index.shape[0]):
         b = r // k
         for j in range(index.shape[1]):
             u = index[r, j]
             if u >= 0:
-                out[b, u] = rows[r, j]
+                out[0, b, u] = throughput[r, j]
+                out[1, b, u] = delay[r, j]
+                out[2, b, u] = plr[r, j]
+                out[3, b, u] = backlog[r, j]
+                out[4, b, u] = codel[r, j]
+                out[5, b, u] = at_cap[r, j]
+                out[6, b, u] = snr[r, j]
+                linked[b, u] = connected[r, j]
+    return out, linked
 
 
 def _scatter_result(
     index: np.ndarray, batch: int, n_users: int, result: StepResult
 ) -> tuple[np.ndarray | QueueState, ...]:
     """The rows' step (B·K, n) back to per-user arrays (B, U): throughput, delay, loss, the
-    queue state, SNR and connected, in that order."""
+    queue state, SNR and connected, in that order (fresh arrays: views of one new block)."""
     k = index.shape[0] // batch
-
-    def back(values: np.ndarray) -> np.ndarray:
-        out = np.empty((batch, n_users), dtype=values.dtype)
-        _scatter(values, index, k, out)
-        return out
-
-    return (
-        back(result.throughput_bps),
-        back(result.delay_s),
-        back(result.plr),
-        result.state.map(back),
-        back(result.snr_db),
-        back(result.connected),
+    out, connected = _scatter_cells(
+        index,
+        k,
+        n_users,
+        result.throughput_bps,
+        result.delay_s,
+        result.plr,
+        *result.state.arrays,
+        result.snr_db,
+        result.connected,
     )
+    throughput, delay, plr, backlog, codel, at_cap, snr = out
+    return throughput, delay, plr, QueueState(backlog, codel, at_cap), snr, connected
 
 
 @njit(cache=True)

@@ -58,9 +58,10 @@ from sim.geometry import (
     hold_separation,
     move_mask,
     move_masks,
-    move_target,
+    move_targets,
     unit_to_m_many,
     zone_index,
+    zone_indices,
     zone_position,
 )
 from sim.observation import N_MAPS, UserReports, build_observations
@@ -317,13 +318,9 @@ class FleetParallelEnv(ParallelEnv):
             raise ValueError(f"actions: no action for {', '.join(missing)}")
         chosen = [self._check_action(actions[agent]) for agent in self.possible_agents]
         if self.action_kind == "discrete":
-            # The single environment's own function per vehicle (K is small).
-            moved = [
-                move_target(move, self.uav_xyz_m[k], self.area, self._index[k])
-                for k, move in enumerate(chosen)
-            ]
-            targets = np.array([target for target, _ in moved])
-            self._refused = np.array([refused for _, refused in moved])
+            targets, self._refused = move_targets(
+                np.array(chosen), self.uav_xyz_m, self.area, self._index
+            )
         else:
             targets = unit_to_m_many(np.array(chosen), self.area)
         return self._step_toward(targets)
@@ -358,8 +355,7 @@ class FleetParallelEnv(ParallelEnv):
 
     def _moved(self) -> None:
         """The vehicles are somewhere new: their zones (the discrete moves start there)."""
-        # K is small: the scalar fast path per vehicle beats the array function.
-        self._index = np.array([zone_index(p, self.area) for p in self.uav_xyz_m])
+        self._index = zone_indices(self.uav_xyz_m, self.area)
 
     def _check_action(self, action: Any) -> Any:
         """One agent's action, checked: a move number, or coordinates (3,) in [0, 1]."""

@@ -56,6 +56,7 @@ MOVES: np.ndarray = np.array(
     ],
     dtype=np.int64,
 )
+_MOVE_STEPS: tuple[tuple[int, int, int], ...] = tuple(map(tuple, MOVES.tolist()))
 MOVE_NAMES: tuple[str, ...] = (
     "stay",
     "east 1",
@@ -81,15 +82,9 @@ def grid_shape(area: AreaConfig) -> np.ndarray:
 def zone_index(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
     """The grid index of the zone holding ``xyz_m`` (nearest level in z), clipped to the grid."""
     if type(xyz_m) is np.ndarray and xyz_m.dtype == np.float64 and xyz_m.shape == (3,):
-        x, y, z = xyz_m.tolist()  # Python floats: the same arithmetic, less overhead
-        qx, qy, qz = x / area.zone_m, y / area.zone_m, (z - area.z_min_m) / area.zone_m
-        if abs(qx) + abs(qy) + abs(qz) < _EXACT:  # finite, and int64 holds the index
-            n_x, n_y, n_z = _grid_dims(area)
-            ix, iy, iz = math.floor(qx), math.floor(qy), round(qz)  # round: half to even
-            return np.array(
-                [min(max(ix, 0), n_x - 1), min(max(iy, 0), n_y - 1), min(max(iz, 0), n_z - 1)],
-                dtype=np.int64,
-            )
+        index = _zone_tuple(*xyz_m.tolist(), area)
+        if index is not None:
+            return np.array(index, dtype=np.int64)
     raw = np.array(
         [
             np.floor(xyz_m[0] / area.zone_m),
@@ -98,6 +93,17 @@ def zone_index(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
         ]
     ).astype(np.int64)
     return np.clip(raw, 0, grid_shape(area) - 1)
+
+
+def _zone_tuple(x: float, y: float, z: float, area: AreaConfig) -> tuple[int, int, int] | None:
+    """:func:`zone_index` on Python floats (the same arithmetic as numpy's, less overhead);
+    None for coordinates that are not finite or too large for int64 (the array way has them)."""
+    qx, qy, qz = x / area.zone_m, y / area.zone_m, (z - area.z_min_m) / area.zone_m
+    if not abs(qx) + abs(qy) + abs(qz) < _EXACT:
+        return None
+    n_x, n_y, n_z = _grid_dims(area)
+    ix, iy, iz = math.floor(qx), math.floor(qy), round(qz)  # round: half to even
+    return min(max(ix, 0), n_x - 1), min(max(iy, 0), n_y - 1), min(max(iz, 0), n_z - 1)
 
 
 def zone_position(index: np.ndarray, area: AreaConfig) -> np.ndarray:
@@ -126,6 +132,9 @@ def move_mask(index: np.ndarray, area: AreaConfig) -> np.ndarray:
 
 # Grid coordinates below this (sum of magnitudes) floor and round the same in Python and numpy.
 _EXACT = 2.0**52
+# Up to this many rows (a fleet), the functions of many vehicles work on Python floats and ints
+# with the scalar functions' arithmetic: numpy's per-call cost is more than the work.
+SCALAR_ROWS = 8
 
 
 @lru_cache(maxsize=16)
@@ -243,6 +252,10 @@ def m_to_unit(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
 def zone_indices(xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
     """:func:`zone_index` of each row of ``xyz_m`` (E, 3): int64 (E, 3)."""
     xyz = np.asarray(xyz_m, dtype=float)
+    if xyz.ndim == 2 and len(xyz) <= SCALAR_ROWS:  # a fleet: Python floats, one array
+        rows = [_zone_tuple(x, y, z, area) for x, y, z in xyz.tolist()]
+        if None not in rows:
+            return np.array(rows, dtype=np.int64).reshape(len(xyz), 3)
     raw = np.empty(xyz.shape, dtype=np.int64)
     raw[:, 0] = np.floor(xyz[:, 0] / area.zone_m)
     raw[:, 1] = np.floor(xyz[:, 1] / area.zone_m)
@@ -277,6 +290,17 @@ def move_targets(
     ``moves`` (E,) are valid move numbers; ``index`` the vehicles' zone indices when known."""
     if index is None:
         index = zone_indices(xyz_m, area)
+    if len(index) <= SCALAR_ROWS:  # a fleet: move_target's arithmetic on Python ints
+        table, zone_m, z_min_m = _mask_table(area), area.zone_m, area.z_min_m
+        targets, refused = [], []
+        for (ix, iy, iz), move in zip(index.tolist(), np.asarray(moves).tolist(), strict=True):
+            allowed = bool(table[ix, iy, iz, move])
+            if allowed:
+                dx, dy, dz = _MOVE_STEPS[move]
+                ix, iy, iz = ix + dx, iy + dy, iz + dz
+            targets.append(((ix + 0.5) * zone_m, (iy + 0.5) * zone_m, z_min_m + iz * zone_m))
+            refused.append(not allowed)
+        return np.array(targets, dtype=float).reshape(len(index), 3), np.array(refused, dtype=bool)
     landing = index + MOVES[moves]
     allowed = np.all((landing >= 0) & (landing < grid_shape(area)), axis=1)
     landing[~allowed] = index[~allowed]
@@ -315,9 +339,14 @@ _PUSH_DIRECTIONS /= np.linalg.norm(_PUSH_DIRECTIONS, axis=1, keepdims=True)
 
 def min_pairwise_distance_m(xyz_m: np.ndarray) -> float:
     """The smallest 3-D distance between two rows of ``xyz_m`` (K, 3); ``inf`` for K < 2."""
-    points = np.asarray(xyz_m, dtype=float).reshape(-1, 3).tolist()
+    return _min_distance(np.asarray(xyz_m, dtype=float).reshape(-1, 3).tolist())
+
+
+def _min_distance(points: list[list[float]]) -> float:
+    """:func:`min_pairwise_distance_m` of points as lists of floats (K is small, a fleet:
+    plain floats beat numpy here)."""
     closest = math.inf
-    for i, p in enumerate(points):  # K is small (a fleet): plain floats beat numpy here
+    for i, p in enumerate(points):
         for q in points[i + 1 :]:
             closest = min(closest, math.dist(p, q))
     return closest
@@ -365,17 +394,20 @@ def enforce_separation(targets_m: np.ndarray, separation_m: float, area: AreaCon
     if not (math.isfinite(separation_m) and separation_m > 0):
         raise ValueError(f"separation_m: must be > 0, got {separation_m!r}")
     targets = np.asarray(targets_m, dtype=float)
-    if targets.ndim != 2 or targets.shape[1] != 3 or not np.all(np.isfinite(targets)):
+    points = targets.tolist() if targets.ndim == 2 and targets.shape[1] == 3 else None
+    if points is None or not all(map(math.isfinite, itertools.chain.from_iterable(points))):
         raise ValueError(f"targets_m: must be (K, 3) finite positions, got shape {targets.shape}")
-    lower, upper = volume_bounds(area)
-    inside = all(
-        lo <= v <= hi
-        for point in targets.tolist()
-        for v, lo, hi in zip(point, lower.tolist(), upper.tolist(), strict=True)
-    )
-    wanted = targets.copy() if inside else clip_to_volume(targets, area)
-    if min_pairwise_distance_m(wanted) >= separation_m:
-        return wanted
+    # K is small (a fleet): the common case, already inside and apart, on Python floats.
+    low_z, high_x, high_y, high_z = area.z_min_m, area.size_x_m, area.size_y_m, area.z_max_m
+    if all(0.0 <= x <= high_x and 0.0 <= y <= high_y and low_z <= z <= high_z
+           for x, y, z in points):  # fmt: skip
+        wanted = targets.copy()
+        if _min_distance(points) >= separation_m:
+            return wanted
+    else:
+        wanted = clip_to_volume(targets, area)
+        if min_pairwise_distance_m(wanted) >= separation_m:
+            return wanted
     out = wanted.copy()
     reach = separation_m * _SEPARATION_MARGIN
     for k in range(1, len(out)):

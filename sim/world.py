@@ -37,7 +37,7 @@ import numpy as np
 
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
 from sim.errors import InputError
-from sim.geometry import zone_position
+from sim.geometry import SCALAR_ROWS, zone_position
 
 __all__ = [
     "WORLDS",
@@ -257,6 +257,13 @@ def fly(
     separately (as a multirotor's position controller does); at the target when in reach."""
     px, py, pz = (float(v) for v in position_m)
     x, y, z = (float(v) for v in target_m)
+    return np.array(_fly_point(px, py, pz, x, y, z, flight, duration_s))
+
+
+def _fly_point(
+    px: float, py: float, pz: float, x: float, y: float, z: float, flight: Flight, duration_s: float
+) -> tuple[float, float, float]:
+    """:func:`fly` on Python floats: where a vehicle at (px, py, pz) ends, aiming at (x, y, z)."""
     if flight.horizontal_mps is not None:
         gap_x, gap_y = x - px, y - py
         distance = math.hypot(gap_x, gap_y)
@@ -267,17 +274,21 @@ def fly(
         reach_z = flight.vertical_mps * duration_s
         if abs(z - pz) > reach_z:
             z = pz + math.copysign(reach_z, z - pz)
-    return np.array([x, y, z])
+    return x, y, z
 
 
 def fly_many(
     position_m: np.ndarray, target_m: np.ndarray, flight: Flight, duration_s: float
 ) -> np.ndarray:
-    """:func:`fly` of each row of ``position_m`` toward ``target_m`` (E, 3).
+    """:func:`fly` of each row of ``position_m`` toward ``target_m`` (E, 3): the same floats.
 
     The horizontal distance is Python's ``math.hypot`` (as the scalar function's), one call per
     row: numpy's ``hypot`` rounds differently in the last bit now and then."""
     position = np.asarray(position_m, dtype=float)
+    if len(position) <= SCALAR_ROWS:  # a fleet: Python floats
+        rows = zip(position.tolist(), np.asarray(target_m, dtype=float).tolist(), strict=True)
+        flown = [_fly_point(*p, *t, flight, duration_s) for p, t in rows]
+        return np.array(flown, dtype=float).reshape(len(position), 3)
     out = np.array(target_m, dtype=float)
     if flight.horizontal_mps is not None:
         gap_x = out[:, 0] - position[:, 0]

@@ -64,6 +64,15 @@ def test_batched_targets_and_flight_equal_the_scalar_functions():
     assert np.array_equal(targets, [t for t, _ in scalar])
     assert np.array_equal(refused, [r for _, r in scalar])
     assert refused.any() and not refused.all()
+    for rows in (1, 3, 8):  # a fleet's few rows take the scalar path: the same numbers
+        few, few_moves = here[:rows], moves[:rows]
+        assert np.array_equal(zone_indices(few, AREA), index[:rows])
+        few_targets, few_refused = move_targets(few_moves, few, AREA)
+        assert np.array_equal(few_targets, targets[:rows])
+        assert np.array_equal(few_refused, refused[:rows])
+    edge = np.array([[np.nan, 1.0, 30.0], [1e300, -1e300, np.inf]])  # the array way's clipping
+    with np.errstate(invalid="ignore"):  # numpy's cast of nan and inf, clipped afterwards
+        assert np.array_equal(zone_indices(edge, AREA), [zone_index(p, AREA) for p in edge])
     actions = rng.uniform(-0.2, 1.2, (len(here), 3))
     coords = unit_to_m_many(actions, AREA)
     assert np.array_equal(coords, [unit_to_m(a, AREA) for a in actions])
@@ -73,6 +82,8 @@ def test_batched_targets_and_flight_equal_the_scalar_functions():
             assert np.array_equal(
                 flown, [fly(p, g, flight, 1.5) for p, g in zip(here, goal, strict=True)]
             ), flight
+            for rows in (1, 3, 8):  # a fleet's few rows take the scalar path: the same floats
+                assert np.array_equal(fly_many(here[:rows], goal[:rows], flight, 1.5), flown[:rows])
 
 
 def run_both(kind, world, scenarios, n_envs, steps, seed, options=None, single_scenarios=None):
