@@ -210,7 +210,7 @@ def _figure(versions: dict[str, Version], reference: dict[str, float]) -> bytes:
     from policies.report.figures import _new_figure, _png, line_styles
 
     styles = line_styles([*versions, *reference])
-    figure = _new_figure(6.8, 4.6)
+    figure = _new_figure(8.4, 4.6)
     ax = figure.subplots()
     all_episodes = []
     for label, version in versions.items():
@@ -245,7 +245,8 @@ def _figure(versions: dict[str, Version], reference: dict[str, float]) -> bytes:
     ax.set_ylabel("median network utility on the test set")
     ax.set_title("Learning rate across seeds: median and inter-quartile range")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(loc="lower right", fontsize=7, framealpha=0.9)
+    # Outside the axes: a collapsed run lies anywhere from the bottom to the top.
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, framealpha=0.9)
     return _png(figure)
 
 
