@@ -11,8 +11,12 @@ Protocol (:func:`evaluate_fleet`), for scenario i of the set, K UAVs, a
   step from the K agents' observations; a placement (``place(users) -> (K, 3)``: the k-means
   baselines of :mod:`policies.fleet_baselines`, the search oracle of
   :mod:`policies.fleet_oracle`) is placed on the first report the decision sees and re-placed
-  every ``replan_every`` decisions, held in between; the environment flies the vehicles toward
-  the targets under the world's limits (every policy pays the same transit).
+  every ``replan_every`` decisions, held in between, its targets given to the vehicles by least
+  total flight (:func:`sim.geometry.assign_targets`, as the service assigns them); the oracle
+  searches from where the fleet is (:meth:`policies.fleet_oracle.FleetOracle.place_from`: the
+  vehicles' positions, the users' APs in the report, the world's flight); the environment
+  flies the vehicles toward the targets under the world's limits (every policy pays the same
+  transit).
 
 Per scenario (a row of the document), over the episode's ``episode_steps`` decisions:
 
@@ -49,6 +53,7 @@ from policies.interface import ReportedUsers
 from sim.errors import InputError
 from sim.fleet import MAX_UAVS, FleetConfig
 from sim.fleet_env import FleetParallelEnv
+from sim.geometry import assign_targets
 from sim.scenarios import Scenario, heterogeneity_indices
 from sim.world import World
 
@@ -100,7 +105,14 @@ class _Decider:
             return self.policy.targets(observations, env.reports, env.uav_xyz_m)
         if self._held is None or step % self.replan_every == 0:
             users = ReportedUsers.of(env.reports)
-            self._held = np.asarray(self.policy.place(users), dtype=float)
+            if isinstance(self.policy, FleetOracle):  # it searches from where the fleet is
+                placed = self.policy.place_from(
+                    users, env.uav_xyz_m, env.reported_association, env.world.flight
+                )
+            else:
+                placed = self.policy.place(users)
+            # Which vehicle takes which target: least total flight, as the service assigns.
+            self._held = assign_targets(env.uav_xyz_m, np.asarray(placed, dtype=float))
         return self._held
 
 

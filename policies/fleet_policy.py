@@ -92,7 +92,10 @@ class FleetPlacementPolicy:
         k = len(np.asarray(vehicles_xyz_m))
         if not 1 <= k <= MAX_UAVS:
             raise InputError(f"vehicles_xyz_m: 1..{MAX_UAVS} vehicles, got {k}")
-        return np.asarray(self._placement(k).place(ReportedUsers.of(reports)), dtype=float)
+        placement, users = self._placement(k), ReportedUsers.of(reports)
+        if isinstance(placement, FleetOracle):  # it searches from where the fleet is
+            return placement.place_from(users, vehicles_xyz_m, None, self.world.flight)
+        return np.asarray(placement.place(users), dtype=float)
 
     def describe(self) -> dict[str, Any]:
         return {

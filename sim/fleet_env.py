@@ -14,8 +14,8 @@ hysteresis, handovers, distinct or shared channels). One step:
    action_masks`), or absolute coordinates in ``[0, 1]³`` (:func:`sim.geometry.unit_to_m`);
 2. the set of targets is separated (:func:`sim.geometry.enforce_separation`, the fleet's
    ``separation_m``, lower agent index first) — the hard constraint — and the vehicles fly
-   toward them; a vehicle that would end the period too close to another holds where it was
-   (:func:`sim.geometry.hold_separation`);
+   toward them; a vehicle that would end the period too close to another goes round it, or
+   holds where it was when no detour is clear (:func:`sim.geometry.hold_separation`);
 3. users move; the fleet model simulates the period (queues and associations carried over);
 4. every agent gets the same reward, the network utility over all users (cooperative).
 
@@ -384,7 +384,7 @@ class FleetParallelEnv(ParallelEnv):
         self.target_xyz_m = enforce_separation(targets, sep, self.area)
         # The single environment's flight, every vehicle at once (the same floats as world.fly).
         flown = fly_many(self.uav_xyz_m, self.target_xyz_m, world.flight, world.step_s)
-        self.uav_xyz_m = hold_separation(self.uav_xyz_m, flown, sep)
+        self.uav_xyz_m = hold_separation(self.uav_xyz_m, flown, sep, self.area)
         self._moved()
         assert self.users is not None
         self.users.advance(world.step_s, self._users_rng)

@@ -479,22 +479,59 @@ def _lattice_free(
     return None
 
 
+# A held vehicle's detours, tried in this order: its step turned about the vertical by these
+# angles (the same length: the same speed).
+_DETOUR_TURNS = tuple((math.cos(a), math.sin(a)) for a in map(math.radians, (45, -45, 90, -90)))
+
+
 def hold_separation(
-    previous_m: np.ndarray, proposed_m: np.ndarray, separation_m: float
+    previous_m: np.ndarray,
+    proposed_m: np.ndarray,
+    separation_m: float,
+    area: AreaConfig | None = None,
 ) -> np.ndarray:
-    """Where K vehicles end a decision period: ``proposed_m`` (K, 3), except that a vehicle
-    that would end closer than ``separation_m`` to another holds at ``previous_m`` instead.
+    """Where K vehicles end a decision period: ``proposed_m`` (K, 3), except where a vehicle
+    would end closer than ``separation_m`` to another.
 
     Flying straight toward separated targets can still bring two vehicles together on the way
-    (crossing paths). The rule is applied until no pair is too close (at most K rounds: each
-    round holds at least one more vehicle); ``previous_m`` must itself be separated, so holding
-    every vehicle always satisfies it. A stand-in for the autopilots' own avoidance, not a
-    planner: two vehicles that keep wanting each other's place wait.
+    (crossing paths, or a path past a vehicle that hovers). Such a vehicle is first held at
+    ``previous_m``, until no pair is too close (at most K rounds: each round holds at least one
+    more vehicle; ``previous_m`` must itself be separated, so holding every vehicle always
+    satisfies it). Then each held vehicle, in index order, takes the first detour that keeps
+    clear of every other vehicle where it ends: its step turned by 45°, −45°, 90° or −90° about
+    the vertical (inside ``area``'s volume when given), so that it goes round the other rather
+    than wait behind it for ever; with none clear it stays held. A stand-in for the autopilots'
+    own avoidance, not a planner.
     """
     previous = np.asarray(previous_m, dtype=float)
     out = np.array(proposed_m, dtype=float)
     if min_pairwise_distance_m(out) >= separation_m:
         return out
+    held = np.zeros(len(out), dtype=bool)
+    limit = separation_m * separation_m
+    for _ in range(len(out)):
+        gap = out[:, None, :] - out[None, :, :]
+        close = np.sum(gap * gap, axis=-1) < limit
+        np.fill_diagonal(close, False)
+        movers = close.any(axis=1) & ~held
+        if not close.any() or not movers.any():
+            break
+        out[movers] = previous[movers]
+        held |= movers
+    for k in np.flatnonzero(held):
+        dx, dy, dz = (np.asarray(proposed_m, dtype=float)[k] - previous[k]).tolist()
+        if dx == 0.0 and dy == 0.0:
+            continue
+        others = np.delete(out, k, axis=0)
+        for cos_a, sin_a in _DETOUR_TURNS:
+            candidate = previous[k] + (dx * cos_a - dy * sin_a, dx * sin_a + dy * cos_a, dz)
+            if area is not None:
+                candidate = clip_to_volume(candidate, area)
+            gap = others - candidate
+            if np.all(np.sum(gap * gap, axis=1) >= limit):
+                out[k] = candidate
+                break
+    return out
     held = np.zeros(len(out), dtype=bool)
     limit = separation_m * separation_m
     for _ in range(len(out)):

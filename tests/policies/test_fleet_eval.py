@@ -29,6 +29,7 @@ from sim.errors import InputError
 from sim.files import atomic_write_json, load_scenarios, save_scenarios
 from sim.fleet import FleetConfig
 from sim.fleet_env import FleetParallelEnv
+from sim.geometry import assign_targets
 from sim.scenarios import generate_scenarios
 from sim.world import get_world
 from tests.helpers import tiny_preset
@@ -171,8 +172,9 @@ def test_handovers_count_the_episodes_handovers():
         env.reset(seed=i, options={"scenario": scenario})
         counts = []
         while env.agents:
-            targets = placement.place(ReportedUsers.of(env.reports))
-            *_, infos = env.step_to(targets)
+            # Assigned to the vehicles by least travel, as the evaluation (and the service) do.
+            placed = placement.place(ReportedUsers.of(env.reports))
+            *_, infos = env.step_to(assign_targets(env.uav_xyz_m, placed))
             counts.append(infos["uav_0"]["handovers"])
         assert row["handovers"] == counts[-1]
         assert counts == sorted(counts)  # a running count

@@ -7,12 +7,18 @@ import numpy as np
 import pytest
 
 from policies.fleet_baselines import KMeansPlacement, kmeans
-from policies.fleet_oracle import FleetOracle, FleetOracleConfig, fleet_episode_utility
+from policies.fleet_oracle import (
+    FleetOracle,
+    FleetOracleConfig,
+    FleetStart,
+    fleet_episode_utility,
+)
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig, FleetModel
-from sim.geometry import volume_bounds
+from sim.geometry import assign_targets, volume_bounds
 from sim.scenarios import Scenario, generate_scenarios
+from sim.world import Flight, fly_many
 
 
 def _hot_spots() -> Scenario:
@@ -114,3 +120,53 @@ def test_settled_episodes_are_scored_exactly() -> None:
             state = result.state
             total += result.utility[0] if t >= 1 else 0.0
         assert fast[b] == pytest.approx(total / 12, rel=1e-12)
+
+
+def test_a_flown_episode_is_the_environment_s_and_a_fleet_already_there_scores_as_held() -> None:
+    """Scored from a start, the episode is the one the fleet environment flies (expected mode,
+    the vehicles' flight, associations carried); a start at the placement itself is the held
+    placement's score."""
+    scenario = _hot_spots()
+    model = FleetModel(FleetConfig(n_uavs=2))
+    placement = np.array([[80.0, 90.0, 25.0], [400.0, 120.0, 25.0]])
+    homes = np.array([[240.0, 250.0, 25.0], [260.0, 250.0, 25.0]])
+    flight = Flight(10.0, 3.0)
+    steps = 40
+    at_once = FleetStart(placement, None, flight)
+    assert fleet_episode_utility(model, placement[None], scenario, steps, start=at_once)[
+        0
+    ] == pytest.approx(fleet_episode_utility(model, placement[None], scenario, steps)[0], rel=1e-12)
+    flown = fleet_episode_utility(
+        model, placement[None], scenario, steps, start=FleetStart(homes, None, flight)
+    )[0]
+    here, state, total = homes.copy(), None, 0.0
+    for t in range(steps + 1):
+        if t > 0:
+            here = fly_many(here, placement, flight, 1.0)
+        result = model.step(here, scenario.users_xy_m, scenario.load_bps, state)
+        state = result.state
+        total += result.utility[0] if t >= 1 else 0.0
+    assert flown == pytest.approx(total / steps, rel=1e-12)
+
+
+def test_searched_from_where_the_fleet_is_the_oracle_is_at_least_kmeans_flown() -> None:
+    scenario = _hot_spots()
+    config = FleetOracleConfig(episode_steps=30, restarts=1, sweeps=2, screen_stride=4)
+    oracle = FleetOracle(FleetConfig(n_uavs=3), config=config)
+    homes = np.array([[237.5, 262.5, 25.0], [262.5, 262.5, 25.0], [287.5, 262.5, 25.0]])
+    start = FleetStart(homes, None, Flight(10.0, 3.0))
+    result = oracle.search(scenario, start)
+    _check_placement(result.positions_m, 3)
+    assert oracle.score(result.positions_m[None], scenario, start=start)[0] == pytest.approx(
+        result.utility
+    )
+    for load_weighted in (False, True):
+        baseline = assign_targets(
+            homes, KMeansPlacement(3, load_weighted=load_weighted).place(scenario)
+        )
+        assert result.utility >= oracle.score(baseline[None], scenario, start=start)[0]
+    np.testing.assert_array_equal(
+        oracle.place_from(scenario, homes, None, Flight(10.0, 3.0)), result.positions_m
+    )
+    with pytest.raises(InputError, match="association"):
+        oracle.search(scenario, FleetStart(homes, np.zeros(3, dtype=int), Flight()))

@@ -13,9 +13,15 @@ from sim.association import associate, received_power_dbm
 from sim.config import AreaConfig, RadioConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig, FleetModel, jain_index
-from sim.geometry import enforce_separation, hold_separation, volume_bounds
+from sim.geometry import (
+    enforce_separation,
+    hold_separation,
+    min_pairwise_distance_m,
+    volume_bounds,
+)
 from sim.network import NetworkModel
 from sim.scenarios import generate_scenarios
+from sim.world import Flight, fly_many
 
 
 @pytest.mark.parametrize("environment", ["open", "urban"])
@@ -287,12 +293,53 @@ def test_holding_keeps_vehicles_separated(start: list, moves: list) -> None:
     area = AreaConfig()
     previous = enforce_separation(np.array(start), 10.0, area)
     proposed = np.array(moves[: len(previous)])
-    out = hold_separation(previous, proposed, 10.0)
+    out = hold_separation(previous, proposed, 10.0, area)
     gap = out[:, None, :] - out[None, :, :]
     distance = np.sqrt(np.sum(gap * gap, axis=-1)) + np.diag(np.full(len(out), np.inf))
     assert distance.min() >= 10.0 * (1 - 1e-12)
-    for k in range(len(out)):  # each vehicle is where it was or where it wanted to be
-        assert np.array_equal(out[k], previous[k]) or np.array_equal(out[k], proposed[k])
+    lower, upper = volume_bounds(area)
+    for k in range(len(out)):
+        # Where it was, where it wanted to be, or a detour: its step turned about the vertical
+        # (clipped into the volume), no longer than the step it wanted.
+        if np.array_equal(out[k], previous[k]) or np.array_equal(out[k], proposed[k]):
+            continue
+        step, taken = proposed[k] - previous[k], out[k] - previous[k]
+        assert np.hypot(*taken[:2]) <= np.hypot(*step[:2]) + 1e-9
+        assert taken[2] == pytest.approx(
+            np.clip(proposed[k][2], lower[2], upper[2]) - previous[k][2]
+        )
+        assert np.all((out[k] >= lower) & (out[k] <= upper))
+
+
+@pytest.mark.parametrize(
+    "starts, targets",
+    [
+        # A path straight through a vehicle that hovers on it.
+        (
+            [[200.0, 250.0, 25.0], [250.0, 250.0, 25.0]],
+            [[300.0, 250.0, 25.0], [250.0, 250.0, 25.0]],
+        ),
+        # Head on: each wants the other's place.
+        (
+            [[200.0, 250.0, 25.0], [300.0, 250.0, 25.0]],
+            [[300.0, 250.0, 25.0], [200.0, 250.0, 25.0]],
+        ),
+        # Three in a row at the fleet's homes, the outer two crossing to the far sides.
+        (
+            [[237.5, 262.5, 25.0], [262.5, 262.5, 25.0], [287.5, 262.5, 25.0]],
+            [[400.0, 262.5, 25.0], [262.5, 262.5, 25.0], [100.0, 262.5, 25.0]],
+        ),
+    ],
+)
+def test_vehicles_go_round_each_other_instead_of_waiting(starts: list, targets: list) -> None:
+    area, flight = AreaConfig(), Flight(10.0, 3.0)
+    here, goal = np.array(starts, dtype=float), np.array(targets, dtype=float)
+    for _ in range(60):  # bounded: 100-odd metres at 10 m/s, with detours
+        here = hold_separation(here, fly_many(here, goal, flight, 1.0), 10.0, area)
+        assert min_pairwise_distance_m(here) >= 10.0 - 1e-9
+        if np.array_equal(here, goal):
+            break
+    np.testing.assert_allclose(here, goal)
 
 
 @pytest.mark.parametrize("mode", ["distinct", "shared"])
