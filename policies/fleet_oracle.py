@@ -447,6 +447,8 @@ class FleetOracle:
                     position[i] + step * _DIRECTIONS, self.area
                 )
             fleets = fleets[separated(fleets, self.fleet.separation_m)]
+            if start is not None:  # scored as flown: each vehicle to the target least travel gives
+                fleets = np.array([assign_targets(start.positions_m, f) for f in fleets])
             values = self.score(fleets, users, start=start) if len(fleets) else np.empty(0)
             simulated += len(fleets)
             if len(values) and values.max() > score + c.improvement_tol:

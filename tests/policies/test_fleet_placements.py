@@ -157,6 +157,8 @@ def test_searched_from_where_the_fleet_is_the_oracle_is_at_least_kmeans_flown() 
     start = FleetStart(homes, None, Flight(10.0, 3.0))
     result = oracle.search(scenario, start)
     _check_placement(result.positions_m, 3)
+    # In the order a controller gives the targets to the vehicles, the order it was scored in.
+    np.testing.assert_array_equal(assign_targets(homes, result.positions_m), result.positions_m)
     assert oracle.score(result.positions_m[None], scenario, start=start)[0] == pytest.approx(
         result.utility
     )
