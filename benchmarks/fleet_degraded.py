@@ -39,12 +39,22 @@ import httpx
 import numpy as np
 import yaml
 
-from closed_loop.processes import TupaProcess, mock_fleet_file, start_mock_fleet, start_service
-from policies.fleet_oracle import FleetOracle, FleetOracleConfig
-from policies.interface import ReportedUsers
-from service.frames import FrameConfig, GeoPoint
-from sim.fleet import FleetConfig
-from sim.world import get_world
+REPO = Path(__file__).resolve().parent.parent
+# First on the path: run as a script, this folder comes first, and its closed_loop.py (the
+# closed-loop benchmark) would shadow the closed_loop package.
+sys.path.insert(0, str(REPO))
+
+from closed_loop.processes import (  # noqa: E402
+    TupaProcess,
+    mock_fleet_file,
+    start_mock_fleet,
+    start_service,
+)
+from policies.fleet_oracle import FleetOracle, FleetOracleConfig  # noqa: E402
+from policies.interface import ReportedUsers  # noqa: E402
+from service.frames import FrameConfig, GeoPoint  # noqa: E402
+from sim.fleet import FleetConfig  # noqa: E402
+from sim.world import get_world  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 PX4_HOME = GeoPoint(47.397742, 8.545594, 488.0)  # the PX4 flavour's SITL home
