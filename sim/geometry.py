@@ -504,7 +504,8 @@ def hold_separation(
     own avoidance, not a planner.
     """
     previous = np.asarray(previous_m, dtype=float)
-    out = np.array(proposed_m, dtype=float)
+    proposed = np.asarray(proposed_m, dtype=float)
+    out = proposed.copy()
     if min_pairwise_distance_m(out) >= separation_m:
         return out
     held = np.zeros(len(out), dtype=bool)
@@ -519,7 +520,7 @@ def hold_separation(
         out[movers] = previous[movers]
         held |= movers
     for k in np.flatnonzero(held):
-        dx, dy, dz = (np.asarray(proposed_m, dtype=float)[k] - previous[k]).tolist()
+        dx, dy, dz = (proposed[k] - previous[k]).tolist()
         if dx == 0.0 and dy == 0.0:
             continue
         others = np.delete(out, k, axis=0)
@@ -531,16 +532,4 @@ def hold_separation(
             if np.all(np.sum(gap * gap, axis=1) >= limit):
                 out[k] = candidate
                 break
-    return out
-    held = np.zeros(len(out), dtype=bool)
-    limit = separation_m * separation_m
-    for _ in range(len(out)):
-        gap = out[:, None, :] - out[None, :, :]
-        close = np.sum(gap * gap, axis=-1) < limit
-        np.fill_diagonal(close, False)
-        movers = close.any(axis=1) & ~held
-        if not close.any() or not movers.any():
-            break
-        out[movers] = previous[movers]
-        held |= movers
     return out
