@@ -14,11 +14,14 @@ from sitl_mock.config import VehicleConfig
 from sitl_mock.server import MockAutopilot
 
 # Property tests: a failure prints the blob that reproduces it (@reproduce_failure), and CI runs
-# them derandomised, so a red CI run replays exactly. pytest-randomly shuffles the test order
-# and prints its seed in the header ("Using --randomly-seed=N": pass it back to replay).
+# them derandomised, so a red CI run replays exactly (profile "ci": `.ci/run` sets
+# HYPOTHESIS_PROFILE, and any CI that sets CI gets it too). pytest-randomly shuffles the test
+# order and prints its seed in the header ("Using --randomly-seed=N": pass it back to replay).
 settings.register_profile("dev", print_blob=True)
 settings.register_profile("ci", print_blob=True, derandomize=True)
-settings.load_profile("ci" if os.environ.get("CI") else "dev")
+settings.load_profile(
+    os.environ.get("HYPOTHESIS_PROFILE") or ("ci" if os.environ.get("CI") else "dev")
+)
 
 
 @pytest.fixture
