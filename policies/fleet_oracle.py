@@ -88,7 +88,7 @@ class FleetOracleConfig:
     screen_stride: int = 2
     top_k: int = 4
     restarts: int = 2
-    sweeps: int = 3
+    sweeps: int = 3  # coordinate-descent sweeps over the grid; 0: local refinement only
     refine: bool = True
     initial_step_m: float | None = None  # None: half a zone
     min_step_m: float = 2.0
@@ -98,10 +98,10 @@ class FleetOracleConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("episode_steps", "screen_steps", "screen_stride", "top_k", "sweeps"):
+        for name in ("episode_steps", "screen_steps", "screen_stride", "top_k"):
             if getattr(self, name) < 1:
                 raise InputError(f"{name}: must be >= 1, got {getattr(self, name)}")
-        for name in ("warmup_steps", "restarts", "max_refine_iterations", "pair_stride"):
+        for name in ("warmup_steps", "restarts", "sweeps", "max_refine_iterations", "pair_stride"):
             if getattr(self, name) < 0:
                 raise InputError(f"{name}: must be >= 0, got {getattr(self, name)}")
         if not self.min_step_m > 0:

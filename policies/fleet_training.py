@@ -46,6 +46,7 @@ from stable_baselines3.common.vec_env import VecMonitor
 from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
 
 from policies.checkpoints import git_commit, load_checkpoint, save_checkpoint
+from policies.fleet_imitation import TEACHERS, ImitationConfig, collect_teacher_data, fit_actor
 from policies.fleet_residual import FleetResidualActions, KMeansPrior, fleet_residual_targets
 from policies.presets import PRESET_NAMES, Preset, get_preset
 from policies.residual import RESIDUAL_RADIUS_M, residual_metadata, residual_radius
@@ -110,6 +111,17 @@ class FleetTrainConfig:
     place in the ``kmeans-load-weighted`` placement: :mod:`policies.fleet_residual`)."""
     residual_radius_m: float = RESIDUAL_RADIUS_M
     """How far (m, per axis) a residual action may move a UAV from its k-means place."""
+    imitate: int = 0
+    """Teacher episodes flown by the search oracle whose decisions the residual actor is fitted
+    to before any reinforcement learning (:mod:`policies.fleet_imitation`); 0: none."""
+    imitate_teacher: str = "search"
+    """Which oracle search teaches (:data:`policies.fleet_imitation.TEACHERS`)."""
+    imitate_symmetries: bool = False
+    """Fit under the area's eight symmetries (:attr:`ImitationConfig.symmetries`)."""
+    imitate_replan_every: int = 30
+    """Decisions a teacher placement is held (the training episode's length: one search each)."""
+    workers: int = 1
+    """Processes the teacher episodes are spread over (the same data for any count)."""
     command: str | None = None
     progress: bool = True
     """A progress bar on stderr (fleet episodes, recent utility, ETA)."""
@@ -126,8 +138,28 @@ class FleetTrainConfig:
             raise InputError(
                 f"--preset: must be one of {', '.join(PRESET_NAMES)}, got {self.preset!r}"
             )
-        if self.episodes < 1:
-            raise InputError(f"--episodes: must be at least 1, got {self.episodes}")
+        if self.episodes < (0 if self.imitate else 1):
+            raise InputError(
+                f"--episodes: must be at least {0 if self.imitate else 1}, got {self.episodes}"
+            )
+        if self.imitate < 0:
+            raise InputError(f"--imitate: must be >= 0 teacher episodes, got {self.imitate}")
+        if self.imitate and (self.algorithm, self.action) != ("ddpg", "residual"):
+            raise InputError("--imitate: fits a residual actor (--algo ddpg --action residual)")
+        if self.imitate_teacher not in TEACHERS:
+            raise InputError(
+                f"--teacher: one of {', '.join(TEACHERS)}, got {self.imitate_teacher!r}"
+            )
+        if self.imitate_symmetries and not self.imitate:
+            raise InputError("--symmetries: fits --imitate N's teacher data, so only with it")
+        if self.imitate_teacher != "search" and not self.imitate:
+            raise InputError("--teacher: chooses the teacher of --imitate N, so only with it")
+        if self.imitate == 1:
+            raise InputError("--imitate: needs at least 2 teacher episodes (one is held out)")
+        if self.workers < 1:
+            raise InputError(f"--workers: must be at least 1, got {self.workers}")
+        if self.workers > 1 and not self.imitate:
+            raise InputError("--workers: spreads teacher episodes, so only with --imitate N")
         if self.seed < 0:
             raise InputError(f"--seed: must be >= 0, got {self.seed}")
         if self.action not in ("coordinates", "residual"):
@@ -293,9 +325,13 @@ def train_fleet(config: FleetTrainConfig) -> dict[str, Any]:
     )
     if config.action == "residual":  # an untrained policy is the k-means placement
         zero_actor_output(model)
-    total = config.episodes * preset.train_episode_steps * config.n_uavs
-    model.learn(total_timesteps=total, callback=_FleetProgress(config))
     world = config.train_world()
+    imitation = None
+    if config.imitate:
+        imitation = _imitate(model, config, world)
+    if config.episodes:
+        total = config.episodes * preset.train_episode_steps * config.n_uavs
+        model.learn(total_timesteps=total, callback=_FleetProgress(config))
     shape = fleet_observation_shape(world.area)
     metadata = {
         "algorithm": config.algorithm,
@@ -317,6 +353,7 @@ def train_fleet(config: FleetTrainConfig) -> dict[str, Any]:
         "episodes": config.episodes,
         "timesteps": int(model.num_timesteps),
         "n_fleets": config.n_fleets,
+        "imitation": imitation,
         "seed": config.seed,
         "world": get_world(config.world).to_dict(),
         "families": list(config.families),
@@ -331,6 +368,43 @@ def train_fleet(config: FleetTrainConfig) -> dict[str, Any]:
     save_checkpoint(model, config.out_dir / "model.zip", metadata)
     env.close()
     return metadata
+
+
+def _imitate(model: Any, config: FleetTrainConfig, world: World) -> dict[str, Any]:
+    """Fit ``model``'s actor to the search oracle's decisions (:mod:`policies.fleet_imitation`)
+    and return the record kept in the checkpoint's metadata."""
+    imitation = ImitationConfig(
+        episodes=config.imitate,
+        replan_every=config.imitate_replan_every,
+        workers=config.workers,
+        horizon_steps=get_world(config.world).episode_steps,
+        teacher=config.imitate_teacher,
+        symmetries=config.imitate_symmetries,
+    )
+    started = time.monotonic()
+    data = collect_teacher_data(
+        config.n_uavs,
+        world,
+        config.sampler(world.area),
+        imitation,
+        config.residual_radius_m,
+        config.seed,
+        config.progress,
+    )
+    collected_s = time.monotonic() - started
+    record = fit_actor(model, data, imitation, config.seed, config.progress)
+    return {
+        **record,
+        "teacher": {
+            "oracle": "fleet-oracle",
+            "name": imitation.teacher,
+            **TEACHERS[imitation.teacher],
+        },
+        "replan_every": imitation.replan_every,
+        "horizon_steps": imitation.horizon_steps,
+        "collect_s": round(collected_s, 1),
+        "fit_s": round(time.monotonic() - started - collected_s, 1),
+    }
 
 
 class FleetCheckpointPolicy:

@@ -78,6 +78,37 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "from its place in the load-weighted k-means placement (default 125)",
     )
     parser.add_argument(
+        "--imitate",
+        type=int,
+        default=0,
+        metavar="N",
+        help="experimental, with --uavs K > 1 and --action residual: first fit the actor to the "
+        "fleet search oracle's decisions over N teacher episodes (policies/fleet_imitation.py; "
+        "on the current observation it does not beat the untrained prior: docs/results.md); "
+        "--episodes of reinforcement learning follow (may be 0)",
+    )
+    parser.add_argument(
+        "--teacher",
+        choices=("search", "local"),
+        default="search",
+        help="with --imitate: the oracle search that teaches: 'search' (one sweep over the "
+        "area from the k-means placements, then refinement) or 'local' (the k-means "
+        "placements refined only) (default search)",
+    )
+    parser.add_argument(
+        "--symmetries",
+        action="store_true",
+        help="with --imitate: fit every mini-batch mirrored or rotated by one of the square "
+        "area's eight symmetries, drawn at random (eight times the distinct teacher targets)",
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        metavar="W",
+        help="with --imitate: processes the teacher episodes are spread over (default 1)",
+    )
+    parser.add_argument(
         "--envs",
         type=int,
         default=1,
@@ -147,6 +178,15 @@ def _train(args: argparse.Namespace) -> int:
         return _train_fleet(args)
     if args.residual_radius_m is not None:
         raise InputError("--residual-radius-m: for fleets only (--uavs K > 1)")
+    if args.imitate:
+        raise InputError("--imitate: for fleets only (--uavs K > 1)")
+    for flag, given in (
+        ("--workers", args.workers != 1),
+        ("--teacher", args.teacher != "search"),
+        ("--symmetries", args.symmetries),
+    ):
+        if given:
+            raise InputError(f"{flag}: for fleets only (--uavs K > 1 --imitate N)")
     if args.world is None:
         args.world = "paper"
     if args.resume is not None:
@@ -234,6 +274,10 @@ def _train_fleet(args: argparse.Namespace) -> int:
         users=_user_range(args.users) or (20, 20),
         n_fleets=args.envs,
         action=args.action,
+        imitate=args.imitate,
+        imitate_teacher=args.teacher,
+        imitate_symmetries=args.symmetries,
+        workers=args.workers,
         **(
             {"residual_radius_m": args.residual_radius_m}
             if args.residual_radius_m is not None
@@ -243,9 +287,17 @@ def _train_fleet(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
     )
     metadata = train_fleet(config)
+    imitation = metadata["imitation"]
+    fitted = (
+        f"fitted to {imitation['samples']} teacher decisions (validation error "
+        f"{imitation['validation_mse']:.4f}, zero action "
+        f"{imitation['zero_action_validation_mse']:.4f}), "
+        if imitation
+        else ""
+    )
     print(
-        f"trained a shared {metadata['algorithm']} policy for {metadata['n_uavs_trained']} UAVs "
-        f"over {metadata['episodes']} episodes ({metadata['timesteps']} agent-steps) in "
+        f"trained a shared {metadata['algorithm']} policy for {metadata['n_uavs_trained']} UAVs, "
+        f"{fitted}over {metadata['episodes']} episodes ({metadata['timesteps']} agent-steps) in "
         f"{metadata['wall_time_s']:.0f} s on {metadata['device']}; wrote "
         f"{config.out_dir / 'model.zip'}"
     )

@@ -176,6 +176,10 @@ def test_config_refuses_bad_fields(tmp_path, changes, field):
             "--residual-radius-m: must be > 0",
         ),
         (["--algo", "ddpg", "--residual-radius-m", "40"], "--residual-radius-m: for fleets only"),
+        (["--algo", "ddpg", "--imitate", "4"], "--imitate: for fleets only"),
+        (["--algo", "ddpg", "--workers", "2"], "--workers: for fleets only"),
+        (["--algo", "ddpg", "--teacher", "local"], "--teacher: for fleets only"),
+        (["--algo", "ddpg", "--symmetries"], "--symmetries: for fleets only"),
     ],
 )
 def test_cli_refuses_bad_fleet_sizes_and_writes_nothing(tmp_path, capsys, extra, message):
@@ -205,6 +209,23 @@ def test_cli_trains_a_fleet(tmp_path, capsys, monkeypatch):
     )
     assert "shared ddpg policy for 3 UAVs" in capsys.readouterr().out
     assert main(argv) == 2  # a second run into the same directory is refused
+
+
+def test_cli_imitates_a_teacher_and_says_how_well_the_fit_went(tmp_path, capsys, monkeypatch):
+    import policies.fleet_training as fleet_training
+
+    monkeypatch.setattr(
+        fleet_training.FleetTrainConfig, "chosen_preset", property(lambda self: TINY_PRESET)
+    )
+    out = tmp_path / "imitated"
+    argv = ["train", "--uavs", "2", "--algo", "ddpg", "--action", "residual", "--imitate", "2"]
+    extra = ["--teacher", "local", "--symmetries", "--episodes", "0", "--users", "6", "--out"]
+    assert main([*argv, *extra, str(out), "--no-progress"]) == 0
+    record = json.loads((out / "model.json").read_text())["imitation"]
+    assert record["teacher"]["name"] == "local" and record["symmetries"] == 8
+    said = capsys.readouterr().out
+    assert f"fitted to {record['samples']} teacher decisions" in said
+    assert f"zero action {record['zero_action_validation_mse']:.4f}" in said
 
 
 def test_training_is_deterministic_given_the_seed(tmp_path):

@@ -1,0 +1,344 @@
+"""Imitation of the fleet's search oracle: supervised pretraining of the shared residual actor.
+
+Reinforcement learning from the fleet's one shared reward (the network utility over all users)
+has to find out which UAV's correction helped; the residual fleet policy trained that way
+ended below the k-means placement it corrects (docs/results.md, "Fleets"). The search oracle
+(:class:`policies.fleet_oracle.FleetOracle`, flown from where the fleet is) already knows a
+better placement for a report, so its answer gives every agent a supervised target:
+
+1. **Teacher episodes.** Fleets fly training scenarios (the run's sampler and world, the
+   preset's training episode: its length and random starts) to the oracle's placement, searched
+   from where the fleet is every ``replan_every`` decisions and held in between, each UAV
+   taking its target by least travel (:func:`sim.geometry.assign_targets`), as the evaluation
+   and the service fly it. At every decision each agent's observation is recorded with the
+   residual action that moves its prior place (its share of the load-weighted k-means
+   placement) onto an oracle target: the oracle's targets are matched to the priors by least
+   total distance, so a mere change of which UAV takes which place is never learned as a move,
+   and the action is ``(target_xy − prior_xy) / radius`` and ``(target_z − z_min) / band``,
+   clipped to [-1, 1] (:func:`policies.fleet_residual.fleet_residual_targets` inverted).
+   The oracle runs with a cheaper search (:data:`TEACHERS`): ``search`` (no random restarts,
+   no pair moves, one sweep over the area) is 2–4 times faster and, flown from the fleet,
+   scores as the full search does at K = 3 and 4 but clearly below it at K = 2, where the
+   restarts matter; ``local`` refines the k-means placements only, so its targets stay near
+   the prior (``benchmarks/fleet_teacher.py``).
+2. **Regression.** The DDPG actor that :func:`policies.fleet_training.train_fleet` builds is
+   fitted to those actions (mean squared error, Adam, mini-batches; episodes, not single
+   decisions, split into fit and validation parts so correlated decisions never straddle
+   them; the epoch with the least validation error is kept) and copied into its target
+   network. Reinforcement learning may continue from it (``episodes`` > 0).
+
+Teacher episodes are drawn from their own seeds (``seed``, episode index) and can be spread
+over ``workers`` processes with the same result.
+
+Measured, this does not yet beat the prior: each teacher episode gives one oracle decision per
+``replan_every`` steps, so a few hundred episodes are only a few hundred distinct targets per
+agent; the fitted actor's validation error ends at or barely below the zero action's and it
+flies as load-weighted k-means does (docs/results.md, "The oracle as a teacher"), so
+``--imitate`` is experimental.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing as mp
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import torch as th
+
+from policies.fleet_oracle import FleetOracle, FleetOracleConfig
+from policies.fleet_residual import KMeansPrior
+from policies.interface import ReportedUsers
+from policies.training import episode_bar
+from sim.errors import InputError
+from sim.fleet import FleetConfig
+from sim.fleet_env import FleetParallelEnv
+from sim.geometry import assign_targets
+from sim.scenarios import ScenarioSampler
+from sim.world import World
+
+__all__ = [
+    "TEACHERS",
+    "ImitationConfig",
+    "TeacherData",
+    "collect_teacher_data",
+    "fit_actor",
+    "symmetry",
+    "teacher_actions",
+    "teacher_oracle",
+]
+
+TEACHERS: dict[str, dict[str, Any]] = {
+    "search": {"restarts": 0, "pair_stride": 0, "sweeps": 1},
+    "local": {"restarts": 0, "pair_stride": 0, "sweeps": 0},
+}
+"""The teachers: the fleet oracle's search settings over :class:`FleetOracleConfig`'s defaults.
+``search``: one coordinate-descent sweep over the whole area from the k-means placements, then
+refinement; ``local``: the k-means placements refined only (compass moves from half a zone
+down), so its targets stay near the prior a residual action corrects."""
+
+_TEACHER_SEED_OFFSET = 50_000
+
+
+@dataclass(frozen=True)
+class ImitationConfig:
+    """How the shared actor imitates the oracle (module doc). ``episodes``: teacher-flown fleet
+    episodes; ``replan_every``: decisions a teacher placement is held."""
+
+    episodes: int
+    replan_every: int = 10
+    epochs: int = 40
+    batch_size: int = 256
+    learning_rate: float = 1e-3
+    validation_fraction: float = 0.1
+    workers: int = 1
+    horizon_steps: int = 100
+    """The episode the teacher scores a placement over (the evaluation's, not the shorter
+    training episode: a placement is judged by where the fleet ends up)."""
+    teacher: str = "search"
+    """Which search teaches (:data:`TEACHERS`)."""
+    symmetries: bool = False
+    """Fit each mini-batch under one of the area's symmetries (:func:`symmetry`), drawn at
+    random: the physics has no preferred direction, so a teacher decision mirrored or
+    rotated is a decision too, so eight times the distinct targets for nothing."""
+
+    def __post_init__(self) -> None:
+        for name in ("episodes", "replan_every", "epochs", "batch_size", "workers",
+                     "horizon_steps"):  # fmt: skip
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise InputError(f"{name}: must be an integer >= 1, got {value!r}")
+        if not (np.isfinite(self.learning_rate) and self.learning_rate > 0):
+            raise InputError(f"learning_rate: must be > 0, got {self.learning_rate!r}")
+        if self.teacher not in TEACHERS:
+            raise InputError(f"teacher: one of {', '.join(TEACHERS)}, got {self.teacher!r}")
+        if not 0 < self.validation_fraction < 1:
+            raise InputError(
+                f"validation_fraction: must be in (0, 1), got {self.validation_fraction!r}"
+            )
+
+
+@dataclass(frozen=True)
+class TeacherData:
+    """Agent decisions from teacher episodes: observations (N, 9, n_x, n_y) float32, residual
+    actions (N, 3) float32, the episode each came from (N,), and how many actions had to be
+    clipped to [-1, 1] (the oracle's target beyond the residual radius)."""
+
+    observations: np.ndarray
+    actions: np.ndarray
+    episodes: np.ndarray
+    clipped: int
+    oracle_calls: int
+
+
+def teacher_actions(
+    targets_m: np.ndarray, priors_m: np.ndarray, world: World, radius_m: float
+) -> tuple[np.ndarray, int]:
+    """The residual actions (K, 3) that send each UAV to its target (K, 3) from its prior place
+    (K, 3), clipped to [-1, 1]; and how many components had to be clipped."""
+    area = world.area
+    raw = np.column_stack(
+        [
+            (targets_m[:, :2] - priors_m[:, :2]) / radius_m,
+            (targets_m[:, 2] - area.z_min_m) / (area.z_max_m - area.z_min_m),
+        ]
+    )
+    clipped = np.clip(raw, -1.0, 1.0)
+    return clipped, int(np.count_nonzero(np.abs(raw - clipped) > 1e-9))
+
+
+def symmetry(
+    observations: th.Tensor, actions: th.Tensor, element: int
+) -> tuple[th.Tensor, th.Tensor]:
+    """Observations (N, C, n_x, n_y) and residual actions (N, 3) under one symmetry of the
+    square area, ``element`` 0–7 (bits: 4 swap x and y, 1 mirror x, 2 mirror y; 0 is the
+    identity). Every map is a map of the area, so it turns as the area does; the action's
+    horizontal part turns with it and its altitude stays."""
+    x, a = observations, actions
+    if element & 4:
+        x, a = x.transpose(2, 3), a[:, [1, 0, 2]]
+    if element & 1:
+        x, a = x.flip(2), a * a.new_tensor([-1.0, 1.0, 1.0])
+    if element & 2:
+        x, a = x.flip(3), a * a.new_tensor([1.0, -1.0, 1.0])
+    return x, a
+
+
+def teacher_oracle(
+    n_uavs: int, world: World, horizon_steps: int, teacher: str = "search"
+) -> FleetOracle:
+    """The fleet oracle with a teacher's search (:data:`TEACHERS`) over ``world``, scoring
+    episodes of ``horizon_steps`` decisions."""
+    if teacher not in TEACHERS:
+        raise InputError(f"teacher: one of {', '.join(TEACHERS)}, got {teacher!r}")
+    config = replace(
+        FleetOracleConfig(episode_steps=horizon_steps, step_s=world.step_s),
+        **TEACHERS[teacher],
+    )
+    return FleetOracle(
+        fleet=FleetConfig(n_uavs=n_uavs),
+        area=world.area,
+        network=world.network,
+        utility=world.utility,
+        config=config,
+    )
+
+
+def _collect(
+    args: tuple[int, World, ScenarioSampler, int, list[int], ImitationConfig, float],
+) -> dict:
+    """Teacher episodes ``indices`` of one run (a worker's share)."""
+    n_uavs, world, sampler, seed, indices, imitation, radius_m = args
+    replan_every = imitation.replan_every
+    env = FleetParallelEnv(n_uavs=n_uavs, action_kind="continuous", scenarios=sampler, world=world)
+    oracle = teacher_oracle(n_uavs, world, imitation.horizon_steps, imitation.teacher)
+    prior = KMeansPrior(world.area, env.fleet.separation_m)
+    observations, actions, episodes = [], [], []
+    clipped, calls = 0, 0
+    for index in indices:
+        obs, _ = env.reset(seed=_TEACHER_SEED_OFFSET + 1000 * seed + index)
+        held: np.ndarray | None = None
+        step = 0
+        while env.agents:
+            here = env.uav_xyz_m
+            if held is None or step % replan_every == 0:
+                users = ReportedUsers.of(env.reports)
+                held = oracle.place_from(users, here, env.reported_association, world.flight)
+                calls += 1
+            targets = assign_targets(here, held)  # what the fleet flies
+            priors = assign_targets(here, prior.place(env.reports, n_uavs))
+            # Each prior's correction: the oracle target nearest it (the set matched to the
+            # priors by least total distance), so a permutation is never learned as a move.
+            matched = assign_targets(priors, held)
+            action, n_clipped = teacher_actions(matched, priors, world, radius_m)
+            clipped += n_clipped
+            observations.append(np.stack([obs[a] for a in env.possible_agents]))
+            actions.append(action.astype(np.float32))
+            episodes.append(np.full(n_uavs, index))
+            obs, _, _, _, _ = env.step_to(targets)
+            step += 1
+    return {
+        "observations": np.concatenate(observations).astype(np.float32),
+        "actions": np.concatenate(actions),
+        "episodes": np.concatenate(episodes),
+        "clipped": clipped,
+        "calls": calls,
+    }
+
+
+def collect_teacher_data(
+    n_uavs: int,
+    world: World,
+    sampler: ScenarioSampler,
+    imitation: ImitationConfig,
+    radius_m: float,
+    seed: int = 1,
+    progress: bool = True,
+) -> TeacherData:
+    """Fly ``imitation.episodes`` teacher episodes (module doc) and return their decisions."""
+    n = imitation.episodes
+    workers = min(imitation.workers, n)
+    chunks = [list(range(start, n, workers * 4)) for start in range(workers * 4)]
+    jobs = [(n_uavs, world, sampler, seed, chunk, imitation, radius_m) for chunk in chunks if chunk]
+    bar = episode_bar(n, f"oracle teacher K={n_uavs}") if progress else None
+    parts: list[dict] = []
+    with contextlib.ExitStack() as stack:
+        if workers == 1:
+            results: Iterator[dict] = map(_collect, jobs)
+        else:
+            pool = stack.enter_context(mp.get_context("spawn").Pool(workers))
+            results = pool.imap(_collect, jobs)
+        for job, part in zip(jobs, results, strict=True):
+            parts.append(part)
+            if bar is not None:
+                bar.update(len(job[4]))
+    if bar is not None:
+        bar.close()
+    order = np.argsort(np.concatenate([p["episodes"] for p in parts]), kind="stable")
+    return TeacherData(
+        observations=np.concatenate([p["observations"] for p in parts])[order],
+        actions=np.concatenate([p["actions"] for p in parts])[order],
+        episodes=np.concatenate([p["episodes"] for p in parts])[order],
+        clipped=sum(p["clipped"] for p in parts),
+        oracle_calls=sum(p["calls"] for p in parts),
+    )
+
+
+def fit_actor(
+    model: Any, data: TeacherData, imitation: ImitationConfig, seed: int = 1,
+    progress: bool = True,
+) -> dict[str, Any]:  # fmt: skip
+    """Fit ``model``'s DDPG actor to the teacher's actions (module doc); its target network
+    gets the same weights. Returns the fit's record: samples, epochs, the best epoch and its
+    validation error, and the error of the zero action (the k-means prior) beside it."""
+    rng = np.random.default_rng(seed)
+    episodes = np.unique(data.episodes)
+    n_valid = max(1, round(len(episodes) * imitation.validation_fraction))
+    if len(episodes) < 2:
+        raise InputError("imitation episodes: need at least 2 (one is held out for validation)")
+    held_out = rng.choice(episodes, size=n_valid, replace=False)
+    valid = np.isin(data.episodes, held_out)
+    device = model.device
+    x_fit = th.as_tensor(data.observations[~valid], device=device)
+    y_fit = th.as_tensor(data.actions[~valid], device=device)
+    x_val = th.as_tensor(data.observations[valid], device=device)
+    y_val = th.as_tensor(data.actions[valid], device=device)
+    actor = model.actor
+    optimizer = th.optim.Adam(actor.parameters(), lr=imitation.learning_rate)
+    generator = th.Generator().manual_seed(seed)
+    n_x, n_y = data.observations.shape[2:]
+    symmetric = imitation.symmetries and n_x == n_y  # swapping x and y needs a square grid
+
+    def validation_error() -> float:
+        actor.eval()
+        with th.no_grad():
+            errors = [
+                th.mean((actor(x_val[i : i + 1024]) - y_val[i : i + 1024]) ** 2, dim=1)
+                for i in range(0, len(x_val), 1024)
+            ]
+        return float(th.cat(errors).mean())
+
+    best = (validation_error(), 0, {k: v.clone() for k, v in actor.state_dict().items()})
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=imitation.epochs, desc="imitation fit", unit="epoch", dynamic_ncols=True)
+    for epoch in range(1, imitation.epochs + 1):
+        actor.train()
+        order = th.randperm(len(x_fit), generator=generator)
+        for i in range(0, len(order), imitation.batch_size):
+            batch = order[i : i + imitation.batch_size]
+            x, y = x_fit[batch], y_fit[batch]
+            if symmetric:
+                x, y = symmetry(x, y, int(th.randint(8, (1,), generator=generator)))
+            loss = th.mean((actor(x) - y) ** 2)
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+        error = validation_error()
+        if error < best[0]:
+            best = (error, epoch, {k: v.clone() for k, v in actor.state_dict().items()})
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(validation_mse=f"{error:.4f}", best=f"{best[0]:.4f}")
+    if bar is not None:
+        bar.close()
+    actor.load_state_dict(best[2])
+    model.actor_target.load_state_dict(best[2])
+    actor.eval()
+    return {
+        "samples": len(data.actions),
+        "fit_samples": int((~valid).sum()),
+        "validation_samples": int(valid.sum()),
+        "teacher_episodes": len(episodes),
+        "oracle_calls": data.oracle_calls,
+        "clipped_components": data.clipped,
+        "epochs": imitation.epochs,
+        "symmetries": 8 if symmetric else 1,
+        "best_epoch": best[1],
+        "validation_mse": round(best[0], 6),
+        "zero_action_validation_mse": round(float(th.mean(y_val**2)), 6),
+    }
