@@ -43,6 +43,7 @@ import contextlib
 import multiprocessing as mp
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -52,10 +53,18 @@ from policies.fleet_oracle import FleetOracle, FleetOracleConfig
 from policies.fleet_residual import KMeansPrior
 from policies.interface import ReportedUsers
 from policies.training import episode_bar
+from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig
 from sim.fleet_env import FleetParallelEnv
-from sim.geometry import assign_targets
+from sim.geometry import (
+    MOVES,
+    assign_targets,
+    move_masks,
+    move_targets,
+    zone_indices,
+    zone_positions,
+)
 from sim.scenarios import ScenarioSampler
 from sim.world import World
 
@@ -67,6 +76,7 @@ __all__ = [
     "fit_actor",
     "symmetry",
     "teacher_actions",
+    "teacher_moves",
     "teacher_oracle",
 ]
 
@@ -122,15 +132,36 @@ class ImitationConfig:
 
 @dataclass(frozen=True)
 class TeacherData:
-    """Agent decisions from teacher episodes: observations (N, 9, n_x, n_y) float32, residual
-    actions (N, 3) float32, the episode each came from (N,), and how many actions had to be
-    clipped to [-1, 1] (the oracle's target beyond the residual radius)."""
+    """Agent decisions from teacher episodes: observations (N, 9, n_x, n_y) float32; the
+    actions, residual (N, 3) float32 or moves (N,) int64; the episode each came from (N,); the
+    move masks (N, 13) for moves (None for residual actions); and how many residual actions had
+    to be clipped to [-1, 1] (the oracle's target beyond the residual radius)."""
 
     observations: np.ndarray
     actions: np.ndarray
     episodes: np.ndarray
     clipped: int
     oracle_calls: int
+    masks: np.ndarray | None = None
+
+    @property
+    def moves(self) -> bool:
+        return self.masks is not None
+
+    def __add__(self, other: TeacherData) -> TeacherData:
+        """Both sets of decisions (DAgger's aggregate); their episodes must be numbered apart."""
+        if self.moves != other.moves:
+            raise ValueError("teacher data: cannot add moves to residual actions")
+        if np.intersect1d(self.episodes, other.episodes).size:
+            raise ValueError("teacher data: the two sets share episode numbers")
+        return TeacherData(
+            observations=np.concatenate([self.observations, other.observations]),
+            actions=np.concatenate([self.actions, other.actions]),
+            episodes=np.concatenate([self.episodes, other.episodes]),
+            clipped=self.clipped + other.clipped,
+            oracle_calls=self.oracle_calls + other.oracle_calls,
+            masks=None if self.masks is None else np.concatenate([self.masks, other.masks]),
+        )
 
 
 def teacher_actions(
@@ -149,20 +180,64 @@ def teacher_actions(
     return clipped, int(np.count_nonzero(np.abs(raw - clipped) > 1e-9))
 
 
+def teacher_moves(
+    here_m: np.ndarray, targets_m: np.ndarray, area: AreaConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each UAV's discrete move (K,) toward its target (K, 3) from the zone it is in
+    (:func:`sim.geometry.move_target`): the allowed move whose target lies nearest, ties to the
+    lower move number ("stay" first); and the UAVs' move masks (K, 13)."""
+    index = zone_indices(np.asarray(here_m, dtype=float), area)
+    masks = move_masks(index, area)
+    landing = zone_positions((index[:, None, :] + MOVES[None]).reshape(-1, 3), area)
+    gap = landing.reshape(len(index), len(MOVES), 3) - np.asarray(targets_m)[:, None, :]
+    distance = np.where(masks, np.linalg.norm(gap, axis=2), np.inf)
+    return np.argmin(distance, axis=1), masks
+
+
+def _move_permutation(element: int) -> np.ndarray:
+    """Move numbers (13,) under symmetry ``element`` (:func:`symmetry`): move m becomes
+    ``permutation[m]``."""
+    steps = MOVES.copy()
+    if element & 4:
+        steps = steps[:, [1, 0, 2]]
+    if element & 1:
+        steps = steps * np.array([-1, 1, 1])
+    if element & 2:
+        steps = steps * np.array([1, -1, 1])
+    where = {tuple(step): m for m, step in enumerate(MOVES.tolist())}
+    return np.array([where[tuple(step)] for step in steps.tolist()], dtype=np.int64)
+
+
+_MOVE_PERMUTATIONS = th.as_tensor(np.stack([_move_permutation(e) for e in range(8)]))
+
+
 def symmetry(
-    observations: th.Tensor, actions: th.Tensor, element: int
-) -> tuple[th.Tensor, th.Tensor]:
-    """Observations (N, C, n_x, n_y) and residual actions (N, 3) under one symmetry of the
-    square area, ``element`` 0–7 (bits: 4 swap x and y, 1 mirror x, 2 mirror y; 0 is the
-    identity). Every map is a map of the area, so it turns as the area does; the action's
-    horizontal part turns with it and its altitude stays."""
+    observations: th.Tensor, actions: th.Tensor, element: int, masks: th.Tensor | None = None
+) -> tuple[th.Tensor, ...]:
+    """Observations (N, C, n_x, n_y) and actions under one symmetry of the square area,
+    ``element`` 0–7 (bits: 4 swap x and y, 1 mirror x, 2 mirror y; 0 is the identity). Every
+    map is a map of the area, so it turns as the area does. Residual actions (N, 3): their
+    horizontal part turns with it and their altitude stays. Moves (N,) with their masks
+    (N, 13), given as ``masks``: each move becomes the turned move, and the masks are permuted
+    alike; returns ``(observations, moves, masks)`` then."""
     x, a = observations, actions
     if element & 4:
-        x, a = x.transpose(2, 3), a[:, [1, 0, 2]]
+        x = x.transpose(2, 3)
     if element & 1:
-        x, a = x.flip(2), a * a.new_tensor([-1.0, 1.0, 1.0])
+        x = x.flip(2)
     if element & 2:
-        x, a = x.flip(3), a * a.new_tensor([1.0, -1.0, 1.0])
+        x = x.flip(3)
+    if masks is not None:
+        permutation = _MOVE_PERMUTATIONS[element].to(a.device)
+        turned = th.empty_like(masks)
+        turned[:, permutation] = masks
+        return x, permutation[a], turned
+    if element & 4:
+        a = a[:, [1, 0, 2]]
+    if element & 1:
+        a = a * a.new_tensor([-1.0, 1.0, 1.0])
+    if element & 2:
+        a = a * a.new_tensor([1.0, -1.0, 1.0])
     return x, a
 
 
@@ -187,15 +262,23 @@ def teacher_oracle(
 
 
 def _collect(
-    args: tuple[int, World, ScenarioSampler, int, list[int], ImitationConfig, float],
+    args: tuple[
+        int, World, ScenarioSampler, int, list[int], ImitationConfig, float | None, Path | None
+    ],
 ) -> dict:
-    """Teacher episodes ``indices`` of one run (a worker's share)."""
-    n_uavs, world, sampler, seed, indices, imitation, radius_m = args
+    """Teacher episodes ``indices`` of one run (a worker's share); ``radius_m`` None: moves;
+    ``learner``: the checkpoint that flies (the teacher's own actions fly when None)."""
+    n_uavs, world, sampler, seed, indices, imitation, radius_m, learner = args
     replan_every = imitation.replan_every
     env = FleetParallelEnv(n_uavs=n_uavs, action_kind="continuous", scenarios=sampler, world=world)
     oracle = teacher_oracle(n_uavs, world, imitation.horizon_steps, imitation.teacher)
     prior = KMeansPrior(world.area, env.fleet.separation_m)
-    observations, actions, episodes = [], [], []
+    policy = None
+    if learner is not None:  # imported here: policies.fleet_training imports this module
+        from policies.fleet_training import FleetCheckpointPolicy
+
+        policy = FleetCheckpointPolicy.load(learner, world.area, env.fleet.separation_m)
+    observations, actions, episodes, masks = [], [], [], []
     clipped, calls = 0, 0
     for index in indices:
         obs, _ = env.reset(seed=_TEACHER_SEED_OFFSET + 1000 * seed + index)
@@ -207,22 +290,32 @@ def _collect(
                 users = ReportedUsers.of(env.reports)
                 held = oracle.place_from(users, here, env.reported_association, world.flight)
                 calls += 1
-            targets = assign_targets(here, held)  # what the fleet flies
-            priors = assign_targets(here, prior.place(env.reports, n_uavs))
-            # Each prior's correction: the oracle target nearest it (the set matched to the
-            # priors by least total distance), so a permutation is never learned as a move.
-            matched = assign_targets(priors, held)
-            action, n_clipped = teacher_actions(matched, priors, world, radius_m)
-            clipped += n_clipped
-            observations.append(np.stack([obs[a] for a in env.possible_agents]))
-            actions.append(action.astype(np.float32))
+            targets = assign_targets(here, held)  # what the teacher's fleet flies
+            seen = np.stack([obs[a] for a in env.possible_agents])
+            observations.append(seen)
             episodes.append(np.full(n_uavs, index))
+            if radius_m is None:  # each UAV's move toward its own target
+                moves, mask = teacher_moves(here, targets, world.area)
+                actions.append(moves)
+                masks.append(mask)
+                targets, _ = move_targets(moves, here, world.area)
+            else:
+                priors = assign_targets(here, prior.place(env.reports, n_uavs))
+                # Each prior's correction: the oracle target nearest it (the set matched to the
+                # priors by least total distance), so a permutation is never learned as a move.
+                matched = assign_targets(priors, held)
+                action, n_clipped = teacher_actions(matched, priors, world, radius_m)
+                clipped += n_clipped
+                actions.append(action.astype(np.float32))
+            if policy is not None:  # the learner flies; the teacher only labels
+                targets = policy.targets(seen, env.reports, here)
             obs, _, _, _, _ = env.step_to(targets)
             step += 1
     return {
         "observations": np.concatenate(observations).astype(np.float32),
         "actions": np.concatenate(actions),
         "episodes": np.concatenate(episodes),
+        "masks": np.concatenate(masks) if masks else None,
         "clipped": clipped,
         "calls": calls,
     }
@@ -233,16 +326,29 @@ def collect_teacher_data(
     world: World,
     sampler: ScenarioSampler,
     imitation: ImitationConfig,
-    radius_m: float,
+    radius_m: float | None,
     seed: int = 1,
     progress: bool = True,
+    learner: Path | None = None,
+    first_episode: int = 0,
 ) -> TeacherData:
-    """Fly ``imitation.episodes`` teacher episodes (module doc) and return their decisions."""
+    """Fly ``imitation.episodes`` teacher episodes (module doc), numbered from
+    ``first_episode``, and return their decisions: residual actions within ``radius_m``, or
+    moves when it is None. With a ``learner`` checkpoint the learner flies them and the teacher
+    labels every state it visits (a DAgger round)."""
     n = imitation.episodes
     workers = min(imitation.workers, n)
-    chunks = [list(range(start, n, workers * 4)) for start in range(workers * 4)]
-    jobs = [(n_uavs, world, sampler, seed, chunk, imitation, radius_m) for chunk in chunks if chunk]
-    bar = episode_bar(n, f"oracle teacher K={n_uavs}") if progress else None
+    chunks = [
+        list(range(first_episode + start, first_episode + n, workers * 4))
+        for start in range(workers * 4)
+    ]
+    jobs = [
+        (n_uavs, world, sampler, seed, chunk, imitation, radius_m, learner)
+        for chunk in chunks
+        if chunk
+    ]
+    who = "learner" if learner is not None else "teacher"
+    bar = episode_bar(n, f"oracle {who} K={n_uavs}") if progress else None
     parts: list[dict] = []
     with contextlib.ExitStack() as stack:
         if workers == 1:
@@ -263,6 +369,7 @@ def collect_teacher_data(
         episodes=np.concatenate([p["episodes"] for p in parts])[order],
         clipped=sum(p["clipped"] for p in parts),
         oracle_calls=sum(p["calls"] for p in parts),
+        masks=None if radius_m is not None else np.concatenate([p["masks"] for p in parts])[order],
     )
 
 
@@ -270,9 +377,12 @@ def fit_actor(
     model: Any, data: TeacherData, imitation: ImitationConfig, seed: int = 1,
     progress: bool = True,
 ) -> dict[str, Any]:  # fmt: skip
-    """Fit ``model``'s DDPG actor to the teacher's actions (module doc); its target network
-    gets the same weights. Returns the fit's record: samples, epochs, the best epoch and its
-    validation error, and the error of the zero action (the k-means prior) beside it."""
+    """Fit ``model``'s network to the teacher's actions (module doc) and give its target network
+    the same weights: a DDPG actor to residual actions (mean squared error), or a masked DDQN's
+    Q-network to moves (cross-entropy over the allowed moves, its outputs read as the moves'
+    logits, so the greedy move is the predicted one). Returns the fit's record: samples, epochs,
+    the best epoch and its validation loss, and the loss of the zero action beside it (residual:
+    the k-means prior) or the moves' validation accuracy beside "stay"'s."""
     rng = np.random.default_rng(seed)
     episodes = np.unique(data.episodes)
     n_valid = max(1, round(len(episodes) * imitation.validation_fraction))
@@ -285,60 +395,94 @@ def fit_actor(
     y_fit = th.as_tensor(data.actions[~valid], device=device)
     x_val = th.as_tensor(data.observations[valid], device=device)
     y_val = th.as_tensor(data.actions[valid], device=device)
-    actor = model.actor
-    optimizer = th.optim.Adam(actor.parameters(), lr=imitation.learning_rate)
+    if data.moves:
+        network, target = model.q_net, model.q_net_target
+        m_fit = th.as_tensor(data.masks[~valid], device=device)
+        m_val = th.as_tensor(data.masks[valid], device=device)
+    else:
+        network, target = model.actor, model.actor_target
+        m_fit = m_val = None
+
+    def losses(x: th.Tensor, y: th.Tensor, m: th.Tensor | None) -> th.Tensor:
+        """Per-sample losses of a batch."""
+        out = network(x)
+        if m is None:
+            return th.mean((out - y) ** 2, dim=1)
+        return th.nn.functional.cross_entropy(out.masked_fill(~m, -1e9), y, reduction="none")
+
+    def validation() -> tuple[float, float]:
+        """The validation loss and (moves) accuracy."""
+        network.eval()
+        total, right = [], 0
+        with th.no_grad():
+            for i in range(0, len(x_val), 1024):
+                part = slice(i, i + 1024)
+                m = None if m_val is None else m_val[part]
+                total.append(losses(x_val[part], y_val[part], m))
+                if m is not None:
+                    picked = network(x_val[part]).masked_fill(~m, -th.inf).argmax(dim=1)
+                    right += int((picked == y_val[part]).sum())
+        return float(th.cat(total).mean()), right / max(1, len(x_val))
+
+    optimizer = th.optim.Adam(network.parameters(), lr=imitation.learning_rate)
     generator = th.Generator().manual_seed(seed)
     n_x, n_y = data.observations.shape[2:]
     symmetric = imitation.symmetries and n_x == n_y  # swapping x and y needs a square grid
-
-    def validation_error() -> float:
-        actor.eval()
-        with th.no_grad():
-            errors = [
-                th.mean((actor(x_val[i : i + 1024]) - y_val[i : i + 1024]) ** 2, dim=1)
-                for i in range(0, len(x_val), 1024)
-            ]
-        return float(th.cat(errors).mean())
-
-    best = (validation_error(), 0, {k: v.clone() for k, v in actor.state_dict().items()})
+    error, accuracy = validation()
+    best = (error, 0, {k: v.clone() for k, v in network.state_dict().items()}, accuracy)
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=imitation.epochs, desc="imitation fit", unit="epoch", dynamic_ncols=True)
     for epoch in range(1, imitation.epochs + 1):
-        actor.train()
+        network.train()
         order = th.randperm(len(x_fit), generator=generator)
         for i in range(0, len(order), imitation.batch_size):
             batch = order[i : i + imitation.batch_size]
             x, y = x_fit[batch], y_fit[batch]
+            m = None if m_fit is None else m_fit[batch]
             if symmetric:
-                x, y = symmetry(x, y, int(th.randint(8, (1,), generator=generator)))
-            loss = th.mean((actor(x) - y) ** 2)
+                element = int(th.randint(8, (1,), generator=generator))
+                if m is None:
+                    x, y = symmetry(x, y, element)
+                else:
+                    x, y, m = symmetry(x, y, element, m)
+            loss = losses(x, y, m).mean()
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
-        error = validation_error()
+        error, accuracy = validation()
         if error < best[0]:
-            best = (error, epoch, {k: v.clone() for k, v in actor.state_dict().items()})
+            best = (error, epoch, {k: v.clone() for k, v in network.state_dict().items()}, accuracy)
         if bar is not None:
             bar.update(1)
-            bar.set_postfix(validation_mse=f"{error:.4f}", best=f"{best[0]:.4f}")
+            bar.set_postfix(validation_loss=f"{error:.4f}", best=f"{best[0]:.4f}")
     if bar is not None:
         bar.close()
-    actor.load_state_dict(best[2])
-    model.actor_target.load_state_dict(best[2])
-    actor.eval()
-    return {
+    network.load_state_dict(best[2])
+    target.load_state_dict(best[2])
+    network.eval()
+    record: dict[str, Any] = {
         "samples": len(data.actions),
         "fit_samples": int((~valid).sum()),
         "validation_samples": int(valid.sum()),
         "teacher_episodes": len(episodes),
         "oracle_calls": data.oracle_calls,
-        "clipped_components": data.clipped,
         "epochs": imitation.epochs,
         "symmetries": 8 if symmetric else 1,
         "best_epoch": best[1],
+    }
+    if data.moves:
+        return {
+            **record,
+            "validation_cross_entropy": round(best[0], 6),
+            "validation_accuracy": round(best[3], 4),
+            "stay_validation_accuracy": round(float((y_val == 0).float().mean()), 4),
+        }
+    return {
+        **record,
+        "clipped_components": data.clipped,
         "validation_mse": round(best[0], 6),
         "zero_action_validation_mse": round(float(th.mean(y_val**2)), 6),
     }

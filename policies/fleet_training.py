@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import shlex
 import sys
+import tempfile
 import time
 from collections import deque
 from collections.abc import Sequence
@@ -46,7 +47,13 @@ from stable_baselines3.common.vec_env import VecMonitor
 from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
 
 from policies.checkpoints import git_commit, load_checkpoint, save_checkpoint
-from policies.fleet_imitation import TEACHERS, ImitationConfig, collect_teacher_data, fit_actor
+from policies.fleet_imitation import (
+    TEACHERS,
+    ImitationConfig,
+    TeacherData,
+    collect_teacher_data,
+    fit_actor,
+)
 from policies.fleet_residual import FleetResidualActions, KMeansPrior, fleet_residual_targets
 from policies.presets import PRESET_NAMES, Preset, get_preset
 from policies.residual import RESIDUAL_RADIUS_M, residual_metadata, residual_radius
@@ -112,12 +119,17 @@ class FleetTrainConfig:
     residual_radius_m: float = RESIDUAL_RADIUS_M
     """How far (m, per axis) a residual action may move a UAV from its k-means place."""
     imitate: int = 0
-    """Teacher episodes flown by the search oracle whose decisions the residual actor is fitted
-    to before any reinforcement learning (:mod:`policies.fleet_imitation`); 0: none."""
+    """Teacher episodes flown by the search oracle whose decisions the residual actor or the
+    DDQN's moves are fitted to before any reinforcement learning
+    (:mod:`policies.fleet_imitation`); 0: none."""
     imitate_teacher: str = "search"
     """Which oracle search teaches (:data:`policies.fleet_imitation.TEACHERS`)."""
     imitate_symmetries: bool = False
     """Fit under the area's eight symmetries (:attr:`ImitationConfig.symmetries`)."""
+    imitate_rounds: int = 0
+    """DAgger rounds after the first fit (Ross, Gordon & Bagnell 2011): each flies ``imitate``
+    more episodes with the fitted policy, the teacher labelling every state the learner
+    visits, and refits on all the data so far (``--dagger R``)."""
     imitate_replan_every: int = 30
     """Decisions a teacher placement is held (the training episode's length: one search each)."""
     workers: int = 1
@@ -144,12 +156,19 @@ class FleetTrainConfig:
             )
         if self.imitate < 0:
             raise InputError(f"--imitate: must be >= 0 teacher episodes, got {self.imitate}")
-        if self.imitate and (self.algorithm, self.action) != ("ddpg", "residual"):
-            raise InputError("--imitate: fits a residual actor (--algo ddpg --action residual)")
+        if self.imitate and (self.algorithm, self.action) == ("ddpg", "coordinates"):
+            raise InputError(
+                "--imitate: fits a residual actor (--algo ddpg --action residual) or the "
+                "DDQN's moves (--algo ddqn)"
+            )
         if self.imitate_teacher not in TEACHERS:
             raise InputError(
                 f"--teacher: one of {', '.join(TEACHERS)}, got {self.imitate_teacher!r}"
             )
+        if isinstance(self.imitate_rounds, bool) or self.imitate_rounds < 0:
+            raise InputError(f"--dagger: must be >= 0 rounds, got {self.imitate_rounds!r}")
+        if self.imitate_rounds and not self.imitate:
+            raise InputError("--dagger: refits --imitate N's policy, so only with it")
         if self.imitate_symmetries and not self.imitate:
             raise InputError("--symmetries: fits --imitate N's teacher data, so only with it")
         if self.imitate_teacher != "search" and not self.imitate:
@@ -328,17 +347,27 @@ def train_fleet(config: FleetTrainConfig) -> dict[str, Any]:
     world = config.train_world()
     imitation = None
     if config.imitate:
-        imitation = _imitate(model, config, world)
+        imitation = _imitate(model, config, world, started)
     if config.episodes:
         total = config.episodes * preset.train_episode_steps * config.n_uavs
         model.learn(total_timesteps=total, callback=_FleetProgress(config))
-    shape = fleet_observation_shape(world.area)
-    metadata = {
+    metadata = _metadata(model, config, imitation, started)
+    save_checkpoint(model, config.out_dir / "model.zip", metadata)
+    env.close()
+    return metadata
+
+
+def _metadata(
+    model: Any, config: FleetTrainConfig, imitation: dict[str, Any] | None, started: float
+) -> dict[str, Any]:
+    """The checkpoint's metadata (``started``: the run's ``time.monotonic()`` start)."""
+    world = config.train_world()
+    return {
         "algorithm": config.algorithm,
         "strategy": "fleet-shared",
         "fleet": True,
         "n_uavs_trained": config.n_uavs,
-        "observation_shape": list(shape),
+        "observation_shape": list(fleet_observation_shape(world.area)),
         **(
             {"action": "moves", "residual_radius_m": None}
             if config.algorithm == "ddqn"
@@ -349,7 +378,7 @@ def train_fleet(config: FleetTrainConfig) -> dict[str, Any]:
                 else None,
             }
         ),
-        "preset": preset.to_dict(),
+        "preset": config.chosen_preset.to_dict(),
         "episodes": config.episodes,
         "timesteps": int(model.num_timesteps),
         "n_fleets": config.n_fleets,
@@ -365,14 +394,12 @@ def train_fleet(config: FleetTrainConfig) -> dict[str, Any]:
         "wall_time_s": round(time.monotonic() - started, 1),
         "command": config.command or shlex.join(sys.argv),
     }
-    save_checkpoint(model, config.out_dir / "model.zip", metadata)
-    env.close()
-    return metadata
 
 
-def _imitate(model: Any, config: FleetTrainConfig, world: World) -> dict[str, Any]:
-    """Fit ``model``'s actor to the search oracle's decisions (:mod:`policies.fleet_imitation`)
-    and return the record kept in the checkpoint's metadata."""
+def _imitate(model: Any, config: FleetTrainConfig, world: World, started: float) -> dict[str, Any]:
+    """Fit ``model``'s network to the search oracle's decisions (:mod:`policies.fleet_imitation`),
+    then ``config.imitate_rounds`` DAgger rounds; return the record kept in the checkpoint's
+    metadata (the last fit's, with every round's)."""
     imitation = ImitationConfig(
         episodes=config.imitate,
         replan_every=config.imitate_replan_every,
@@ -381,20 +408,40 @@ def _imitate(model: Any, config: FleetTrainConfig, world: World) -> dict[str, An
         teacher=config.imitate_teacher,
         symmetries=config.imitate_symmetries,
     )
-    started = time.monotonic()
-    data = collect_teacher_data(
-        config.n_uavs,
-        world,
-        config.sampler(world.area),
-        imitation,
-        config.residual_radius_m,
-        config.seed,
-        config.progress,
-    )
-    collected_s = time.monotonic() - started
-    record = fit_actor(model, data, imitation, config.seed, config.progress)
+    radius_m = config.residual_radius_m if config.algorithm == "ddpg" else None
+    rounds: list[dict[str, Any]] = []
+    data: TeacherData | None = None
+    with tempfile.TemporaryDirectory(prefix="tupa-dagger-") as scratch:
+        learner = Path(scratch) / "learner.zip"
+        for number in range(config.imitate_rounds + 1):
+            round_started = time.monotonic()
+            if number:  # the policy fitted so far flies the next round
+                save_checkpoint(model, learner, _metadata(model, config, None, started))
+            more = collect_teacher_data(
+                config.n_uavs,
+                world,
+                config.sampler(world.area),
+                imitation,
+                radius_m,
+                config.seed,
+                config.progress,
+                learner=learner if number else None,
+                first_episode=number * config.imitate,
+            )
+            data = more if data is None else data + more
+            collected_s = time.monotonic() - round_started
+            record = fit_actor(model, data, imitation, config.seed, config.progress)
+            rounds.append(
+                {
+                    "round": number,
+                    "flown_by": "learner" if number else "teacher",
+                    **record,
+                    "collect_s": round(collected_s, 1),
+                    "fit_s": round(time.monotonic() - round_started - collected_s, 1),
+                }
+            )
     return {
-        **record,
+        **rounds[-1],
         "teacher": {
             "oracle": "fleet-oracle",
             "name": imitation.teacher,
@@ -402,8 +449,10 @@ def _imitate(model: Any, config: FleetTrainConfig, world: World) -> dict[str, An
         },
         "replan_every": imitation.replan_every,
         "horizon_steps": imitation.horizon_steps,
-        "collect_s": round(collected_s, 1),
-        "fit_s": round(time.monotonic() - started - collected_s, 1),
+        "dagger_rounds": config.imitate_rounds,
+        "rounds": rounds,
+        "collect_s": round(sum(r["collect_s"] for r in rounds), 1),
+        "fit_s": round(sum(r["fit_s"] for r in rounds), 1),
     }
 
 

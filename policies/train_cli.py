@@ -82,9 +82,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=int,
         default=0,
         metavar="N",
-        help="experimental, with --uavs K > 1 and --action residual: first fit the actor to the "
-        "fleet search oracle's decisions over N teacher episodes (policies/fleet_imitation.py; "
-        "on the current observation it does not beat the untrained prior: docs/results.md); "
+        help="experimental, with --uavs K > 1 and --algo ddqn or --action residual: first fit "
+        "the DDQN's moves or the residual actor to the fleet search oracle's decisions over N "
+        "teacher episodes (policies/fleet_imitation.py; docs/results.md has what it flies); "
         "--episodes of reinforcement learning follow (may be 0)",
     )
     parser.add_argument(
@@ -100,6 +100,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="with --imitate: fit every mini-batch mirrored or rotated by one of the square "
         "area's eight symmetries, drawn at random (eight times the distinct teacher targets)",
+    )
+    parser.add_argument(
+        "--dagger",
+        type=int,
+        default=0,
+        metavar="R",
+        help="with --imitate N: R more rounds in which the fitted policy flies N episodes, the "
+        "teacher labels every state it visits, and the fit is redone on all the data (DAgger; "
+        "default 0)",
     )
     parser.add_argument(
         "--workers",
@@ -184,6 +193,7 @@ def _train(args: argparse.Namespace) -> int:
         ("--workers", args.workers != 1),
         ("--teacher", args.teacher != "search"),
         ("--symmetries", args.symmetries),
+        ("--dagger", args.dagger != 0),
     ):
         if given:
             raise InputError(f"{flag}: for fleets only (--uavs K > 1 --imitate N)")
@@ -277,6 +287,7 @@ def _train_fleet(args: argparse.Namespace) -> int:
         imitate=args.imitate,
         imitate_teacher=args.teacher,
         imitate_symmetries=args.symmetries,
+        imitate_rounds=args.dagger,
         workers=args.workers,
         **(
             {"residual_radius_m": args.residual_radius_m}
@@ -288,13 +299,19 @@ def _train_fleet(args: argparse.Namespace) -> int:
     )
     metadata = train_fleet(config)
     imitation = metadata["imitation"]
-    fitted = (
-        f"fitted to {imitation['samples']} teacher decisions (validation error "
-        f"{imitation['validation_mse']:.4f}, zero action "
-        f"{imitation['zero_action_validation_mse']:.4f}), "
-        if imitation
-        else ""
-    )
+    fitted = ""
+    if imitation and "validation_mse" in imitation:
+        fitted = (
+            f"fitted to {imitation['samples']} teacher decisions (validation error "
+            f"{imitation['validation_mse']:.4f}, zero action "
+            f"{imitation['zero_action_validation_mse']:.4f}), "
+        )
+    elif imitation:
+        fitted = (
+            f"fitted to {imitation['samples']} teacher moves (validation accuracy "
+            f"{imitation['validation_accuracy']:.3f}, 'stay' "
+            f"{imitation['stay_validation_accuracy']:.3f}), "
+        )
     print(
         f"trained a shared {metadata['algorithm']} policy for {metadata['n_uavs_trained']} UAVs, "
         f"{fitted}over {metadata['episodes']} episodes ({metadata['timesteps']} agent-steps) in "

@@ -1,7 +1,7 @@
 """Imitation of the fleet oracle (policies/fleet_imitation.py): the teacher's residual actions
-send each UAV to the oracle's target, teacher data are the same however many workers collect
-them, the fit learns what the teacher does, and `tupa train --uavs K --imitate N` writes a
-checkpoint that records it."""
+and moves send each UAV to the oracle's target, teacher data are the same however many workers
+collect them, the fit learns what the teacher does, and `tupa train --uavs K --imitate N` writes
+a checkpoint that records it."""
 
 from __future__ import annotations
 
@@ -20,6 +20,7 @@ from policies.fleet_imitation import (
     fit_actor,
     symmetry,
     teacher_actions,
+    teacher_moves,
 )
 from policies.fleet_residual import KMeansPrior, fleet_residual_targets
 from policies.fleet_training import (
@@ -32,7 +33,7 @@ from policies.training import build_model
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet_env import fleet_observations
-from sim.geometry import assign_targets
+from sim.geometry import MOVES, assign_targets, move_masks, move_targets, zone_indices
 from sim.observation import UserReports
 from sim.scenarios import ScenarioSampler
 from sim.world import get_world
@@ -138,7 +139,7 @@ def test_an_imitation_run_writes_a_checkpoint_that_records_it(tmp_path) -> None:
 @pytest.mark.parametrize(
     ("changes", "message"),
     [
-        ({"imitate": 2}, "--imitate: fits a residual actor"),
+        ({"imitate": 2}, "--imitate: fits a residual actor .* or the DDQN's moves"),
         ({"imitate": 2, "action": "residual", "algorithm": "ddqn"}, "--action"),
         ({"imitate": 1, "action": "residual"}, "at least 2 teacher episodes"),
         ({"imitate": -1, "action": "residual"}, "--imitate: must be >= 0"),
@@ -148,6 +149,8 @@ def test_an_imitation_run_writes_a_checkpoint_that_records_it(tmp_path) -> None:
         ({"imitate": 2, "action": "residual", "imitate_teacher": "exact"}, "--teacher: one of"),
         ({"action": "residual", "imitate_teacher": "local"}, "--teacher: chooses the teacher"),
         ({"action": "residual", "imitate_symmetries": True}, "--symmetries: fits --imitate"),
+        ({"action": "residual", "imitate_rounds": 1}, "--dagger: refits --imitate"),
+        ({"imitate": 2, "action": "residual", "imitate_rounds": -1}, "--dagger: must be >= 0"),
     ],
 )
 def test_imitation_settings_are_checked(tmp_path, changes, message) -> None:
@@ -233,3 +236,100 @@ def test_the_fit_under_symmetries_learns_a_decision_that_turns_with_the_area(tmp
     record = fit_actor(model, data, imitation, progress=False)
     assert record["symmetries"] == 8
     assert record["validation_mse"] < record["zero_action_validation_mse"] / 10
+
+
+def test_teacher_moves_head_for_each_uavs_target_and_stay_once_there() -> None:
+    here = np.array(
+        [[262.5, 262.5, 50.0], [12.5, 12.5, 25.0], [262.5, 262.5, 50.0], [100.0, 400.0, 75.0]]
+    )
+    targets = np.array(
+        [
+            [370.0, 262.5, 50.0],  # 107.5 m east: the five-zone move lands nearest
+            [-40.0, 12.5, 25.0],  # west, off the area: that move is refused, so stay
+            [266.0, 259.0, 52.0],  # inside its own zone: stay
+            [100.0, 400.0 - 30.0, 75.0],  # about a zone south
+        ]
+    )
+    moves, masks = teacher_moves(here, targets, AREA)
+    np.testing.assert_array_equal(masks, move_masks(zone_indices(here, AREA), AREA))
+    assert moves.tolist() == [7, 0, 0, 4]
+    assert not masks[1, 2]  # west from the corner leaves the area
+    landing, refused = move_targets(moves, here, AREA)
+    assert not refused.any()
+    # Nothing allowed lands nearer its target than the move chosen.
+    for k in range(len(here)):
+        for move in np.flatnonzero(masks[k]):
+            other, _ = move_targets(np.array([move]), here[k : k + 1], AREA)
+            assert (
+                np.linalg.norm(other[0] - targets[k])
+                >= np.linalg.norm(landing[k] - targets[k]) - 1e-9
+            )
+
+
+def test_teacher_data_in_moves_fly_the_moves_they_record() -> None:
+    world = _world()
+    sampler = ScenarioSampler(families=("hotspots",), users=(6, 8), total_load_bps=80e6)
+    imitation = ImitationConfig(episodes=3, replan_every=2, horizon_steps=6)
+    one, two = (
+        collect_teacher_data(2, world, sampler, replace(imitation, workers=w), None, 4, False)
+        for w in (1, 2)
+    )
+    assert one.moves and one.actions.shape == (24,) and one.masks.shape == (24, len(MOVES))
+    assert one.actions.dtype == np.int64 and one.masks[np.arange(24), one.actions].all()
+    np.testing.assert_array_equal(one.actions, two.actions)
+    np.testing.assert_array_equal(one.observations, two.observations)
+
+
+@pytest.mark.parametrize("element", range(8))
+def test_a_symmetry_turns_moves_and_their_masks_as_the_area_turns(element: int) -> None:
+    """The turned move steps as the turned area does, and the masks are those of the turned
+    zones, so a move fitted under a symmetry is one the turned UAV may take."""
+    n = AREA.n_zones_x
+    rng = np.random.default_rng(element)
+    index = np.column_stack([rng.integers(0, n, (40, 2)), rng.integers(0, AREA.n_levels_z, 40)])
+    index[:4, :2] = [[0, 0], [n - 1, 0], [0, n - 1], [n - 1, n - 1]]  # corners: masks matter
+    moves = np.tile(np.arange(len(MOVES)), 4)[:40]
+
+    def turn(idx: np.ndarray) -> np.ndarray:
+        out = np.array(idx)
+        if element & 4:
+            out[:, [0, 1]] = out[:, [1, 0]]
+        if element & 1:
+            out[:, 0] = n - 1 - out[:, 0]
+        if element & 2:
+            out[:, 1] = n - 1 - out[:, 1]
+        return out
+
+    masks = move_masks(index, AREA)
+    x = th.zeros((40, 9, n, n))
+    _, got_moves, got_masks = symmetry(x, th.as_tensor(moves), element, th.as_tensor(masks))
+    np.testing.assert_array_equal(got_masks.numpy(), move_masks(turn(index), AREA))
+    stepped = turn(index + MOVES[moves]) - turn(index)
+    np.testing.assert_array_equal(MOVES[got_moves.numpy()], stepped)
+
+
+def test_the_fit_learns_the_teachers_moves_within_their_masks(tmp_path) -> None:
+    config = FleetTrainConfig(
+        n_uavs=2, episodes=1, out_dir=tmp_path, preset=TINY_PRESET, users=(6, 6), algorithm="ddqn"
+    )
+    model = build_model("ddqn", make_fleet_vec_env(config), TINY_PRESET, 1, None)
+    n = 400
+    side = np.arange(n) % 4  # users west, east, south or north: the teacher goes there
+    observations = np.zeros((n, 9, AREA.n_zones_x, AREA.n_zones_y), dtype=np.float32)
+    observations[side == 0, 0, :5, :] = 1.0
+    observations[side == 1, 0, -5:, :] = 1.0
+    observations[side == 2, 0, :, :5] = 1.0
+    observations[side == 3, 0, :, -5:] = 1.0
+    moves = np.array([8, 7, 10, 9])[side]  # five zones west, east, south, north
+    masks = np.ones((n, len(MOVES)), dtype=bool)
+    masks[side == 1, 7] = False  # at the east edge: the long move is refused, the short one left
+    moves[side == 1] = 1
+    data = TeacherData(observations, moves, np.arange(n) // 4, 0, 100, masks=masks)
+    imitation = ImitationConfig(episodes=100, epochs=20, symmetries=True)
+    record = fit_actor(model, data, imitation, progress=False)
+    assert record["symmetries"] == 8 and record["validation_accuracy"] == 1.0
+    assert record["stay_validation_accuracy"] == 0.0 and "validation_mse" not in record
+    picked, _ = model.predict(observations[:8], deterministic=True, action_masks=masks[:8])
+    np.testing.assert_array_equal(picked, moves[:8])
+    for a, b in zip(model.q_net.parameters(), model.q_net_target.parameters(), strict=True):
+        assert th.equal(a, b)

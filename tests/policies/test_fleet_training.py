@@ -180,6 +180,7 @@ def test_config_refuses_bad_fields(tmp_path, changes, field):
         (["--algo", "ddpg", "--workers", "2"], "--workers: for fleets only"),
         (["--algo", "ddpg", "--teacher", "local"], "--teacher: for fleets only"),
         (["--algo", "ddpg", "--symmetries"], "--symmetries: for fleets only"),
+        (["--algo", "ddpg", "--dagger", "2"], "--dagger: for fleets only"),
     ],
 )
 def test_cli_refuses_bad_fleet_sizes_and_writes_nothing(tmp_path, capsys, extra, message):
@@ -226,6 +227,32 @@ def test_cli_imitates_a_teacher_and_says_how_well_the_fit_went(tmp_path, capsys,
     said = capsys.readouterr().out
     assert f"fitted to {record['samples']} teacher decisions" in said
     assert f"zero action {record['zero_action_validation_mse']:.4f}" in said
+
+
+def test_cli_imitates_the_teachers_moves_for_ddqn(tmp_path, capsys, monkeypatch):
+    import policies.fleet_training as fleet_training
+
+    monkeypatch.setattr(
+        fleet_training.FleetTrainConfig, "chosen_preset", property(lambda self: TINY_PRESET)
+    )
+    out = tmp_path / "moves"
+    argv = ["train", "--uavs", "2", "--algo", "ddqn", "--imitate", "2", "--dagger", "1"]
+    assert main([*argv, "--episodes", "0", "--users", "6", "--out", str(out), "--no-progress"]) == 0
+    meta = json.loads((out / "model.json").read_text())
+    record = meta["imitation"]
+    per_round = 2 * 2 * TINY_PRESET.train_episode_steps  # episodes × UAVs × steps
+    assert meta["action"] == "moves" and record["samples"] == 2 * per_round
+    assert [(r["round"], r["flown_by"], r["samples"]) for r in record["rounds"]] == [
+        (0, "teacher", per_round),
+        (1, "learner", 2 * per_round),
+    ]
+    assert record["dagger_rounds"] == 1 and sorted(p.name for p in out.iterdir()) == [
+        "model.json",
+        "model.zip",
+    ]
+    said = capsys.readouterr().out
+    assert f"fitted to {record['samples']} teacher moves" in said
+    assert f"validation accuracy {record['validation_accuracy']:.3f}" in said
 
 
 def test_training_is_deterministic_given_the_seed(tmp_path):
