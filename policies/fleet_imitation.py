@@ -1,40 +1,51 @@
-"""Imitation of the fleet's search oracle: supervised pretraining of the shared residual actor.
+"""Imitation of the fleet's search oracle: supervised pretraining of the shared network.
 
 Reinforcement learning from the fleet's one shared reward (the network utility over all users)
-has to find out which UAV's correction helped; the residual fleet policy trained that way
-ended below the k-means placement it corrects (docs/results.md, "Fleets"). The search oracle
+has to find out which UAV's action helped; the fleet policies trained that way ended below the
+k-means placements (docs/results.md, "Fleets"). The search oracle
 (:class:`policies.fleet_oracle.FleetOracle`, flown from where the fleet is) already knows a
 better placement for a report, so its answer gives every agent a supervised target:
 
 1. **Teacher episodes.** Fleets fly training scenarios (the run's sampler and world, the
-   preset's training episode: its length and random starts) to the oracle's placement, searched
-   from where the fleet is every ``replan_every`` decisions and held in between, each UAV
-   taking its target by least travel (:func:`sim.geometry.assign_targets`), as the evaluation
-   and the service fly it. At every decision each agent's observation is recorded with the
-   residual action that moves its prior place (its share of the load-weighted k-means
-   placement) onto an oracle target: the oracle's targets are matched to the priors by least
-   total distance, so a mere change of which UAV takes which place is never learned as a move,
-   and the action is ``(target_xy − prior_xy) / radius`` and ``(target_z − z_min) / band``,
-   clipped to [-1, 1] (:func:`policies.fleet_residual.fleet_residual_targets` inverted).
+   preset's training episode: its length and random starts) toward the oracle's placement,
+   searched from where the fleet is every ``replan_every`` decisions and held in between, each
+   UAV taking its target by least travel (:func:`sim.geometry.assign_targets`), as the
+   evaluation and the service fly it. At every decision each agent's observation is recorded
+   with the teacher's action, in the policy's own action space:
+
+   - **residual** (DDPG): the action that moves its prior place (its share of the
+     load-weighted k-means placement) onto an oracle target. The targets are matched to the
+     priors by least total distance, so a mere change of which UAV takes which place is never
+     learned as a move; the action is ``(target_xy − prior_xy) / radius`` and
+     ``(target_z − z_min) / band``, clipped to [-1, 1]
+     (:func:`policies.fleet_residual.fleet_residual_targets` inverted);
+   - **moves** (DDQN): of the 13 discrete moves allowed from its zone, the one whose target
+     lies nearest its own oracle target (:func:`teacher_moves`); the fleet flies those moves,
+     so the states are those a fleet flying moves sees.
+
    The oracle runs with a cheaper search (:data:`TEACHERS`): ``search`` (no random restarts,
    no pair moves, one sweep over the area) is 2–4 times faster and, flown from the fleet,
    scores as the full search does at K = 3 and 4 but clearly below it at K = 2, where the
    restarts matter; ``local`` refines the k-means placements only, so its targets stay near
    the prior (``benchmarks/fleet_teacher.py``).
-2. **Regression.** The DDPG actor that :func:`policies.fleet_training.train_fleet` builds is
-   fitted to those actions (mean squared error, Adam, mini-batches; episodes, not single
-   decisions, split into fit and validation parts so correlated decisions never straddle
-   them; the epoch with the least validation error is kept) and copied into its target
-   network. Reinforcement learning may continue from it (``episodes`` > 0).
+2. **Fit.** The network that :func:`policies.fleet_training.train_fleet` builds is fitted to
+   those actions (:func:`fit_actor`): the DDPG actor by mean squared error, the DDQN's
+   Q-network by cross-entropy over the allowed moves (its outputs read as logits, so its
+   greedy move is the predicted one); Adam, mini-batches, optionally each turned by one of the
+   square area's eight symmetries (:func:`symmetry`); episodes, not single decisions, split
+   into fit and validation parts so correlated decisions never straddle them; the epoch with
+   the least validation loss kept and copied into the target network.
+3. **DAgger** (Ross, Gordon & Bagnell 2011), optional: the fitted policy flies more episodes
+   (``learner``), the oracle labels every state the learner reaches, and the fit is redone on
+   all the data so far, so the policy learns to recover from its own mistakes, which a
+   teacher's flight never shows it.
 
-Teacher episodes are drawn from their own seeds (``seed``, episode index) and can be spread
-over ``workers`` processes with the same result.
+Reinforcement learning may continue from the fit (``episodes`` > 0). Teacher episodes are
+drawn from their own seeds (``seed``, episode index) and can be spread over ``workers``
+processes with the same result.
 
-Measured, this does not yet beat the prior: each teacher episode gives one oracle decision per
-``replan_every`` steps, so a few hundred episodes are only a few hundred distinct targets per
-agent; the fitted actor's validation error ends at or barely below the zero action's and it
-flies as load-weighted k-means does (docs/results.md, "The oracle as a teacher"), so
-``--imitate`` is experimental.
+Measured (docs/results.md, "The oracle as a teacher"), none of this yet flies better than
+load-weighted k-means, so ``--imitate`` is experimental.
 """
 
 from __future__ import annotations
