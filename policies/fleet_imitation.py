@@ -205,18 +205,18 @@ def teacher_moves(
     return np.argmin(distance, axis=1), masks
 
 
+def _axes(element: int) -> tuple[list[int], np.ndarray]:
+    """How symmetry ``element`` (:func:`symmetry`) turns a vector (x, y, z): its components
+    reordered by the first, then multiplied by the second."""
+    order = [1, 0, 2] if element & 4 else [0, 1, 2]
+    return order, np.array([-1 if element & 1 else 1, -1 if element & 2 else 1, 1])
+
+
 def _move_permutation(element: int) -> np.ndarray:
-    """Move numbers (13,) under symmetry ``element`` (:func:`symmetry`): move m becomes
-    ``permutation[m]``."""
-    steps = MOVES.copy()
-    if element & 4:
-        steps = steps[:, [1, 0, 2]]
-    if element & 1:
-        steps = steps * np.array([-1, 1, 1])
-    if element & 2:
-        steps = steps * np.array([1, -1, 1])
+    """Move numbers (13,) under symmetry ``element``: move m becomes ``permutation[m]``."""
+    order, signs = _axes(element)
     where = {tuple(step): m for m, step in enumerate(MOVES.tolist())}
-    return np.array([where[tuple(step)] for step in steps.tolist()], dtype=np.int64)
+    return np.array([where[tuple(step)] for step in (MOVES[:, order] * signs).tolist()])
 
 
 _MOVE_PERMUTATIONS = th.as_tensor(np.stack([_move_permutation(e) for e in range(8)]))
@@ -231,7 +231,7 @@ def symmetry(
     horizontal part turns with it and their altitude stays. Moves (N,) with their masks
     (N, 13), given as ``masks``: each move becomes the turned move, and the masks are permuted
     alike; returns ``(observations, moves, masks)`` then."""
-    x, a = observations, actions
+    x = observations
     if element & 4:
         x = x.transpose(2, 3)
     if element & 1:
@@ -239,17 +239,12 @@ def symmetry(
     if element & 2:
         x = x.flip(3)
     if masks is not None:
-        permutation = _MOVE_PERMUTATIONS[element].to(a.device)
+        permutation = _MOVE_PERMUTATIONS[element].to(actions.device)
         turned = th.empty_like(masks)
         turned[:, permutation] = masks
-        return x, permutation[a], turned
-    if element & 4:
-        a = a[:, [1, 0, 2]]
-    if element & 1:
-        a = a * a.new_tensor([-1.0, 1.0, 1.0])
-    if element & 2:
-        a = a * a.new_tensor([1.0, -1.0, 1.0])
-    return x, a
+        return x, permutation[actions], turned
+    order, signs = _axes(element)
+    return x, actions[:, order] * actions.new_tensor(signs.astype(np.float32))
 
 
 def teacher_oracle(

@@ -169,6 +169,17 @@ def test_imitation_config_names_the_bad_field(changes, field) -> None:
         ImitationConfig(**{"episodes": 4, **changes})
 
 
+def _users_on_four_sides(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` observations with users west, east, south or north (side 0–3, in turn) in map 0."""
+    side = np.arange(n) % 4
+    observations = np.zeros((n, 9, AREA.n_zones_x, AREA.n_zones_y), dtype=np.float32)
+    observations[side == 0, 0, :5, :] = 1.0
+    observations[side == 1, 0, -5:, :] = 1.0
+    observations[side == 2, 0, :, :5] = 1.0
+    observations[side == 3, 0, :, -5:] = 1.0
+    return side, observations
+
+
 @pytest.mark.parametrize("element", range(8))
 def test_a_symmetry_turns_observations_and_actions_as_the_area_turns(element: int) -> None:
     """The observation of a mirrored or rotated fleet and users is the observation turned, and
@@ -223,12 +234,7 @@ def test_the_fit_under_symmetries_learns_a_decision_that_turns_with_the_area(tmp
     )  # fmt: skip
     model = build_model("ddpg", make_fleet_vec_env(config), TINY_PRESET, 1, None)
     n = 400
-    side = np.arange(n) % 4  # users west, east, south or north: the teacher goes there
-    observations = np.zeros((n, 9, AREA.n_zones_x, AREA.n_zones_y), dtype=np.float32)
-    observations[side == 0, 0, :5, :] = 1.0
-    observations[side == 1, 0, -5:, :] = 1.0
-    observations[side == 2, 0, :, :5] = 1.0
-    observations[side == 3, 0, :, -5:] = 1.0
+    side, observations = _users_on_four_sides(n)
     towards = np.array([[-0.6, 0.0, 0.2], [0.6, 0.0, 0.2], [0.0, -0.6, 0.2], [0.0, 0.6, 0.2]])
     actions = towards[side].astype(np.float32)
     data = TeacherData(observations, actions, np.arange(n) // 4, clipped=0, oracle_calls=100)
@@ -314,12 +320,7 @@ def test_the_fit_learns_the_teachers_moves_within_their_masks(tmp_path) -> None:
     )
     model = build_model("ddqn", make_fleet_vec_env(config), TINY_PRESET, 1, None)
     n = 400
-    side = np.arange(n) % 4  # users west, east, south or north: the teacher goes there
-    observations = np.zeros((n, 9, AREA.n_zones_x, AREA.n_zones_y), dtype=np.float32)
-    observations[side == 0, 0, :5, :] = 1.0
-    observations[side == 1, 0, -5:, :] = 1.0
-    observations[side == 2, 0, :, :5] = 1.0
-    observations[side == 3, 0, :, -5:] = 1.0
+    side, observations = _users_on_four_sides(n)
     moves = np.array([8, 7, 10, 9])[side]  # five zones west, east, south, north
     masks = np.ones((n, len(MOVES)), dtype=bool)
     masks[side == 1, 7] = False  # at the east edge: the long move is refused, the short one left
