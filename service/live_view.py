@@ -134,20 +134,30 @@ class LiveView:
             report = moment.report
             if report is not None and report is not self._report_seen:
                 self._report_seen = report
-                self._utility = {"t_s": round(moment.time_s, 3), **self.utility_parts(report)}
-                u = self._utility
-                self._history.append((u["t_s"], u["value"], u["throughput"], u["delay"], u["loss"]))
+                parts = self.utility_parts(report)
+                self._utility = None
+                if parts is not None:
+                    self._utility = u = {"t_s": round(moment.time_s, 3), **parts}
+                    self._history.append(
+                        (u["t_s"], u["value"], u["throughput"], u["delay"], u["loss"])
+                    )
         if len(self.hub):
             self.hub.publish(self.frame(moment))
 
-    def utility_parts(self, report: Report) -> dict[str, float]:
-        """The report's utility and its three weighted parts (they add up to it)."""
+    def utility_parts(self, report: Report) -> dict[str, float] | None:
+        """The report's utility and its three weighted parts (they add up to it); None when a
+        number in the report makes one of them non-finite (the API refuses such reports, a
+        Python caller may not), so a frame never carries NaN and no warning is raised on the
+        loop's thread."""
         users = report.users
         args = (users.throughput_bps, users.delay_s, users.plr, users.offered_bps)
-        out = {"value": round(float(network_utility(*args, self.utility_config)), 4)}
-        for name, config in self._parts.items():
-            out[name] = round(float(network_utility(*args, config)), 4)
-        return out
+        with np.errstate(all="ignore"):
+            out = {"value": float(network_utility(*args, self.utility_config))}
+            for name, config in self._parts.items():
+                out[name] = float(network_utility(*args, config))
+        if not all(math.isfinite(v) for v in out.values()):
+            return None
+        return {name: round(v, 4) for name, v in out.items()}
 
     def frame(self, moment: Moment) -> LiveFrame:
         """The frame for ``moment`` (with the track and history recorded so far)."""
@@ -158,7 +168,8 @@ class LiveView:
             history = [list(h) for h in self._history]
             utility = self._utility if moment.report is self._report_seen else None
         if utility is None and moment.report is not None:  # a report the loop has not seen yet
-            utility = {"t_s": round(moment.time_s, 3), **self.utility_parts(moment.report)}
+            parts = self.utility_parts(moment.report)
+            utility = None if parts is None else {"t_s": round(moment.time_s, 3), **parts}
         area = self.area
         body: dict[str, Any] = {
             "format": FORMAT,
@@ -193,8 +204,9 @@ class LiveView:
         return LiveFrame(seq, data)
 
 
-def _number(value: float | None, digits: int = 3) -> float | None:
-    """``value`` rounded, or None when unknown or not finite (JSON has no NaN)."""
+def _number(value: float | None, digits: int | None = 3) -> float | int | None:
+    """``value`` rounded (``digits`` None: to an int), or None when unknown or not finite
+    (JSON has no NaN)."""
     if value is None or not math.isfinite(value):
         return None
     return round(float(value), digits)
@@ -240,17 +252,18 @@ def _users(report: Report | None) -> list[dict[str, Any]]:
     users = report.users
     offered = np.asarray(users.offered_bps, dtype=float)
     throughput = np.asarray(users.throughput_bps, dtype=float)
-    served = np.clip(throughput / np.maximum(offered, 1e-9), 0.0, 1.0)
+    with np.errstate(all="ignore"):
+        served = np.clip(throughput / np.maximum(offered, 1e-9), 0.0, 1.0)
     return [
         {
             "id": user_id,
-            "x_m": round(float(users.x_m[i]), 2),
-            "y_m": round(float(users.y_m[i]), 2),
-            "offered_bps": round(float(offered[i])),
-            "throughput_bps": round(float(throughput[i])),
-            "delay_s": round(float(users.delay_s[i]), 5),
-            "plr": round(float(users.plr[i]), 4),
-            "served": round(float(served[i]), 4),
+            "x_m": _number(float(users.x_m[i]), 2),
+            "y_m": _number(float(users.y_m[i]), 2),
+            "offered_bps": _number(float(offered[i]), None),
+            "throughput_bps": _number(float(throughput[i]), None),
+            "delay_s": _number(float(users.delay_s[i]), 5),
+            "plr": _number(float(users.plr[i]), 4),
+            "served": _number(float(served[i]), 4),
         }
         for i, user_id in enumerate(report.user_ids)
     ]

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+import warnings
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from service.pubsub import Hub, SubscriberLimitError
 from service.settings import ServiceSettings
 from service.vehicle_link import LinkState
 from sim.config import AreaConfig, UtilityConfig
+from sim.observation import UserReports
 from sim.utility import network_utility
 from tests.fakes import FakeLink
 from tests.helpers import wait_for
@@ -126,6 +128,31 @@ def test_a_frame_has_the_utility_of_the_report_and_its_three_parts() -> None:
     ]
     assert [u["served"] for u in frame["users"]] == [0.5, 1.0]
     assert frame["report"] == {"timestamp": 1.0, "age_s": 0.5, "stale": False}
+
+
+def test_a_report_with_numbers_the_api_refuses_gives_no_utility_and_no_warning() -> None:
+    """Infinite loads of both signs (a Python caller can submit what the API refuses): the
+    utility is null, nothing enters the history, and the frame is strict JSON."""
+    view = LiveView(AreaConfig(), UtilityConfig())
+    users = _report().users
+    hostile = UserReports(
+        users.x_m, users.y_m, np.array([np.inf, -np.inf]), users.throughput_bps, users.delay_s,
+        users.plr,
+    )  # fmt: skip
+    report = Report(1.0, ("big", "small"), hostile)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's "invalid value" would be raised here
+        view.record(_moment(_state(), report))
+        data = view.frame(_moment(_state(), report)).data
+
+    def refuse(constant: str) -> None:
+        raise AssertionError(f"not strict JSON: {constant}")
+
+    frame = json.loads(data, parse_constant=refuse)
+    assert frame["utility"] is None and frame["utility_history"] == []
+    assert [u["offered_bps"] for u in frame["users"]] == [None, None]  # unknown, not NaN
+    throughput = [u["throughput_bps"] for u in frame["users"]]
+    assert throughput == [15_000_000, 2_000_000] and all(isinstance(t, int) for t in throughput)
 
 
 def test_the_history_takes_each_report_once_and_the_track_is_bounded() -> None:
