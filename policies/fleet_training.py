@@ -327,8 +327,10 @@ def _vector_preset(preset: Preset, n_envs: int) -> Preset:
 
 
 def train_fleet(config: FleetTrainConfig) -> dict[str, Any]:
-    """Train one shared DDPG network for a fleet of ``config.n_uavs``; write ``model.zip`` and
-    ``model.json`` into ``config.out_dir``; return the metadata."""
+    """Train one network (DDPG or DDQN, ``config.algorithm``) shared by a fleet of
+    ``config.n_uavs``: imitation first when ``config.imitate``, then ``config.episodes`` of
+    reinforcement learning; write ``model.zip`` and ``model.json`` into ``config.out_dir``;
+    return the metadata."""
     started = time.monotonic()
     preset = config.chosen_preset
     env = make_fleet_vec_env(config)
