@@ -74,7 +74,6 @@ from sim.geometry import (
     move_masks,
     move_targets,
     zone_indices,
-    zone_positions,
 )
 from sim.scenarios import ScenarioSampler
 from sim.world import World
@@ -199,7 +198,8 @@ def teacher_moves(
     lower move number ("stay" first); and the UAVs' move masks (K, 13)."""
     index = zone_indices(np.asarray(here_m, dtype=float), area)
     masks = move_masks(index, area)
-    landing = zone_positions((index[:, None, :] + MOVES[None]).reshape(-1, 3), area)
+    every = np.tile(np.arange(len(MOVES)), len(index))  # each UAV's 13 moves, in turn
+    landing, _ = move_targets(every, np.repeat(here_m, len(MOVES), axis=0), area)
     gap = landing.reshape(len(index), len(MOVES), 3) - np.asarray(targets_m)[:, None, :]
     distance = np.where(masks, np.linalg.norm(gap, axis=2), np.inf)
     return np.argmin(distance, axis=1), masks
@@ -304,7 +304,8 @@ def _collect(
                 moves, mask = teacher_moves(here, targets, world.area)
                 actions.append(moves)
                 masks.append(mask)
-                targets, _ = move_targets(moves, here, world.area)
+                if policy is None:  # the teacher's fleet flies the moves, not the targets
+                    targets, _ = move_targets(moves, here, world.area)
             else:
                 priors = assign_targets(here, prior.place(env.reports, n_uavs))
                 # Each prior's correction: the oracle target nearest it (the set matched to the
