@@ -1,11 +1,12 @@
 """Fleet checkpoints against the k-means baselines on validation scenarios (no oracle: quick).
 
 Picks between trained fleet checkpoints before the held-out benchmark
-(``benchmarks/fleet_policy.py``, whose scenario seeds these never share): K = 2 and 3 UAVs,
-20 and 50 users, the uniform, hot-spot and mixture families (``--per-family`` each, seeds from
-4242), static (``closed-loop``) and moving (``closed-loop-moving``) users; one episode each,
-from the fleet's homes, every checkpoint deciding every step, the k-means placements held
-(static users) or re-placed every decision (moving users). Prints and writes
+(``benchmarks/fleet_policy.py``, whose scenario seeds these never share): K = 2 and 3 UAVs and
+20 and 50 users by default (``--uavs``, ``--users``), the uniform, hot-spot and mixture
+families (``--per-family`` each, seeds from 4242), static (``closed-loop``) and moving
+(``closed-loop-moving``) users; one episode each, from the fleet's homes, every checkpoint
+deciding every step, the k-means placements held (static users) or re-placed every decision
+(moving users). Prints and writes
 ``benchmarks/results/fleet_checkpoints.json``: mean utility per world and policy, each
 checkpoint's training command and time, and for DDPG the mean of each agent's raw action over
 a few hot-spot episodes (a saturated actor shows as ±1 with no spread).
@@ -25,7 +26,7 @@ import numpy as np
 
 from policies.fleet_evaluation import build_fleet_candidate, evaluate_fleet
 from policies.fleet_training import FleetCheckpointPolicy
-from sim.fleet import FleetConfig
+from sim.fleet import MAX_UAVS, FleetConfig
 from sim.fleet_env import FleetParallelEnv
 from sim.scenarios import generate_scenarios
 from sim.world import get_world
@@ -35,15 +36,20 @@ BASELINES = ("kmeans-load-weighted", "kmeans-min-distance")
 FAMILIES = ("uniform", "hotspots", "mixture")
 
 
-def validate(names: list[str], per_family: int) -> dict[str, dict[str, float]]:
+def validate(
+    names: list[str],
+    per_family: int,
+    fleet_sizes: tuple[int, ...] = (2, 3),
+    user_counts: tuple[int, ...] = (20, 50),
+) -> dict[str, dict[str, float]]:
     """Mean utility per world and policy over the validation cells."""
     utilities: dict[str, dict[str, list[float]]] = {}
     for world_name in ("closed-loop", "closed-loop-moving"):
         world = get_world(world_name)
         every = 1 if world.mobility.model != "static" else world.episode_steps
-        for k in (2, 3):
+        for k in fleet_sizes:
             fleet = FleetConfig(n_uavs=k)
-            for users in (20, 50):
+            for users in user_counts:
                 for f, family in enumerate(FAMILIES):
                     seed = 4242 + 100 * k + users + f
                     scenarios = generate_scenarios(
@@ -79,13 +85,29 @@ def raw_actions(path: str, episodes: int = 4, steps: int = 30) -> dict[str, Any]
     return {"mean": stacked.mean(0).round(3).tolist(), "std": stacked.std(0).round(3).tolist()}
 
 
+def _sizes(text: str) -> tuple[int, ...]:
+    """``"2,3"`` -> (2, 3): positive integers separated by commas."""
+    try:
+        values = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        message = f"expected integers separated by commas, got {text!r}"
+        raise argparse.ArgumentTypeError(message) from None
+    if not values or min(values) < 1:
+        raise argparse.ArgumentTypeError(f"expected positive integers, got {text!r}")
+    return values
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("checkpoints", nargs="+", help="fleet checkpoint directories")
     parser.add_argument("--per-family", type=int, default=2)
+    parser.add_argument("--uavs", type=_sizes, default=(2, 3), help="fleet sizes, e.g. 2,3")
+    parser.add_argument("--users", type=_sizes, default=(20, 50), help="user counts, e.g. 20,50")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
-    results = validate([*args.checkpoints, *BASELINES], args.per_family)
+    if max(args.uavs) > MAX_UAVS:
+        parser.error(f"argument --uavs: a fleet has 1..{MAX_UAVS} UAVs, got {max(args.uavs)}")
+    results = validate([*args.checkpoints, *BASELINES], args.per_family, args.uavs, args.users)
     checkpoints = {}
     for path in args.checkpoints:
         meta = json.loads((Path(path) / "model.json").read_text())
@@ -107,7 +129,9 @@ def main() -> int:
     document = {
         "benchmark": "fleet_checkpoints",
         "command": "python benchmarks/fleet_checkpoints.py " + " ".join(sys.argv[1:]),
-        "scenarios_per_world": 2 * 2 * len(FAMILIES) * args.per_family,
+        "uavs": list(args.uavs),
+        "users": list(args.users),
+        "scenarios_per_world": len(args.uavs) * len(args.users) * len(FAMILIES) * args.per_family,
         "mean_utility": results,
         "checkpoints": checkpoints,
     }
