@@ -498,6 +498,9 @@ def train(config: TrainConfig, resume: bool = False) -> dict[str, Any]:
     except KeyboardInterrupt:
         run.save_latest(model, with_replay_buffer=True)
         raise
+    finally:  # flushes TensorBoard's last events and ends its writer thread
+        if getattr(model, "_logger", None) is not None:  # None: learn failed before setting it
+            model.logger.close()
     evaluation = final_evaluation(run, model) if config.final_eval else None
     metadata = run.metadata(model, evaluation)
     save_checkpoint(model, config.out_dir / "model.zip", metadata)

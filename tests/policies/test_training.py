@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 from dataclasses import replace
 from pathlib import Path
 
@@ -129,6 +130,10 @@ def test_short_ddqn_training_beats_a_random_walk(tmp_path):
         ),
     )
     train(config)
+    # The run's TensorBoard writer is closed: its last events are on disk, its thread is gone.
+    writers = [t for t in threading.enumerate() if "event_file_writer" in type(t).__module__]
+    assert not writers
+    assert list((tmp_path / "run" / "tb").rglob("events.out.tfevents.*"))
     agent = CheckpointPolicy.load(tmp_path / "run")
 
     class RandomWalk:
