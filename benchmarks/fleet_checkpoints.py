@@ -37,10 +37,7 @@ FAMILIES = ("uniform", "hotspots", "mixture")
 
 
 def validate(
-    names: list[str],
-    per_family: int,
-    fleet_sizes: tuple[int, ...] = (2, 3),
-    user_counts: tuple[int, ...] = (20, 50),
+    names: list[str], per_family: int, fleet_sizes: tuple[int, ...], user_counts: tuple[int, ...]
 ) -> dict[str, dict[str, float]]:
     """Mean utility per world and policy over the validation cells."""
     utilities: dict[str, dict[str, list[float]]] = {}
