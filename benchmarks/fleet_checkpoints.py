@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -29,21 +30,38 @@ from policies.fleet_training import FleetCheckpointPolicy
 from sim.fleet import MAX_UAVS, FleetConfig
 from sim.fleet_env import FleetParallelEnv
 from sim.scenarios import generate_scenarios
-from sim.world import get_world
+from sim.world import World, get_world
 
 RESULTS = Path(__file__).resolve().parent / "results" / "fleet_checkpoints.json"
 BASELINES = ("kmeans-load-weighted", "kmeans-min-distance")
 FAMILIES = ("uniform", "hotspots", "mixture")
 
 
-def validate(
-    names: list[str], per_family: int, fleet_sizes: tuple[int, ...], user_counts: tuple[int, ...]
-) -> dict[str, dict[str, float]]:
-    """Mean utility per world and policy over the validation cells."""
-    utilities: dict[str, dict[str, list[float]]] = {}
+Candidate = Callable[[int, World, FleetConfig], Any]
+"""What to fly for a fleet size, world and fleet: a checkpoint or a placement, as
+:func:`policies.fleet_evaluation.evaluate_fleet` takes it."""
+
+
+def built(name: str) -> Candidate:
+    """The candidate :func:`policies.fleet_evaluation.build_fleet_candidate` makes of ``name``."""
+    return lambda k, world, fleet: build_fleet_candidate(name, k, world, fleet)[1]
+
+
+def validation_utilities(
+    candidates: dict[str, Candidate],
+    per_family: int,
+    fleet_sizes: tuple[int, ...],
+    user_counts: tuple[int, ...],
+    moving_replan_every: int = 1,
+) -> dict[str, dict[str, list[dict[str, Any]]]]:
+    """Every candidate flown on the validation cells: per world and candidate, one row
+    ``{"uavs", "users", "family", "utility"}`` per scenario, the cells in the same order.
+    Placements are held with static users and re-placed every ``moving_replan_every``
+    decisions with moving ones; checkpoints decide every step."""
+    rows: dict[str, dict[str, list[dict[str, Any]]]] = {}
     for world_name in ("closed-loop", "closed-loop-moving"):
         world = get_world(world_name)
-        every = 1 if world.mobility.model != "static" else world.episode_steps
+        every = moving_replan_every if world.mobility.model != "static" else world.episode_steps
         for k in fleet_sizes:
             fleet = FleetConfig(n_uavs=k)
             for users in user_counts:
@@ -52,16 +70,33 @@ def validate(
                     scenarios = generate_scenarios(
                         per_family, users, seed, family=family, total_load_bps=40e6 * k
                     )
-                    for name in names:
-                        candidate = build_fleet_candidate(name, k, world, fleet)[1]
-                        summary = evaluate_fleet(candidate, scenarios, k, world, fleet, every,
-                                                 0, name=name, progress=False)  # fmt: skip
-                        per_world = utilities.setdefault(world_name, {})
-                        per_world.setdefault(name, []).extend(summary["utilities"])
+                    for name, candidate in candidates.items():
+                        flown = candidate(k, world, fleet)
+                        summary = evaluate_fleet(flown, scenarios, k, world, fleet, every, 0,
+                                                 name=name, progress=False)  # fmt: skip
+                        cell = {"uavs": k, "users": users, "family": family}
+                        rows.setdefault(world_name, {}).setdefault(name, []).extend(
+                            {**cell, "utility": u} for u in summary["utilities"]
+                        )
+    return rows
+
+
+def validate(
+    names: list[str], per_family: int, fleet_sizes: tuple[int, ...], user_counts: tuple[int, ...]
+) -> dict[str, dict[str, float]]:
+    """Mean utility per world and policy (checkpoint paths or fleet policy names) over the
+    validation cells."""
+    rows = validation_utilities(
+        {name: built(name) for name in names}, per_family, fleet_sizes, user_counts
+    )
     return {
-        world: {name: round(float(np.mean(v)), 4) for name, v in per_name.items()}
-        for world, per_name in utilities.items()
+        world: {name: mean_utility(r) for name, r in per_name.items()}
+        for world, per_name in rows.items()
     }
+
+
+def mean_utility(rows: list[dict[str, Any]]) -> float:
+    return round(float(np.mean([row["utility"] for row in rows])), 4)
 
 
 def raw_actions(path: str, episodes: int = 4, steps: int = 30) -> dict[str, Any]:
@@ -82,7 +117,7 @@ def raw_actions(path: str, episodes: int = 4, steps: int = 30) -> dict[str, Any]
     return {"mean": stacked.mean(0).round(3).tolist(), "std": stacked.std(0).round(3).tolist()}
 
 
-def _sizes(text: str) -> tuple[int, ...]:
+def int_list(text: str) -> tuple[int, ...]:
     """``"2,3"`` -> (2, 3): positive integers separated by commas."""
     try:
         values = tuple(int(part) for part in text.split(","))
@@ -98,8 +133,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("checkpoints", nargs="+", help="fleet checkpoint directories")
     parser.add_argument("--per-family", type=int, default=2)
-    parser.add_argument("--uavs", type=_sizes, default=(2, 3), help="fleet sizes, e.g. 2,3")
-    parser.add_argument("--users", type=_sizes, default=(20, 50), help="user counts, e.g. 20,50")
+    parser.add_argument("--uavs", type=int_list, default=(2, 3), help="fleet sizes, e.g. 2,3")
+    parser.add_argument("--users", type=int_list, default=(20, 50), help="user counts, e.g. 20,50")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     if max(args.uavs) > MAX_UAVS:

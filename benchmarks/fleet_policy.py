@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from fleet_checkpoints import int_list
 
 from policies.fleet_evaluation import FLEET_EVAL_POLICIES, build_fleet_candidate, evaluate_fleet
 from sim.fleet import FleetConfig
@@ -47,10 +48,6 @@ from sim.world import get_world
 
 RESULTS = Path(__file__).parent / "results" / "fleet_policy.json"
 FAMILIES = ("uniform", "hotspots", "mixture")
-
-
-def _ints(text: str) -> list[int]:
-    return [int(v) for v in text.split(",") if v.strip()]
 
 
 def _evaluate_cell(
@@ -135,8 +132,12 @@ def _targets(rows: dict[str, list[dict[str, Any]]], min_bin: int) -> dict[str, A
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", type=Path, required=True)
-    parser.add_argument("--uavs", default="2", help="fleet sizes, comma-separated (2,3,4)")
-    parser.add_argument("--users", default="20", help="user counts, comma-separated (20,50,100)")
+    parser.add_argument(
+        "--uavs", type=int_list, default="2", help="fleet sizes, comma-separated (2,3,4)"
+    )
+    parser.add_argument(
+        "--users", type=int_list, default="20", help="user counts, comma-separated (20,50,100)"
+    )
     parser.add_argument("--per-family", type=int, default=10)
     parser.add_argument(
         "--world", default="closed-loop", help="worlds, comma-separated (closed-loop-moving)"
@@ -167,8 +168,8 @@ def main() -> None:
         world = get_world(world_name.strip())
         if args.episode_steps:
             world = replace(world, episode_steps=args.episode_steps)
-        for k in _ints(args.uavs):
-            for users in _ints(args.users):
+        for k in args.uavs:
+            for users in args.users:
                 cell = _evaluate_cell(candidates, world, k, users, args)
                 for name, entries in cell.items():
                     rows[name] += entries

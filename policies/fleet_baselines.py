@@ -10,6 +10,11 @@ UAV per cluster with :class:`policies.baselines.MinDistancePolicy` over that clu
   load-weighted means, the objective the load-weighted squared distance) and in the placement
   per cluster (``load-weighted``): heavy users pull clusters and UAVs toward them.
 
+``per_cluster`` swaps the placement per cluster for any single-UAV placement (the single-UAV
+search oracle, say) while the partition stays k-means': what a fleet gains from *where* each UAV
+hovers over its group, apart from *which* users form the groups
+(``benchmarks/fleet_decomposition.py``).
+
 k-means is Lloyd's iteration from k-means++ seeds (Arthur & Vassilvitskii 2007), ``n_init``
 seedings drawn from ``default_rng(seed)``, the lowest-inertia result kept; ties in the nearest
 centre go to the lowest index, an emptied cluster takes the point farthest from its centre.
@@ -25,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from policies.baselines import MinDistancePolicy
-from policies.interface import UsersLike
+from policies.interface import Placement, UsersLike
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet import MAX_UAVS
@@ -97,7 +102,11 @@ def _plus_plus(x: np.ndarray, w: np.ndarray, k: int, rng: np.random.Generator) -
 
 @dataclass(frozen=True)
 class KMeansPlacement:
-    """K UAVs from k-means clusters, one min-distance (or load-weighted) placement each."""
+    """K UAVs from k-means clusters, one min-distance (or load-weighted) placement each.
+
+    ``per_cluster``: the single-UAV placement flown over each cluster's users instead (its
+    ``place(users)`` gets the cluster's positions and loads); ``None``, the default, is
+    :class:`~policies.baselines.MinDistancePolicy`, load-weighted when ``load_weighted``."""
 
     n_uavs: int = 3
     area: AreaConfig = field(default_factory=AreaConfig)
@@ -105,6 +114,7 @@ class KMeansPlacement:
     separation_m: float = 10.0
     seed: int = 0
     n_init: int = 4
+    per_cluster: Placement | None = None
 
     def __post_init__(self) -> None:
         k = self.n_uavs
@@ -115,13 +125,16 @@ class KMeansPlacement:
 
     @property
     def name(self) -> str:
-        return FLEET_BASELINES[1] if self.load_weighted else FLEET_BASELINES[0]
+        """``kmeans-load-weighted`` or ``kmeans-min-distance``; with ``per_cluster``, its name
+        after a ``+`` (``kmeans-load-weighted+oracle``)."""
+        name = FLEET_BASELINES[1] if self.load_weighted else FLEET_BASELINES[0]
+        return name if self.per_cluster is None else f"{name}+{self.per_cluster.name}"
 
     def place(self, users: UsersLike) -> np.ndarray:
         """Positions (K, 3) in metres, area frame, separated, inside the volume."""
         xy = np.asarray(users.users_xy_m, dtype=float)
         load = np.asarray(users.load_bps, dtype=float)
-        single = MinDistancePolicy(self.area, load_weighted=self.load_weighted)
+        single = self.per_cluster or MinDistancePolicy(self.area, load_weighted=self.load_weighted)
         _, labels = kmeans(
             xy, self.n_uavs, load if self.load_weighted else None, self.seed, self.n_init
         )
@@ -131,8 +144,8 @@ class KMeansPlacement:
             positions.append(single.place(_Users(xy[mine], load[mine])))
         order = sorted(range(len(positions)), key=lambda i: tuple(positions[i][:2]))
         placed = [positions[i] for i in order]
-        overall = single.place(_Users(xy, load))
-        placed += [overall] * (self.n_uavs - len(placed))
+        if len(placed) < self.n_uavs:  # fewer distinct positions than UAVs
+            placed += [single.place(_Users(xy, load))] * (self.n_uavs - len(placed))
         return enforce_separation(np.array(placed), self.separation_m, self.area)
 
 

@@ -13,6 +13,7 @@ from policies.fleet_oracle import (
     FleetStart,
     fleet_episode_utility,
 )
+from policies.interface import UsersLike
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig, FleetModel
@@ -76,6 +77,43 @@ def test_kmeans_placements_are_deterministic_separated_and_inside(load_weighted:
 def test_more_uavs_than_users_still_gives_separated_positions() -> None:
     scenario = generate_scenarios(1, 2, seed=0, family="uniform")[0]
     _check_placement(KMeansPlacement(5).place(scenario), 5)
+
+
+class _Recording:
+    """A single-UAV placement that records the users it is asked to place over."""
+
+    name = "recording"
+
+    def __init__(self) -> None:
+        self.groups: list[np.ndarray] = []
+
+    def place(self, users: UsersLike) -> np.ndarray:
+        xy = np.asarray(users.users_xy_m, dtype=float)
+        self.groups.append(xy)
+        return np.array([*xy.mean(axis=0), 60.0])
+
+
+def test_per_cluster_placement_keeps_the_partition_and_places_each_group() -> None:
+    from policies.baselines import MinDistancePolicy
+
+    scenario = _hot_spots()
+    # The default per-cluster placement, named explicitly, gives the baseline to the bit.
+    explicit = KMeansPlacement(3, load_weighted=True, per_cluster=MinDistancePolicy(
+        AreaConfig(), load_weighted=True))  # fmt: skip
+    np.testing.assert_array_equal(
+        explicit.place(scenario), KMeansPlacement(3, load_weighted=True).place(scenario)
+    )
+    # Another placement is asked once per k-means group: the groups partition the users.
+    recording = _Recording()
+    placement = KMeansPlacement(3, load_weighted=True, per_cluster=recording)
+    positions = placement.place(scenario)
+    assert placement.name == "kmeans-load-weighted+recording"
+    assert len(recording.groups) == 3
+    _, labels = kmeans(scenario.users_xy_m, 3, scenario.load_bps, 0, 4)
+    expected = sorted(tuple(map(tuple, scenario.users_xy_m[labels == c])) for c in range(3))
+    assert sorted(tuple(map(tuple, g)) for g in recording.groups) == expected
+    _check_placement(positions, 3)
+    assert np.all(positions[:, 2] == 60.0)  # the per-cluster placement's own altitude
 
 
 def test_bad_fleet_sizes_are_one_line_errors() -> None:
