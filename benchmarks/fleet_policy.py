@@ -7,8 +7,10 @@ mixture families (``--per-family`` each, Λ = 40 Mbit/s per UAV, seeds from ``--
 cell, never the training's), one episode of the fleet environment in that world (its decision
 period and episode length; ``--episode-steps`` shortens it) from the fleet's homes, for:
 
-* the checkpoint (:class:`policies.fleet_training.FleetCheckpointPolicy`), deciding every step;
-* ``kmeans-min-distance`` and ``kmeans-load-weighted`` and the search oracle
+* the checkpoint (:class:`policies.fleet_training.FleetCheckpointPolicy`), deciding every step
+  (``--checkpoint``; without it the placements alone);
+* ``kmeans-min-distance``, ``kmeans-load-weighted``, ``kmeans-scored``
+  (:class:`policies.fleet_scored.ScoredKMeansPlacement`) and the search oracle
   (:class:`policies.fleet_oracle.FleetOracle` over the world's network and episode), each
   placed once on the first report the decision sees and held when users stand still; when they
   move, k-means re-places every decision and the oracle every ``--oracle-replan``.
@@ -20,8 +22,8 @@ episode's steps, then over scenarios), handovers per episode, per family, the po
 the oracle, and every scenario's row (``rows``: family, id, H, the five metrics). The vehicles
 fly there at the world's speed, so every policy pays the same transit.
 Summaries overall, per world, K, user count and family, and issue 16's targets checked
-(``targets``: ≥ 0.95 × the oracle's mean utility; ≥ both k-means baselines in mean and in every
-H bin with ``--min-bin`` scenarios or more).
+(``targets``, for the checkpoint and ``kmeans-scored``: ≥ 0.95 × the oracle's mean utility; ≥
+both k-means baselines in mean and in every H bin with ``--min-bin`` scenarios or more).
 Run: ``.venv/bin/python benchmarks/fleet_policy.py --checkpoint DIR --uavs 2,3,4 --users
 20,50,100 --world closed-loop,closed-loop-moving``.
 """
@@ -48,6 +50,9 @@ from sim.world import get_world
 
 RESULTS = Path(__file__).parent / "results" / "fleet_policy.json"
 FAMILIES = ("uniform", "hotspots", "mixture")
+TESTED = ("fleet-checkpoint", "kmeans-scored")
+"""The policies checked against the targets: the checkpoint, and the k-means scored on the
+model (a placement, not learned: the bar a learned policy has to pass)."""
 
 
 def _evaluate_cell(
@@ -105,23 +110,23 @@ def _by(rows: dict[str, list[dict[str, Any]]], key: Any) -> dict[str, Any]:
     }
 
 
-def _targets(rows: dict[str, list[dict[str, Any]]], min_bin: int) -> dict[str, Any]:
-    """Issue 16's targets for the checkpoint: >= 0.95 x the oracle's mean utility, and >= both
+def _targets(rows: dict[str, list[dict[str, Any]]], min_bin: int, name: str) -> dict[str, Any]:
+    """Issue 16's targets for policy ``name``: >= 0.95 x the oracle's mean utility, and >= both
     k-means baselines in mean and in every H bin (width 0.05) with at least ``min_bin``
     scenarios."""
     overall = _summary(rows)
-    ours = overall["fleet-checkpoint"]["mean_utility"]
+    ours = overall[name]["mean_utility"]
     bins = _by(rows, lambda r: round(np.floor(r["heterogeneity"] / 0.05) * 0.05, 2))
-    checked = {b: t for b, t in bins.items() if t["fleet-checkpoint"]["n_scenarios"] >= min_bin}
+    checked = {b: t for b, t in bins.items() if t[name]["n_scenarios"] >= min_bin}
     baselines = ("kmeans-min-distance", "kmeans-load-weighted")
     failing = [
         b for b, t in checked.items()
-        if any(t["fleet-checkpoint"]["mean_utility"] < t[n]["mean_utility"] for n in baselines)
+        if any(t[name]["mean_utility"] < t[n]["mean_utility"] for n in baselines)
     ]  # fmt: skip
     return {
-        "ratio_to_oracle": overall["fleet-checkpoint"]["ratio_to_oracle"],
+        "ratio_to_oracle": overall[name]["ratio_to_oracle"],
         "ratio_to_oracle_target": 0.95,
-        "met_oracle": (overall["fleet-checkpoint"]["ratio_to_oracle"] or 0) >= 0.95,
+        "met_oracle": (overall[name]["ratio_to_oracle"] or 0) >= 0.95,
         "at_least_both_kmeans_in_mean": all(ours >= overall[n]["mean_utility"] for n in baselines),
         "h_bins_checked": sorted(checked),
         "h_bins_below_a_kmeans": failing,
@@ -131,7 +136,9 @@ def _targets(rows: dict[str, list[dict[str, Any]]], min_bin: int) -> dict[str, A
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--checkpoint", type=Path, required=True)
+    parser.add_argument(
+        "--checkpoint", type=Path, help="a fleet checkpoint (without: the placements alone)"
+    )
     parser.add_argument(
         "--uavs", type=int_list, default="2", help="fleet sizes, comma-separated (2,3,4)"
     )
@@ -155,14 +162,16 @@ def main() -> None:
     args = parser.parse_args()
 
     started = time.perf_counter()
-    checkpoint = str(args.checkpoint)
     candidates: dict[str, Any] = {
-        "fleet-checkpoint": lambda k, w, f: build_fleet_candidate(checkpoint, k, w, f)[1],
-        **{
-            name: (lambda k, w, f, n=name: build_fleet_candidate(n, k, w, f, args.seed)[1])
-            for name in FLEET_EVAL_POLICIES
-        },
+        name: (lambda k, w, f, n=name: build_fleet_candidate(n, k, w, f, args.seed)[1])
+        for name in FLEET_EVAL_POLICIES
     }
+    if args.checkpoint is not None:
+        checkpoint = str(args.checkpoint)
+        candidates = {
+            "fleet-checkpoint": lambda k, w, f: build_fleet_candidate(checkpoint, k, w, f)[1],
+            **candidates,
+        }
     rows: dict[str, list[dict[str, Any]]] = {name: [] for name in candidates}
     for world_name in args.world.split(","):
         world = get_world(world_name.strip())
@@ -182,7 +191,7 @@ def main() -> None:
                     ),
                     flush=True,
                 )
-    meta = json.loads(Path(args.checkpoint, "model.json").read_text())
+    meta = json.loads(Path(args.checkpoint, "model.json").read_text()) if args.checkpoint else {}
     report = {
         "benchmark": "fleet_policy",
         "command": "python benchmarks/fleet_policy.py " + " ".join(sys.argv[1:]),
@@ -207,7 +216,7 @@ def main() -> None:
         "by_uavs": _by(rows, lambda r: r["uavs"]),
         "by_users": _by(rows, lambda r: r["users"]),
         "by_family": _by(rows, lambda r: r["family"]),
-        "targets": _targets(rows, args.min_bin),
+        "targets": {name: _targets(rows, args.min_bin, name) for name in TESTED if name in rows},
         "rows": rows,
         "wall_time_s": round(time.perf_counter() - started, 1),
         "python": platform.python_version(),

@@ -31,8 +31,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     demo.add_argument(
         "--policy",
         help="checkpoint or baseline (default: the service's, the tracking oracle); with "
-        "--uavs K >= 2, a comma-separated list of fleet policies (default: kmeans-min-distance "
-        "and kmeans-load-weighted, and fleet-oracle when one decision fits the period)",
+        "--uavs K >= 2, a comma-separated list of fleet policies (default: kmeans-min-distance, "
+        "kmeans-load-weighted and kmeans-scored, and fleet-oracle when one decision fits the "
+        "period)",
     )
     demo.add_argument(
         "--scenarios", type=int, help="how many (default 3; the fleet demo plays one)"

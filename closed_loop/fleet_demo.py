@@ -1,8 +1,8 @@
 """``tupa demo --uavs K``: the closed loop with a fleet, for real, policies side by side.
 
-For every compared fleet policy (``kmeans-min-distance`` and ``kmeans-load-weighted``; the
-``fleet-oracle`` too when one of its decisions fits the decision period: the demo measures one
-first) it starts
+For every compared fleet policy (``kmeans-min-distance``, ``kmeans-load-weighted`` and
+``kmeans-scored``; the ``fleet-oracle`` too when one of its decisions fits the decision period:
+the demo measures one first) it starts
 
 1. one ``tupa sitl-mock --vehicles K`` (PX4 flavour): K vehicles, system ids 1..K, one free
    loopback port each, vehicle i's home 15·i m east of vehicle 0's;
@@ -73,7 +73,7 @@ __all__ = [
     "run_fleet_demo",
 ]
 
-ALWAYS_FLOWN: tuple[str, ...] = ("kmeans-min-distance", "kmeans-load-weighted")
+ALWAYS_FLOWN: tuple[str, ...] = ("kmeans-min-distance", "kmeans-load-weighted", "kmeans-scored")
 """The fleet policies the demo always compares (the fleet oracle joins when it is fast enough)."""
 SPACING_M = 15.0
 """East-west distance between neighbouring mock vehicles' homes (``tupa sitl-mock``'s default)."""

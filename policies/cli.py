@@ -39,7 +39,8 @@ when it is not among the policies)
 
 With --uavs K (2..8): a fleet of K UAVs in the fleet environment (world closed-loop unless
 --world says otherwise), one episode per scenario from the fleet's homes. --policy is then
-kmeans-min-distance, kmeans-load-weighted, fleet-oracle (the search oracle over the world's
+kmeans-min-distance, kmeans-load-weighted, kmeans-scored (k-means partitions scored on the
+fleet model: milliseconds), fleet-oracle (the search oracle over the world's
 network and episode: seconds per search) or a fleet checkpoint (tupa train --uavs K, any K); a
 fleet checkpoint decides every step, the placements are placed on the first report and
 re-placed every --replan-every decisions (default: once per episode). Per scenario: utility,

@@ -36,7 +36,7 @@ from sim.errors import InputError
 from sim.fleet import MAX_UAVS
 from sim.geometry import enforce_separation
 
-__all__ = ["FLEET_BASELINES", "KMeansPlacement", "kmeans"]
+__all__ = ["FLEET_BASELINES", "KMeansPlacement", "kmeans", "place_groups"]
 
 FLEET_BASELINES: tuple[str, ...] = ("kmeans-min-distance", "kmeans-load-weighted")
 
@@ -138,15 +138,33 @@ class KMeansPlacement:
         _, labels = kmeans(
             xy, self.n_uavs, load if self.load_weighted else None, self.seed, self.n_init
         )
-        positions = []
-        for c in range(labels.max() + 1):
-            mine = labels == c
-            positions.append(single.place(_Users(xy[mine], load[mine])))
-        order = sorted(range(len(positions)), key=lambda i: tuple(positions[i][:2]))
-        placed = [positions[i] for i in order]
-        if len(placed) < self.n_uavs:  # fewer distinct positions than UAVs
-            placed += [single.place(_Users(xy, load))] * (self.n_uavs - len(placed))
-        return enforce_separation(np.array(placed), self.separation_m, self.area)
+        return place_groups(xy, load, labels, single, self.n_uavs, self.separation_m, self.area)
+
+
+def place_groups(
+    users_xy_m: np.ndarray,
+    load_bps: np.ndarray,
+    labels: np.ndarray,
+    single: Placement,
+    n_uavs: int,
+    separation_m: float,
+    area: AreaConfig,
+) -> np.ndarray:
+    """One UAV per group of users (``labels`` 0, 1, ...: a user's group; a label < 0 leaves the
+    user out), placed by ``single`` over that group's positions and loads; ordered by position
+    (x, then y), topped up with ``single``'s placement of every user when there are fewer groups
+    than ``n_uavs``, and separated: (K, 3) metres."""
+    xy = np.asarray(users_xy_m, dtype=float)
+    load = np.asarray(load_bps, dtype=float)
+    positions = [
+        single.place(_Users(xy[labels == c], load[labels == c]))
+        for c in range(labels.max() + 1)
+        if np.any(labels == c)
+    ]
+    placed = sorted(positions, key=lambda p: tuple(p[:2]))
+    if len(placed) < n_uavs:  # fewer groups than UAVs
+        placed += [single.place(_Users(xy, load))] * (n_uavs - len(placed))
+    return enforce_separation(np.array(placed[:n_uavs]), separation_m, area)
 
 
 @dataclass(frozen=True)

@@ -48,6 +48,7 @@ import numpy as np
 
 from policies.fleet_baselines import FLEET_BASELINES, KMeansPlacement
 from policies.fleet_oracle import FleetOracle, FleetOracleConfig
+from policies.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
 from policies.fleet_training import FleetCheckpointPolicy
 from policies.interface import ReportedUsers
 from sim.errors import InputError
@@ -72,7 +73,7 @@ __all__ = [
 
 FLEET_EVAL_FORMAT = "tupa-fleet-eval/1"
 FLEET_ORACLE = "fleet-oracle"
-FLEET_EVAL_POLICIES: tuple[str, ...] = (*FLEET_BASELINES, FLEET_ORACLE)
+FLEET_EVAL_POLICIES: tuple[str, ...] = (*FLEET_BASELINES, KMEANS_SCORED, FLEET_ORACLE)
 """The fleet policies evaluated by name; anything else must be a fleet checkpoint."""
 FLEET_METRICS: tuple[str, ...] = (
     "utility",
@@ -105,7 +106,7 @@ class _Decider:
             return self.policy.targets(observations, env.reports, env.uav_xyz_m)
         if self._held is None or step % self.replan_every == 0:
             users = ReportedUsers.of(env.reports)
-            if isinstance(self.policy, FleetOracle):  # it searches from where the fleet is
+            if hasattr(self.policy, "place_from"):  # it scores from where the fleet is
                 placed = self.policy.place_from(
                     users, env.uav_xyz_m, env.reported_association, env.world.flight
                 )
@@ -227,9 +228,10 @@ def build_fleet_candidate(
     """``(name, policy)`` for ``spec``, to evaluate a fleet of ``n_uavs`` in ``world``.
 
     ``spec``: ``kmeans-min-distance`` or ``kmeans-load-weighted`` (:class:`KMeansPlacement`),
-    ``fleet-oracle`` (:class:`FleetOracle` searching over ``world``'s network, episode length
-    and decision period, seeded with ``seed``), or a fleet checkpoint (a ``tupa train --uavs K``
-    output directory or its ``model.zip``; any K). Anything else, a single-UAV policy or
+    ``kmeans-scored`` (:class:`ScoredKMeansPlacement` on ``world``'s network), ``fleet-oracle``
+    (:class:`FleetOracle` searching over ``world``'s network, episode length and decision
+    period, seeded with ``seed``), or a fleet checkpoint (a ``tupa train --uavs K`` output
+    directory or its ``model.zip``; any K). Anything else, a single-UAV policy or
     checkpoint included, is an :class:`InputError` naming ``option``."""
     from policies.checkpoints import CheckpointError
     from policies.registry import PLACEMENTS
@@ -242,6 +244,11 @@ def build_fleet_candidate(
     if spec in FLEET_BASELINES:
         placement = KMeansPlacement(n_uavs, world.area, spec == "kmeans-load-weighted", sep)
         return spec, placement
+    if spec == KMEANS_SCORED:
+        scored = ScoredKMeansPlacement(
+            fleet, world.area, world.network, world.utility, world.episode_steps, world.step_s
+        )
+        return spec, scored
     if spec == FLEET_ORACLE:
         config = FleetOracleConfig(
             episode_steps=world.episode_steps, step_s=world.step_s, seed=seed

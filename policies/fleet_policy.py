@@ -25,6 +25,7 @@ import numpy as np
 from policies.adapters import default_name
 from policies.fleet_baselines import FLEET_BASELINES, KMeansPlacement
 from policies.fleet_oracle import FleetOracle, FleetOracleConfig
+from policies.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
 from policies.interface import ReportedUsers
 from sim.association import associate_at
 from sim.errors import InputError
@@ -43,9 +44,9 @@ __all__ = [
 ]
 
 FLEET_ORACLE = "fleet-oracle"
-FLEET_POLICIES: tuple[str, ...] = (*reversed(FLEET_BASELINES), FLEET_ORACLE)
-"""What a fleet can be served with: ``kmeans-load-weighted``, ``kmeans-min-distance`` and
-``fleet-oracle``."""
+FLEET_POLICIES: tuple[str, ...] = (*reversed(FLEET_BASELINES), KMEANS_SCORED, FLEET_ORACLE)
+"""What a fleet can be served with: ``kmeans-load-weighted``, ``kmeans-min-distance``,
+``kmeans-scored`` and ``fleet-oracle``."""
 DEFAULT_FLEET_POLICY = "kmeans-load-weighted"
 """What a fleet is served with unless a policy is named: a decision in milliseconds (the fleet
 oracle takes seconds, see the module doc)."""
@@ -93,7 +94,7 @@ class FleetPlacementPolicy:
         if not 1 <= k <= MAX_UAVS:
             raise InputError(f"vehicles_xyz_m: 1..{MAX_UAVS} vehicles, got {k}")
         placement, users = self._placement(k), ReportedUsers.of(reports)
-        if isinstance(placement, FleetOracle):  # it searches from where the fleet is
+        if hasattr(placement, "place_from"):  # it scores from where the fleet is
             return placement.place_from(users, vehicles_xyz_m, None, self.world.flight)
         return np.asarray(placement.place(users), dtype=float)
 
@@ -115,6 +116,13 @@ class FleetPlacementPolicy:
                     world.network,
                     world.utility,
                     FleetOracleConfig(step_s=world.step_s),
+                )
+            elif self.spec == KMEANS_SCORED:
+                self._placements[k] = ScoredKMeansPlacement(
+                    FleetConfig(n_uavs=k, separation_m=sep),
+                    world.area,
+                    world.network,
+                    world.utility,
                 )
             else:
                 weighted = self.spec == "kmeans-load-weighted"

@@ -74,6 +74,7 @@ _PANELS: tuple[tuple[str, str, float], ...] = (
 _FIXED_COLOURS = {
     "kmeans-min-distance": "#d62728",
     "kmeans-load-weighted": "#8c564b",
+    "kmeans-scored": "#7f7f7f",
     FLEET_ORACLE: "black",
 }
 _PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#e377c2", "#17becf", "#bcbd22")
