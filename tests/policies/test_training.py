@@ -116,7 +116,21 @@ def small_config(
     )
 
 
+@pytest.fixture
+def two_torch_threads():
+    """torch on two threads for the test, as on the 2-core CI machine, whatever an earlier test
+    left: the sweep's in-process trials set one thread (``policies/sweep/trial.py``), and this
+    short training's result depends on the float reduction order that sets."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.mark.slow
+@pytest.mark.usefixtures("two_torch_threads")
 def test_short_ddqn_training_beats_a_random_walk(tmp_path):
     """On one scenario whose single heavy user is far from the start, a few hundred training
     steps teach the agent to move towards it; a random (valid) walk does not."""
