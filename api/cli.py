@@ -41,7 +41,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="FILE",
         help="drive a fleet of 1-8 vehicles: YAML with one MAVLink connection, frame and "
         "optional system id per vehicle (service/fleet_spec.py); the policy is then a fleet "
-        "one: kmeans-load-weighted (default), kmeans-min-distance, kmeans-scored, fleet-oracle",
+        "one: kmeans-scored (default), kmeans-load-weighted, kmeans-min-distance, fleet-oracle",
     )
     parser.add_argument(
         "--separation-m",

@@ -47,9 +47,10 @@ FLEET_ORACLE = "fleet-oracle"
 FLEET_POLICIES: tuple[str, ...] = (*reversed(FLEET_BASELINES), KMEANS_SCORED, FLEET_ORACLE)
 """What a fleet can be served with: ``kmeans-load-weighted``, ``kmeans-min-distance``,
 ``kmeans-scored`` and ``fleet-oracle``."""
-DEFAULT_FLEET_POLICY = "kmeans-load-weighted"
-"""What a fleet is served with unless a policy is named: a decision in milliseconds (the fleet
-oracle takes seconds, see the module doc)."""
+DEFAULT_FLEET_POLICY = KMEANS_SCORED
+"""What a fleet is served with unless a policy is named: k-means partitions scored on the fleet
+model, above both k-means placements on the held-out grid (docs/results.md, "Fleets") at tens
+of milliseconds a decision (the fleet oracle takes seconds, see the module doc)."""
 
 
 class FleetPolicy(Protocol):

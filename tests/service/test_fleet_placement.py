@@ -221,7 +221,7 @@ def test_a_fleet_uses_its_own_default_policy_unless_one_is_named(tmp_path: Any) 
     path.write_text("vehicles: [{id: a, mavlink: 'tcp:127.0.0.1:1'}]\n")
     service = FleetPlacementService.from_settings(ServiceSettings(fleet_file=path, insecure=True))
     try:
-        assert service.policy.name == "kmeans-load-weighted" and service.is_fleet
+        assert service.policy.name == "kmeans-scored" and service.is_fleet
     finally:
         service.close_links()
     with pytest.raises(InputError, match="policy: a fleet is served by one of"):
