@@ -29,10 +29,15 @@ SLICES_PER_WORKER = 2
 
 
 def evaluate_slice(payload: dict[str, Any]) -> dict[str, Any]:
-    """A worker's part: ``evaluate_policy`` on scenarios ``start:stop`` of the file."""
-    import torch
+    """A worker's part: ``evaluate_policy`` on scenarios ``start:stop`` of the file, on one
+    torch thread."""
+    from policies.sweep.trial import one_torch_thread
 
-    torch.set_num_threads(1)
+    with one_torch_thread():
+        return _evaluate_slice(payload)
+
+
+def _evaluate_slice(payload: dict[str, Any]) -> dict[str, Any]:
     from policies.cli import world_from_args
     from policies.evaluation import evaluate_policy
     from policies.registry import resolve_policy

@@ -2,8 +2,9 @@
 
 :func:`run_trial` takes a plain-JSON payload (so that any backend can ship it: a pipe to a
 spawned process, a Ray task's argument) and returns a plain-JSON result. It runs in a fresh
-process on one CPU thread (``torch.set_num_threads(1)``), which is what makes a trial give the
-same numbers on either backend and alone or beside others.
+process on one CPU thread (``torch.set_num_threads(1)``, the caller's count restored after:
+:func:`one_torch_thread`), which is what makes a trial give the same numbers on either backend
+and alone or beside others.
 
 The trial directory is cleared first: a trial interrupted half-way starts again from scratch,
 so its result never depends on when it was interrupted. ``worker.json`` in it says which
@@ -15,6 +16,8 @@ from __future__ import annotations
 import os
 import shutil
 import socket
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -50,9 +53,26 @@ def run_trial(payload: dict[str, Any]) -> dict[str, Any]:
     episodes and steps trained, the wall time and ``extra`` ({test set: mean, median and p25
     utility}, each also written as ``eval_<set>.json`` in the trial directory)."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    with one_torch_thread():
+        return _train_and_evaluate(payload)
+
+
+@contextmanager
+def one_torch_thread() -> Iterator[None]:
+    """torch on one thread while the block runs, and the caller's count back after it: a worker
+    process of its own does not care, a caller that runs a trial or a slice in its own process
+    (the tests) would otherwise keep one thread for everything after."""
     import torch
 
+    before = torch.get_num_threads()
     torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def _train_and_evaluate(payload: dict[str, Any]) -> dict[str, Any]:
     from policies.training import TrainConfig, train
     from sim.errors import InputError
     from sim.files import atomic_write_json

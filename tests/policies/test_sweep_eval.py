@@ -45,6 +45,29 @@ def test_slices_joined_equal_one_run(scenario_file: Path) -> None:
     assert alone["scenarios"][0]["trace"] != whole["scenarios"][1]["trace"]
 
 
+def test_a_slice_runs_on_one_torch_thread_and_gives_the_caller_s_count_back(
+    scenario_file: Path,
+) -> None:
+    import torch
+
+    from policies.sweep.trial import one_torch_thread
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        options = {"world": "closed-loop", "world_set": [], "environment": None,
+                   "queueing": None, "episode_steps": 2}  # fmt: skip
+        evaluate_slice({"policy": "load-weighted", "scenarios": str(scenario_file),
+                        "start": 0, "stop": 1, "seed": 7, "world_options": options})  # fmt: skip
+        assert torch.get_num_threads() == 2
+        with pytest.raises(RuntimeError), one_torch_thread():
+            assert torch.get_num_threads() == 1
+            raise RuntimeError("a failing trial")
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
+
 @pytest.mark.slow
 def test_tupa_eval_on_the_local_backend_writes_the_same_file(
     scenario_file: Path, tmp_path: Path
