@@ -1,15 +1,16 @@
-"""Fleet checkpoints against the k-means baselines on validation scenarios (no oracle: quick).
+"""Fleet checkpoints against the k-means baselines and ``kmeans-scored`` on validation scenarios
+(no oracle: quick).
 
 Picks between trained fleet checkpoints before the held-out benchmark
 (``benchmarks/fleet_policy.py``, whose scenario seeds these never share): K = 2 and 3 UAVs and
 20 and 50 users by default (``--uavs``, ``--users``), the uniform, hot-spot and mixture
 families (``--per-family`` each, seeds from 4242), static (``closed-loop``) and moving
 (``closed-loop-moving``) users; one episode each, from the fleet's homes, every checkpoint
-deciding every step, the k-means placements held (static users) or re-placed every decision
-(moving users). Prints and writes
-``benchmarks/results/fleet_checkpoints.json``: mean utility per world and policy, each
-checkpoint's training command and time, and for DDPG the mean of each agent's raw action over
-a few hot-spot episodes (a saturated actor shows as ±1 with no spread).
+deciding every step, the placements (the two k-means and ``kmeans-scored``, the bar a learned
+fleet policy has to pass) held (static users) or re-placed every decision (moving users).
+Prints and writes ``benchmarks/results/fleet_checkpoints.json``: mean utility per world and
+policy, each checkpoint's training command and time, and for DDPG the mean of each agent's raw
+action over a few hot-spot episodes (a saturated actor shows as ±1 with no spread).
 
     python benchmarks/fleet_checkpoints.py runs/fleet-residual-k3 runs/fleet-ddqn-k3
 """
@@ -34,6 +35,8 @@ from sim.world import World, get_world
 
 RESULTS = Path(__file__).resolve().parent / "results" / "fleet_checkpoints.json"
 BASELINES = ("kmeans-load-weighted", "kmeans-min-distance")
+REFERENCES = (*BASELINES, "kmeans-scored")
+"""What every checkpoint is flown beside."""
 FAMILIES = ("uniform", "hotspots", "mixture")
 
 
@@ -139,7 +142,7 @@ def main() -> int:
     args = parser.parse_args()
     if max(args.uavs) > MAX_UAVS:
         parser.error(f"argument --uavs: a fleet has 1..{MAX_UAVS} UAVs, got {max(args.uavs)}")
-    results = validate([*args.checkpoints, *BASELINES], args.per_family, args.uavs, args.users)
+    results = validate([*args.checkpoints, *REFERENCES], args.per_family, args.uavs, args.users)
     checkpoints = {}
     for path in args.checkpoints:
         meta = json.loads((Path(path) / "model.json").read_text())
