@@ -72,6 +72,8 @@ class ScoredKMeansPlacement:
             isinstance(self.score_steps, int) and self.score_steps >= 1
         ):
             raise InputError(f"score_steps: must be an integer >= 1, got {self.score_steps!r}")
+        if not (np.isfinite(self.step_s) and self.step_s > 0):
+            raise InputError(f"step_s: must be > 0 seconds, got {self.step_s!r}")
         object.__setattr__(
             self, "_model", FleetModel(self.fleet, self.network, self.area, self.utility)
         )

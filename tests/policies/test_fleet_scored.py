@@ -92,6 +92,12 @@ def test_bad_score_steps_is_an_input_error(steps: object) -> None:
         ScoredKMeansPlacement(score_steps=steps)  # type: ignore[arg-type]
 
 
+@pytest.mark.parametrize("step_s", [0.0, -1.0, float("nan"), float("inf")])
+def test_a_bad_step_is_an_input_error(step_s: float) -> None:
+    with pytest.raises(InputError, match="step_s"):
+        ScoredKMeansPlacement(step_s=step_s)
+
+
 def test_evaluated_and_served_by_name() -> None:
     world = get_world("closed-loop")
     assert KMEANS_SCORED in FLEET_EVAL_POLICIES and KMEANS_SCORED in FLEET_POLICIES
