@@ -110,20 +110,16 @@ class FleetPlacementPolicy:
     def _placement(self, k: int) -> Any:
         if k not in self._placements:
             world, sep = self.world, self.separation_m
+            fleet = FleetConfig(n_uavs=k, separation_m=sep)
+            # The model-scored placements score with the decision period as the model's step.
             if self.spec == FLEET_ORACLE:
+                config = FleetOracleConfig(step_s=world.step_s)
                 self._placements[k] = FleetOracle(
-                    FleetConfig(n_uavs=k, separation_m=sep),
-                    world.area,
-                    world.network,
-                    world.utility,
-                    FleetOracleConfig(step_s=world.step_s),
+                    fleet, world.area, world.network, world.utility, config
                 )
             elif self.spec == KMEANS_SCORED:
                 self._placements[k] = ScoredKMeansPlacement(
-                    FleetConfig(n_uavs=k, separation_m=sep),
-                    world.area,
-                    world.network,
-                    world.utility,
+                    fleet, world.area, world.network, world.utility, step_s=world.step_s
                 )
             else:
                 weighted = self.spec == "kmeans-load-weighted"

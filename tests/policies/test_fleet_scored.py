@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -103,17 +105,25 @@ def test_evaluated_and_served_by_name() -> None:
     assert KMEANS_SCORED in FLEET_EVAL_POLICIES and KMEANS_SCORED in FLEET_POLICIES
     name, candidate = build_fleet_candidate(KMEANS_SCORED, 3, world)
     assert name == KMEANS_SCORED and isinstance(candidate, ScoredKMeansPlacement)
-    users = _one_loaded_spot()
+    users = generate_scenarios(1, 30, 3, family="hotspots", total_load_bps=120e6)[0]
+    # Served with the service's decision period as the model's step (5 s here), as the oracle is:
+    # from these vehicles, scoring with 1-s steps picks another placement.
+    world = replace(world, step_s=5.0)
     served = resolve_fleet_policy(KMEANS_SCORED, world, 10.0)
     zeros = np.zeros(len(users.load_bps))
     reports = UserReports.from_metrics(users.users_xy_m, users.load_bps, zeros, zeros, zeros)
     for k in (3, 2):  # as many targets as vehicles fly now, scored flown from where they are
-        vehicles = np.tile([0.0, 0.0, 25.0], (k, 1))
+        vehicles = np.column_stack([15.0 * np.arange(k), np.zeros(k), np.full(k, 25.0)])
         targets = served.decide_fleet(reports, vehicles)
-        expected = ScoredKMeansPlacement(
-            FleetConfig(n_uavs=k), world.area, world.network, world.utility, step_s=world.step_s
-        ).place_from(users, vehicles, None, world.flight)
+        fleet = FleetConfig(n_uavs=k)
+        expected, one_second = (
+            ScoredKMeansPlacement(
+                fleet, world.area, world.network, world.utility, step_s=step_s
+            ).place_from(users, vehicles, None, world.flight)
+            for step_s in (world.step_s, 1.0)
+        )
         np.testing.assert_array_equal(targets, expected)
+        assert not np.array_equal(expected, one_second)
 
 
 def test_from_where_the_fleet_is_the_pick_is_the_best_flown_candidate() -> None:
