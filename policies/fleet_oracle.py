@@ -196,6 +196,17 @@ class FleetStart:
     association: np.ndarray | None
     flight: Flight
 
+    @classmethod
+    def at(
+        cls,
+        positions_m: np.ndarray,
+        association: np.ndarray | None = None,
+        flight: Flight | None = None,
+    ) -> FleetStart:
+        """The start of a fleet at ``positions_m`` (K, 3; any array-like), as a ``place_from``
+        gets it: ``association`` ``None`` for none yet, ``flight`` ``None`` for the default."""
+        return cls(np.asarray(positions_m, dtype=float), association, flight or Flight())
+
     def state(self, batch: int, n_users: int) -> FleetState | None:
         """The fleet state each of ``batch`` episodes starts from (fresh queues)."""
         if self.association is None:
@@ -260,8 +271,7 @@ class FleetOracle:
         """:meth:`place` for a fleet that is at ``positions_m`` (K, 3) with the users on
         ``association`` (U,; ``None``: on none yet) and flies as ``flight`` (the world's
         default): the placement that scores best flown from there (:meth:`search`)."""
-        start = FleetStart(np.asarray(positions_m, dtype=float), association, flight or Flight())
-        return self.search(users, start).positions_m
+        return self.search(users, FleetStart.at(positions_m, association, flight)).positions_m
 
     def score(
         self,

@@ -136,8 +136,7 @@ class ScoredKMeansPlacement:
         from there, row i for vehicle i. A split of a hot spot that a fresh association would
         give can be out of reach once stations have joined one UAV on its way (the roaming
         hysteresis); scored flown, it is not picked."""
-        start = FleetStart(np.asarray(positions_m, dtype=float), association, flight or Flight())
-        fleets_m, utility, _ = self.scores(users, start)
+        fleets_m, utility, _ = self.scores(users, FleetStart.at(positions_m, association, flight))
         return fleets_m[int(np.argmax(utility))]
 
 
