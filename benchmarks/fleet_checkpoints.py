@@ -115,7 +115,8 @@ def raw_actions(path: str, episodes: int = 4, steps: int = 30) -> dict[str, Any]
             joint = np.stack([observations[a] for a in env.possible_agents])
             action, _ = policy.model.predict(joint.astype(np.float32), deterministic=True)
             actions.append(np.asarray(action, dtype=float).reshape(3, -1))
-            observations, *_ = env.step_to(policy.targets(joint, env.reports, env.uav_xyz_m))
+            targets = policy.targets(joint, env.reports, env.uav_xyz_m, env.reported_association)
+            observations, *_ = env.step_to(targets)
     stacked = np.concatenate(actions)
     return {"mean": stacked.mean(0).round(3).tolist(), "std": stacked.std(0).round(3).tolist()}
 

@@ -103,7 +103,9 @@ class _Decider:
 
     def __call__(self, env: FleetParallelEnv, observations: np.ndarray, step: int) -> np.ndarray:
         if isinstance(self.policy, FleetCheckpointPolicy):
-            return self.policy.targets(observations, env.reports, env.uav_xyz_m)
+            return self.policy.targets(
+                observations, env.reports, env.uav_xyz_m, env.reported_association
+            )
         if self._held is None or step % self.replan_every == 0:
             users = ReportedUsers.of(env.reports)
             if hasattr(self.policy, "place_from"):  # it scores from where the fleet is
@@ -266,7 +268,7 @@ def build_fleet_candidate(
             f"{option}: {spec!r} is neither a fleet policy ({known}) nor an existing checkpoint"
         )
     try:
-        policy = FleetCheckpointPolicy.load(path, world.area, sep)
+        policy = FleetCheckpointPolicy.load(path, world.area, sep, world=world)
     except CheckpointError as exc:
         raise InputError(f"{option}: {spec}: not a fleet checkpoint ({exc.problem})") from None
     except InputError as exc:

@@ -283,7 +283,9 @@ def _collect(
     if learner is not None:  # imported here: policies.fleet_training imports this module
         from policies.fleet_training import FleetCheckpointPolicy
 
-        policy = FleetCheckpointPolicy.load(learner, world.area, env.fleet.separation_m)
+        policy = FleetCheckpointPolicy.load(
+            learner, world.area, env.fleet.separation_m, world=world
+        )
     observations, actions, episodes, masks = [], [], [], []
     clipped, calls = 0, 0
     for index in indices:
@@ -315,7 +317,7 @@ def _collect(
                 clipped += n_clipped
                 actions.append(action.astype(np.float32))
             if policy is not None:  # the learner flies; the teacher only labels
-                targets = policy.targets(seen, env.reports, here)
+                targets = policy.targets(seen, env.reports, here, env.reported_association)
             obs, _, _, _, _ = env.step_to(targets)
             step += 1
     return {

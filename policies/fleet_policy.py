@@ -165,7 +165,7 @@ class FleetCheckpointServing:
         )  # fmt: skip
         self._association, self._association_key = association, key
         observations = fleet_observations(vehicles, reports, association[0], self.world)
-        return self.policy.targets(observations, reports, vehicles)
+        return self.policy.targets(observations, reports, vehicles, association[0])
 
     def describe(self) -> dict[str, Any]:
         return {
@@ -200,7 +200,12 @@ def resolve_fleet_policy(
 
     try:
         policy = FleetCheckpointPolicy.load(
-            path, world.area, separation_m, allowed_dirs=allowed_dirs, max_bytes=max_bytes
+            path,
+            world.area,
+            separation_m,
+            allowed_dirs=allowed_dirs,
+            max_bytes=max_bytes,
+            world=world,
         )
     except CheckpointError as exc:
         raise InputError(f"policy: {exc.problem}") from None

@@ -11,8 +11,9 @@ parameters are shared, the checkpoint flies any K (1..8), not only the K it trai
 * :func:`train_fleet` (``tupa train --uavs K``): builds that vector env over the world's
   preset (the training episode of the :mod:`policies.presets` preset: length and start), the
   agent with the paper's CNN (:func:`policies.training.build_model`, 9 input channels): DDPG
-  with absolute coordinates or residual actions around the k-means placement
-  (:mod:`policies.fleet_residual`), or the masked Double DQN over the 13 moves; learns
+  with absolute coordinates or residual actions around a k-means placement
+  (:mod:`policies.fleet_residual`: ``kmeans-load-weighted``, or ``kmeans-scored`` with
+  ``--prior``), or the masked Double DQN over the 13 moves; learns
   ``episodes × episode_steps × K`` agent-steps with a progress bar and writes ``model.zip`` +
   ``model.json`` (:func:`policies.checkpoints.save_checkpoint`). DDQN's ε decays per episode
   of each agent (SB3 counts the K agent-environments' episodes), so K times faster per fleet
@@ -54,7 +55,13 @@ from policies.fleet_imitation import (
     collect_teacher_data,
     fit_actor,
 )
-from policies.fleet_residual import FleetResidualActions, KMeansPrior, fleet_residual_targets
+from policies.fleet_residual import (
+    DEFAULT_PRIOR,
+    PRIORS,
+    FleetResidualActions,
+    fleet_residual_targets,
+    make_prior,
+)
 from policies.presets import PRESET_NAMES, Preset, get_preset
 from policies.residual import RESIDUAL_RADIUS_M, residual_metadata, residual_radius
 from policies.training import TRAIN_SEED_OFFSET, build_model, episode_bar, zero_actor_output
@@ -118,6 +125,10 @@ class FleetTrainConfig:
     place in the ``kmeans-load-weighted`` placement: :mod:`policies.fleet_residual`)."""
     residual_radius_m: float = RESIDUAL_RADIUS_M
     """How far (m, per axis) a residual action may move a UAV from its k-means place."""
+    prior: str = DEFAULT_PRIOR
+    """The placement residual actions correct (:data:`policies.fleet_residual.PRIORS`):
+    ``kmeans-load-weighted``, or ``kmeans-scored`` scored over the world's evaluation episode
+    (``--prior``)."""
     imitate: int = 0
     """Teacher episodes flown by the search oracle whose decisions the residual actor or the
     DDQN's moves are fitted to before any reinforcement learning
@@ -187,6 +198,14 @@ class FleetTrainConfig:
             raise InputError(f"--residual-radius-m: must be > 0, got {self.residual_radius_m!r}")
         if self.algorithm == "ddqn" and self.action != "coordinates":
             raise InputError("--action: residual actions are DDPG's (DDQN moves by zones)")
+        if self.prior not in PRIORS:
+            raise InputError(f"--prior: must be one of {', '.join(PRIORS)}, got {self.prior!r}")
+        if self.prior != DEFAULT_PRIOR and self.action != "residual":
+            raise InputError("--prior: the placement residual actions correct, so only with "
+                             "--algo ddpg --action residual")  # fmt: skip
+        if self.prior != DEFAULT_PRIOR and self.imitate:
+            raise InputError(f"--imitate: teaches residuals around {DEFAULT_PRIOR} only "
+                             f"(drop --prior {self.prior})")  # fmt: skip
         if self.n_fleets < 1:
             raise InputError(f"--envs: must be at least 1, got {self.n_fleets}")
         if not (np.isfinite(self.load_per_uav_bps) and self.load_per_uav_bps > 0):
@@ -198,7 +217,7 @@ class FleetTrainConfig:
     def chosen_preset(self) -> Preset:
         if isinstance(self.preset, Preset):
             return self.preset
-        return get_preset(self.preset, self.algorithm)
+        return get_preset(self.preset, self.algorithm, self.action)
 
     def train_world(self) -> World:
         """The world with the preset's training episode (length, start)."""
@@ -233,8 +252,9 @@ def make_fleet_vec_env(config: FleetTrainConfig) -> Any:
         scenarios=config.sampler(world.area),
         world=world,
     )
-    if config.action == "residual":
-        fleet = FleetResidualActions(fleet, config.residual_radius_m)
+    if config.action == "residual":  # a scored prior scores over an evaluation episode
+        score_steps = get_world(config.world).episode_steps
+        fleet = FleetResidualActions(fleet, config.residual_radius_m, config.prior, score_steps)
     # concat_vec_envs_v1 copies the fleet n_fleets times (each copy its own generator).
     vec = ss.pettingzoo_env_to_vec_env_v1(fleet)
     vec = ss.concat_vec_envs_v1(vec, config.n_fleets, num_cpus=0, base_class="stable_baselines3")
@@ -344,7 +364,7 @@ def train_fleet(config: FleetTrainConfig) -> dict[str, Any]:
         TRAIN_SEED_OFFSET + config.seed,
         tensorboard_log=None,
     )
-    if config.action == "residual":  # an untrained policy is the k-means placement
+    if config.action == "residual":  # an untrained policy is its prior
         zero_actor_output(model)
     world = config.train_world()
     imitation = None
@@ -378,6 +398,14 @@ def _metadata(
                 "residual_radius_m": config.residual_radius_m
                 if config.action == "residual"
                 else None,
+                **(
+                    {
+                        "prior": config.prior,
+                        "prior_score_steps": get_world(config.world).episode_steps,
+                    }
+                    if config.action == "residual"
+                    else {}
+                ),
             }
         ),
         "preset": config.chosen_preset.to_dict(),
@@ -464,10 +492,14 @@ class FleetCheckpointPolicy:
     ``targets(observations, reports, uav_xyz_m)`` takes the K agents' observations
     (K, 9, n_x, n_y), acts with the one network on each (deterministic) and maps the actions to
     targets: absolute coordinates in [0, 1]³ to metres, or residual actions around the
-    k-means placement of ``reports`` for the UAVs at ``uav_xyz_m``
+    checkpoint's prior (its metadata's ``prior``; ``kmeans-load-weighted`` when it names none)
+    for ``reports`` and the UAVs at ``uav_xyz_m``
     (:func:`policies.fleet_residual.fleet_residual_targets`, as in training); the set is
     separated (:func:`sim.geometry.enforce_separation`, lower index first). Any K works: the
-    network never sees K."""
+    network never sees K.
+
+    ``world``: where it flies (network, decision period, flight), which a ``kmeans-scored``
+    prior scores on; by default the world the checkpoint trained in (its metadata's name)."""
 
     name = "fleet-checkpoint"
 
@@ -477,6 +509,7 @@ class FleetCheckpointPolicy:
         metadata: dict[str, Any],
         area: AreaConfig | None = None,
         separation_m: float = FleetConfig().separation_m,
+        world: World | None = None,
     ) -> None:
         algorithm, action = metadata.get("algorithm"), metadata.get("action", "coordinates")
         allowed = ("moves",) if algorithm == "ddqn" else ("coordinates", "residual")
@@ -495,7 +528,14 @@ class FleetCheckpointPolicy:
         self.shape = fleet_observation_shape(self.area)
         self.residual_radius_m = residual_radius(metadata)
         """Residual actions' radius (m); None: absolute coordinates."""
-        self._prior = KMeansPrior(self.area, self.separation_m)
+        self.world = world or _trained_world(metadata)
+        self.prior = make_prior(
+            metadata.get("prior") or DEFAULT_PRIOR,
+            self.area,
+            self.separation_m,
+            self.world,
+            int(metadata.get("prior_score_steps") or self.world.episode_steps),
+        )
 
     @classmethod
     def load(
@@ -506,9 +546,11 @@ class FleetCheckpointPolicy:
         device: str = "cpu",
         allowed_dirs: Sequence[Path] | None = None,
         max_bytes: int | None = None,
+        world: World | None = None,
     ) -> FleetCheckpointPolicy:
         """Load a checkpoint written by :func:`train_fleet` (shape and algorithm checked;
-        ``allowed_dirs`` and ``max_bytes`` as for :func:`policies.checkpoints.load_checkpoint`)."""
+        ``allowed_dirs`` and ``max_bytes`` as for :func:`policies.checkpoints.load_checkpoint`;
+        ``world`` as for the class)."""
         area = area or AreaConfig()
         model, meta = load_checkpoint(
             path,
@@ -520,16 +562,19 @@ class FleetCheckpointPolicy:
         )
         if not meta.get("fleet"):
             raise InputError("policy: not a fleet checkpoint (tupa train --uavs K writes those)")
-        return cls(model, meta, area, separation_m)
+        return cls(model, meta, area, separation_m, world)
 
     def targets(
         self,
         observations: np.ndarray,
         reports: UserReports | None = None,
         uav_xyz_m: np.ndarray | None = None,
+        association: np.ndarray | None = None,
     ) -> np.ndarray:
         """Targets (K, 3) in metres for observations (K, 9, n_x, n_y); a residual checkpoint
-        needs the report the observations were built from and the UAVs' positions (K, 3)."""
+        needs the report the observations were built from and the UAVs' positions (K, 3), and
+        one on the ``kmeans-scored`` prior the users' APs in that report (U,; ``None``: none
+        yet)."""
         obs = np.asarray(observations, dtype=np.float32)
         if obs.ndim != 4 or obs.shape[1:] != self.shape or not 1 <= len(obs) <= MAX_UAVS:
             raise InputError(
@@ -558,7 +603,19 @@ class FleetCheckpointPolicy:
                 self.area,
                 self.separation_m,
                 self.residual_radius_m,
-                self._prior,
+                self.prior,
+                association,
+                self.world.flight,
             )
         targets = unit_to_m_many(actions, self.area)
         return enforce_separation(targets, self.separation_m, self.area)
+
+
+def _trained_world(metadata: dict[str, Any]) -> World:
+    """The world a fleet checkpoint trained in, by its metadata's name (``closed-loop`` when it
+    names none or one this version does not know)."""
+    name = (metadata.get("world") or {}).get("name")
+    try:
+        return get_world(name) if isinstance(name, str) else get_world("closed-loop")
+    except InputError:
+        return get_world("closed-loop")

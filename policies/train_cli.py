@@ -75,7 +75,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         metavar="M",
         help="with --uavs K > 1 and --action residual: how far (m, per axis) each UAV may move "
-        "from its place in the load-weighted k-means placement (default 125)",
+        "from its place in the prior (default 125)",
+    )
+    parser.add_argument(
+        "--prior",
+        choices=("kmeans-load-weighted", "kmeans-scored"),
+        default=None,
+        help="with --uavs K > 1 and --action residual: the placement the residual corrects: "
+        "load-weighted k-means (default) or kmeans-scored, k-means partitions scored on the "
+        "fleet model from where the fleet is (policies/fleet_residual.py; slower per step)",
     )
     parser.add_argument(
         "--imitate",
@@ -187,6 +195,8 @@ def _train(args: argparse.Namespace) -> int:
         return _train_fleet(args)
     if args.residual_radius_m is not None:
         raise InputError("--residual-radius-m: for fleets only (--uavs K > 1)")
+    if args.prior is not None:
+        raise InputError("--prior: for fleets only (--uavs K > 1 --action residual)")
     if args.imitate:
         raise InputError("--imitate: for fleets only (--uavs K > 1)")
     for flag, given in (
@@ -284,6 +294,7 @@ def _train_fleet(args: argparse.Namespace) -> int:
         users=_user_range(args.users) or (20, 20),
         n_fleets=args.envs,
         action=args.action,
+        **({"prior": args.prior} if args.prior is not None else {}),
         imitate=args.imitate,
         imitate_teacher=args.teacher,
         imitate_symmetries=args.symmetries,

@@ -1,7 +1,8 @@
-"""A fleet's residual actions (policies/fleet_residual.py): zero is the load-weighted k-means
-placement (each UAV taking its nearest share), the wrapper keeps PettingZoo's API, targets are
-separated and inside the volume, a residual fleet run trains and records it, and an untrained
-(zero-initialised) residual policy flies exactly the k-means baseline."""
+"""A fleet's residual actions (policies/fleet_residual.py): zero is the prior (the load-weighted
+k-means placement, each UAV taking its nearest share, or ``kmeans-scored`` flown from where the
+fleet is), the wrapper keeps PettingZoo's API, targets are separated and inside the volume, a
+residual fleet run trains and records its prior, and an untrained (zero-initialised) residual
+policy flies exactly its prior."""
 
 from __future__ import annotations
 
@@ -14,7 +15,14 @@ from pettingzoo.test import parallel_api_test
 
 from policies.fleet_baselines import KMeansPlacement
 from policies.fleet_evaluation import evaluate_fleet
-from policies.fleet_residual import FleetResidualActions, KMeansPrior, fleet_residual_targets
+from policies.fleet_residual import (
+    FleetResidualActions,
+    KMeansPrior,
+    ScoredPrior,
+    fleet_residual_targets,
+    make_prior,
+)
+from policies.fleet_scored import ScoredKMeansPlacement
 from policies.fleet_training import (
     FleetCheckpointPolicy,
     FleetTrainConfig,
@@ -24,6 +32,7 @@ from policies.interface import ReportedUsers
 from policies.training import zero_actor_output
 from sim.config import AreaConfig
 from sim.errors import InputError
+from sim.fleet import FleetConfig
 from sim.fleet_env import FleetParallelEnv
 from sim.geometry import assign_targets, volume_bounds
 from sim.observation import UserReports
@@ -104,3 +113,65 @@ def test_a_residual_run_trains_and_untrained_it_flies_the_kmeans_baseline(tmp_pa
     untrained = evaluate_fleet(policy, scenarios, 2, world)
     kmeans = evaluate_fleet(KMeansPlacement(2, AREA, True), scenarios, 2, world)
     np.testing.assert_allclose(untrained["utilities"], kmeans["utilities"], rtol=0, atol=1e-12)
+
+
+def test_zero_on_the_scored_prior_is_kmeans_scored_flown_from_where_the_fleet_is() -> None:
+    world = get_world("closed-loop")
+    r = reports(3, 30)
+    here = np.array([[450.0, 450.0, 30.0], [50.0, 50.0, 30.0], [50.0, 450.0, 30.0]])
+    association = np.arange(30) % 3
+    prior = make_prior("kmeans-scored", AREA, 10.0, world, score_steps=20)
+    assert isinstance(prior, ScoredPrior)
+    got = fleet_residual_targets(
+        np.zeros((3, 3)), r, here, AREA, 10.0, prior=prior, association=association,
+        flight=world.flight,
+    )  # fmt: skip
+    scored = ScoredKMeansPlacement(FleetConfig(n_uavs=3), AREA, world.network, world.utility, 20)
+    expected = scored.place_from(ReportedUsers.of(r), here, association, world.flight)
+    np.testing.assert_array_equal(got, expected)
+    # Any K from one prior: a fleet of two is placed by a placement of two.
+    two = prior.place_for(r, here[:2], association % 2, world.flight)
+    assert two.shape == (2, 3)
+
+
+def test_a_named_preset_takes_the_residual_changes_for_residual_actions() -> None:
+    residual = FleetTrainConfig(n_uavs=2, episodes=1, out_dir="x", action="residual")
+    absolute = FleetTrainConfig(n_uavs=2, episodes=1, out_dir="x")
+    assert residual.chosen_preset.action_l2 > 0 == absolute.chosen_preset.action_l2
+    assert residual.chosen_preset.action_noise_sigma > absolute.chosen_preset.action_noise_sigma
+
+
+def test_a_prior_that_is_not_known_or_lacks_its_world_is_refused() -> None:
+    with pytest.raises(InputError, match="prior: must be one of"):
+        make_prior("oracle", AREA, 10.0)
+    with pytest.raises(InputError, match="prior: kmeans-scored scores on a world"):
+        make_prior("kmeans-scored", AREA, 10.0)
+    with pytest.raises(InputError, match="--prior: the placement residual actions correct"):
+        FleetTrainConfig(n_uavs=2, episodes=1, out_dir="x", prior="kmeans-scored")
+    with pytest.raises(InputError, match="--prior: must be one of"):
+        FleetTrainConfig(n_uavs=2, episodes=1, out_dir="x", action="residual", prior="what")
+    with pytest.raises(InputError, match="--imitate: teaches residuals around"):
+        FleetTrainConfig(
+            n_uavs=2, episodes=0, out_dir="x", action="residual", prior="kmeans-scored",
+            imitate=2,
+        )  # fmt: skip
+
+
+def test_a_run_on_the_scored_prior_records_it_and_untrained_flies_kmeans_scored(tmp_path) -> None:
+    config = FleetTrainConfig(
+        n_uavs=2, episodes=2, out_dir=tmp_path / "run", preset=TINY_PRESET, seed=5,
+        users=(8, 10), action="residual", prior="kmeans-scored", residual_radius_m=30.0,
+        command="test",
+    )  # fmt: skip
+    train_fleet(config)
+    on_disk = json.loads((tmp_path / "run" / "model.json").read_text())
+    assert (on_disk["prior"], on_disk["prior_score_steps"]) == ("kmeans-scored", 100)
+    world = replace(get_world("closed-loop"), episode_steps=5)
+    policy = FleetCheckpointPolicy.load(tmp_path / "run", AREA, world=world)
+    assert isinstance(policy.prior, ScoredPrior) and policy.prior.score_steps == 100
+    zero_actor_output(policy.model)
+    scenarios = generate_scenarios(2, 10, 4, family="hotspots", total_load_bps=60e6)
+    untrained = evaluate_fleet(policy, scenarios, 2, world)
+    scored = ScoredKMeansPlacement(FleetConfig(n_uavs=2), AREA, world.network, world.utility)
+    flown = evaluate_fleet(scored, scenarios, 2, world, replan_every=1)
+    np.testing.assert_allclose(untrained["utilities"], flown["utilities"], rtol=0, atol=1e-12)

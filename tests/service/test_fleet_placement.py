@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from policies.fleet_baselines import KMeansPlacement
+from policies.fleet_scored import ScoredKMeansPlacement
 from policies.fleet_training import FleetTrainConfig, train_fleet
 from policies.interface import ReportedUsers
 from policies.training import zero_actor_output
@@ -28,6 +29,8 @@ from service.placement import Report
 from service.policy_runtime import SHIPPED_CHECKPOINTS
 from service.settings import ServiceSettings
 from service.vehicle_link import LinkConfig
+from sim.association import associate_at
+from sim.fleet import FleetConfig
 from sim.geometry import assign_targets
 from sim.observation import UserReports
 from sitl_mock.config import VehicleConfig
@@ -230,16 +233,19 @@ def test_a_fleet_uses_its_own_default_policy_unless_one_is_named(tmp_path: Any) 
         )
 
 
+@pytest.mark.parametrize("prior", ["kmeans-load-weighted", "kmeans-scored"])
 def test_a_fleet_checkpoint_is_served_from_the_allowed_dirs(
-    make_fleet: Callable[..., Fleet], tmp_path: Path
+    make_fleet: Callable[..., Fleet], tmp_path: Path, prior: str
 ) -> None:
     """A residual fleet checkpoint (tiny, trained here) flies the fleet through the service's
-    observation path; with its actor's output at zero it places as load-weighted k-means."""
+    observation path; with its actor's output at zero it places as its prior: load-weighted
+    k-means, or ``kmeans-scored`` flown from where the vehicles are with the users on the APs
+    the service estimates (the strongest, as the model associates) and the world's step."""
     out = tmp_path / "allowed" / "fleet-run"
     train_fleet(
         FleetTrainConfig(
             n_uavs=2, episodes=4, out_dir=out, preset=TINY_PRESET, users=(10, 12),
-            action="residual", command="test",
+            action="residual", prior=prior, command="test",
         )
     )  # fmt: skip
     service, links = make_fleet(3, policy_dirs=(tmp_path / "allowed",))
@@ -248,17 +254,30 @@ def test_a_fleet_checkpoint_is_served_from_the_allowed_dirs(
         service.swap_policy(str(outside))
     policy = service.swap_policy(str(out))
     assert policy.describe()["metadata"]["action"] == "residual"
-    report = hot_spot_report(time.time())
-    service.submit_report(report)
+    assert policy.describe()["metadata"]["prior"] == prior
+    service.submit_report(hot_spot_report(time.time()))
     targets = np.array([d.target_m for d in service.decisions().values()])
     assert targets.shape == (3, 3) and _min_gap([tuple(t) for t in targets]) >= 10.0
+    policy = service.swap_policy(str(out))  # afresh: no association remembered
     zero_actor_output(policy.policy.model)  # type: ignore[attr-defined]
-    service.submit_report(hot_spot_report(time.time() + 0.001))
+    report = hot_spot_report(time.time() + 0.001)
+    service.submit_report(report)
     got = np.array([d.target_m for d in service.decisions().values()])
     here = np.array([link.state().position_m for link in links.values()])
-    wanted = KMeansPlacement(3, service.area, load_weighted=True).place(
-        ReportedUsers.of(report.users)
+    users = ReportedUsers.of(report.users)
+    world = service.world
+    if prior == "kmeans-load-weighted":
+        wanted = KMeansPlacement(3, service.area, load_weighted=True).place(users)
+        np.testing.assert_allclose(got, assign_targets(here, wanted), atol=1e-9)
+        return
+    association, _ = associate_at(
+        here[None], users.users_xy_m, world.area, world.network.radio, None,
+        FleetConfig().hysteresis_db,
+    )  # fmt: skip
+    scored = ScoredKMeansPlacement(
+        FleetConfig(n_uavs=3), world.area, world.network, world.utility, 100, world.step_s
     )
+    wanted = scored.place_from(users, here, association[0], world.flight)
     np.testing.assert_allclose(got, assign_targets(here, wanted), atol=1e-9)
 
 
