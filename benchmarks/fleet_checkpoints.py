@@ -6,8 +6,9 @@ Picks between trained fleet checkpoints before the held-out benchmark
 20 and 50 users by default (``--uavs``, ``--users``), the uniform, hot-spot and mixture
 families (``--per-family`` each, seeds from 4242), static (``closed-loop``) and moving
 (``closed-loop-moving``) users; one episode each, from the fleet's homes, every checkpoint
-deciding every step, the placements (the two k-means and ``kmeans-scored``, the bar a learned
-fleet policy has to pass) held (static users) or re-placed every decision (moving users).
+deciding every step, the k-means placements held (static users) or re-placed every decision
+(moving users), ``kmeans-scored`` (the bar a learned fleet policy has to pass) re-placed every
+decision, as served.
 Prints and writes ``benchmarks/results/fleet_checkpoints.json``: mean utility per world and
 policy, each checkpoint's training command and time, and for DDPG the mean of each agent's raw
 action over a few hot-spot episodes (a saturated actor shows as ±1 with no spread).
@@ -27,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from policies.fleet_evaluation import build_fleet_candidate, evaluate_fleet
+from policies.fleet_scored import KMEANS_SCORED
 from policies.fleet_training import FleetCheckpointPolicy
 from sim.fleet import MAX_UAVS, FleetConfig
 from sim.fleet_env import FleetParallelEnv
@@ -60,7 +62,8 @@ def validation_utilities(
     """Every candidate flown on the validation cells: per world and candidate, one row
     ``{"uavs", "users", "family", "utility"}`` per scenario, the cells in the same order.
     Placements are held with static users and re-placed every ``moving_replan_every``
-    decisions with moving ones; checkpoints decide every step."""
+    decisions with moving ones, but ``kmeans-scored`` every decision (as served: it scores from
+    where the fleet is); checkpoints decide every step."""
     rows: dict[str, dict[str, list[dict[str, Any]]]] = {}
     for world_name in ("closed-loop", "closed-loop-moving"):
         world = get_world(world_name)
@@ -75,7 +78,8 @@ def validation_utilities(
                     )
                     for name, candidate in candidates.items():
                         flown = candidate(k, world, fleet)
-                        summary = evaluate_fleet(flown, scenarios, k, world, fleet, every, 0,
+                        often = 1 if name == KMEANS_SCORED else every
+                        summary = evaluate_fleet(flown, scenarios, k, world, fleet, often, 0,
                                                  name=name, progress=False)  # fmt: skip
                         cell = {"uavs": k, "users": users, "family": family}
                         rows.setdefault(world_name, {}).setdefault(name, []).extend(

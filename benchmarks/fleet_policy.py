@@ -14,6 +14,9 @@ period and episode length; ``--episode-steps`` shortens it) from the fleet's hom
   (:class:`policies.fleet_oracle.FleetOracle` over the world's network and episode), each
   placed once on the first report the decision sees and held when users stand still; when they
   move, k-means re-places every decision and the oracle every ``--oracle-replan``.
+  ``kmeans-scored`` re-places every decision in both worlds, as the service flies it: it scores
+  from where the fleet is, so its pick can change on the way (flown so, it is also what a
+  residual checkpoint on the ``kmeans-scored`` prior flies with its actor's output at zero).
 
 The evaluation is ``tupa eval --uavs K``'s (:func:`policies.fleet_evaluation.evaluate_fleet`,
 the policies built by :func:`policies.fleet_evaluation.build_fleet_candidate`). Per policy:
@@ -44,6 +47,7 @@ import numpy as np
 from fleet_checkpoints import int_list
 
 from policies.fleet_evaluation import FLEET_EVAL_POLICIES, build_fleet_candidate, evaluate_fleet
+from policies.fleet_scored import KMEANS_SCORED
 from sim.fleet import FleetConfig
 from sim.scenarios import generate_scenarios
 from sim.world import get_world
@@ -72,7 +76,7 @@ def _evaluate_cell(
             candidate = build(k, world, fleet)
             # Placements follow moving users by re-placing (the oracle every --oracle-replan
             # decisions: each search takes seconds); with static users once is enough.
-            every = world.episode_steps
+            every = 1 if name == KMEANS_SCORED else world.episode_steps
             if moving:
                 every = args.oracle_replan if name == "fleet-oracle" else 1
             started = time.perf_counter()
@@ -200,6 +204,8 @@ def main() -> None:
             for key in (
                 "algorithm",
                 "action",
+                "prior",
+                "residual_radius_m",
                 "n_uavs_trained",
                 "episodes",
                 "timesteps",
@@ -207,7 +213,9 @@ def main() -> None:
                 "wall_time_s",
                 "command",
             )
-        },
+        }
+        if meta
+        else None,
         "families": list(FAMILIES),
         "scenarios_per_family_per_cell": args.per_family,
         "seed": args.seed,

@@ -124,7 +124,9 @@ def test_unusable_checkpoints_are_refused_while_reports_keep_flowing(
         wait_for(lambda: statuses[200] >= 25, 10.0, 0.05, "reports flowing")
         for name, spec in bad_checkpoints(checkpoint_dir).items():
             during = statuses[200]
-            response = api.client.put("/v1/policy", json={"policy": spec})
+            # Loading (torch included) may take a while on a loaded machine; what is checked
+            # is the refusal and the reports meanwhile, not how fast a load fails.
+            response = api.client.put("/v1/policy", json={"policy": spec}, timeout=60.0)
             refused[name] = response.status_code
             assert response.status_code == 422, (name, response.text)
             assert response.json()["detail"][0]["loc"] == ["body", "policy"]
