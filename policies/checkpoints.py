@@ -367,6 +367,7 @@ def export_checkpoint(
     dest: Path,
     area: AreaConfig = AreaConfig(),
     serving_only: bool = False,
+    observation_shape: Sequence[int] | None = None,
     **extra_metadata: Any,
 ) -> dict[str, Any]:
     """Write a serving copy of checkpoint ``source`` to ``dest`` (zip + metadata JSON).
@@ -384,8 +385,11 @@ def export_checkpoint(
     plain stable-baselines3; deflate stores the zeros in a few kilobytes, so the file is about
     a quarter (DDPG) or half (DDQN) of the full one. It cannot continue training: the
     metadata says ``"serving_only": true``.
+
+    ``observation_shape``: what the network must take, as for :func:`load_checkpoint` (a fleet
+    checkpoint's: :func:`policies.fleet_training.fleet_observation_shape`).
     """
-    model, meta = load_checkpoint(source, area, device="cpu")
+    model, meta = load_checkpoint(source, area, device="cpu", observation_shape=observation_shape)
     for name in model._get_torch_save_params()[0]:
         if name.endswith("optimizer"):
             obj = model

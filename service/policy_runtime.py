@@ -35,6 +35,9 @@ log = logging.getLogger(__name__)
 SHIPPED_CHECKPOINTS = Path(__file__).resolve().parent.parent / "policies" / "checkpoints"
 SHIPPED_DDQN = SHIPPED_CHECKPOINTS / "ddqn-dr.zip"
 SHIPPED_DDPG = SHIPPED_CHECKPOINTS / "ddpg-residual-dr.zip"
+SHIPPED_FLEET = SHIPPED_CHECKPOINTS / "fleet" / "fleet-ddpg-residual-scored.zip"
+"""The shipped shared-parameter fleet checkpoint (any K; docs/results.md, "Fleets"): served with
+``tupa serve --fleet-file F --policy`` and this path; a fleet's default stays ``kmeans-scored``."""
 DEFAULT_POLICY = "oracle"
 """What the service serves unless told otherwise: the tracking oracle, the only policy that
 meets every closed-loop target of ``benchmarks/closed_loop.py`` (issue 13: within 0.97 of the

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test
 
+from policies.checkpoints import export_checkpoint
 from policies.fleet_baselines import KMeansPlacement
 from policies.fleet_evaluation import evaluate_fleet
 from policies.fleet_residual import (
@@ -26,6 +27,7 @@ from policies.fleet_scored import ScoredKMeansPlacement
 from policies.fleet_training import (
     FleetCheckpointPolicy,
     FleetTrainConfig,
+    fleet_observation_shape,
     train_fleet,
 )
 from policies.interface import ReportedUsers
@@ -169,6 +171,18 @@ def test_a_run_on_the_scored_prior_records_it_and_untrained_flies_kmeans_scored(
     world = replace(get_world("closed-loop"), episode_steps=5)
     policy = FleetCheckpointPolicy.load(tmp_path / "run", AREA, world=world)
     assert isinstance(policy.prior, ScoredPrior) and policy.prior.score_steps == 100
+    # Its serving copy (as the shipped fleet checkpoint is made) decides as it does.
+    served = tmp_path / "served.zip"
+    export_checkpoint(tmp_path / "run" / "model.zip", served, AREA, serving_only=True,
+                      observation_shape=fleet_observation_shape(AREA))  # fmt: skip
+    copy = FleetCheckpointPolicy.load(served, AREA, world=world)
+    env = FleetParallelEnv(n_uavs=2, action_kind="continuous", world=world)
+    observations, _ = env.reset(seed=1)
+    joint = np.stack([observations[a] for a in env.possible_agents])
+    here, seen = env.uav_xyz_m, env.reported_association
+    np.testing.assert_array_equal(
+        copy.targets(joint, env.reports, here, seen), policy.targets(joint, env.reports, here, seen)
+    )
     zero_actor_output(policy.model)
     scenarios = generate_scenarios(2, 10, 4, family="hotspots", total_load_bps=60e6)
     untrained = evaluate_fleet(policy, scenarios, 2, world)

@@ -26,12 +26,12 @@ from service.errors import InputError
 from service.fleet_placement import FleetPlacementService, load_fleet_policy
 from service.fleet_spec import FleetSpec, VehicleSpec
 from service.placement import Report
-from service.policy_runtime import SHIPPED_CHECKPOINTS
+from service.policy_runtime import SHIPPED_CHECKPOINTS, SHIPPED_FLEET
 from service.settings import ServiceSettings
 from service.vehicle_link import LinkConfig
 from sim.association import associate_at
 from sim.fleet import FleetConfig
-from sim.geometry import assign_targets
+from sim.geometry import assign_targets, volume_bounds
 from sim.observation import UserReports
 from sitl_mock.config import VehicleConfig
 from sitl_mock.fleet import MockFleet
@@ -279,6 +279,23 @@ def test_a_fleet_checkpoint_is_served_from_the_allowed_dirs(
     )
     wanted = scored.place_from(users, here, association[0], world.flight)
     np.testing.assert_allclose(got, assign_targets(here, wanted), atol=1e-9)
+
+
+def test_the_shipped_fleet_checkpoint_is_served_for_any_fleet_size(
+    make_fleet: Callable[..., Fleet],
+) -> None:
+    """The shipped checkpoint (trained with K = 3) loads from the default checkpoint
+    directories and places fleets of 2 and 4: separated targets inside the fence."""
+    for k in (2, 4):
+        service, _ = make_fleet(k)
+        policy = service.swap_policy(str(SHIPPED_FLEET))
+        meta = policy.describe()["metadata"]
+        assert (meta["fleet"], meta["prior"], meta["n_uavs_trained"]) == (True, "kmeans-scored", 3)
+        service.submit_report(hot_spot_report(time.time()))
+        targets = np.array([d.target_m for d in service.decisions().values()])
+        assert targets.shape == (k, 3) and _min_gap([tuple(t) for t in targets]) >= 10.0
+        lower, upper = volume_bounds(service.area)
+        assert np.all(targets >= lower - 1e-9) and np.all(targets <= upper + 1e-9)
 
 
 @pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
