@@ -219,6 +219,12 @@ class FleetTrainConfig:
             return self.preset
         return get_preset(self.preset, self.algorithm, self.action)
 
+    @property
+    def prior_score_steps(self) -> int:
+        """Decisions a ``kmeans-scored`` prior scores each candidate over: an evaluation
+        episode of the world (not the preset's shorter training episode)."""
+        return get_world(self.world).episode_steps
+
     def train_world(self) -> World:
         """The world with the preset's training episode (length, start)."""
         p = self.chosen_preset
@@ -252,9 +258,10 @@ def make_fleet_vec_env(config: FleetTrainConfig) -> Any:
         scenarios=config.sampler(world.area),
         world=world,
     )
-    if config.action == "residual":  # a scored prior scores over an evaluation episode
-        score_steps = get_world(config.world).episode_steps
-        fleet = FleetResidualActions(fleet, config.residual_radius_m, config.prior, score_steps)
+    if config.action == "residual":
+        fleet = FleetResidualActions(
+            fleet, config.residual_radius_m, config.prior, config.prior_score_steps
+        )
     # concat_vec_envs_v1 copies the fleet n_fleets times (each copy its own generator).
     vec = ss.pettingzoo_env_to_vec_env_v1(fleet)
     vec = ss.concat_vec_envs_v1(vec, config.n_fleets, num_cpus=0, base_class="stable_baselines3")
@@ -401,7 +408,7 @@ def _metadata(
                 **(
                     {
                         "prior": config.prior,
-                        "prior_score_steps": get_world(config.world).episode_steps,
+                        "prior_score_steps": config.prior_score_steps,
                     }
                     if config.action == "residual"
                     else {}
