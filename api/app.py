@@ -23,7 +23,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from api.auth import BearerGuard
 from api.live import end_streams, live
-from api.metrics import HttpMetrics, HttpMetricsMiddleware, ServiceCollector
+from api.metrics import ConnectionCollector, HttpMetrics, HttpMetricsMiddleware, ServiceCollector
 from api.ratelimit import RateLimit
 from api.responses import send_error
 from api.routes import RATE_LIMITED, probes, v1
@@ -39,8 +39,9 @@ the autopilot. Every `/v1` route needs `Authorization: Bearer <TUPA_API_TOKEN>`.
 
 
 class BodySizeLimit:
-    """Pure ASGI middleware: 413 for a request body over ``max_bytes`` (declared or streamed),
-    before the route reads any of it."""
+    """Pure ASGI middleware: 413 for a request body over ``max_bytes``, declared
+    (``Content-Length``: before the route reads any of it) or streamed (chunked: as soon as
+    what was read passes the limit), with ``Connection: close`` (the rest is not read)."""
 
     def __init__(self, app: ASGIApp, max_bytes: int) -> None:
         self.app = app
@@ -57,9 +58,10 @@ class BodySizeLimit:
                 except ValueError:
                     too_big = True
                 if too_big:
-                    await self._reject(send)
+                    await send_error(send, 413, self._detail(), [(b"connection", b"close")])
                     return
         received = 0
+        started = False
 
         async def limited_receive() -> Message:
             nonlocal received
@@ -67,20 +69,30 @@ class BodySizeLimit:
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
                 if received > self.max_bytes:
-                    raise _BodyTooLargeError
+                    # An HTTPException, so that FastAPI's body parsing passes it on (it turns
+                    # any other exception into 400) to the app's handler: 413.
+                    raise _BodyTooLargeError(self._detail())
             return message
 
+        async def tracking_send(message: Message) -> None:
+            nonlocal started
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
         try:
-            await self.app(scope, limited_receive, send)
-        except _BodyTooLargeError:
-            await self._reject(send)
+            await self.app(scope, limited_receive, tracking_send)
+        except _BodyTooLargeError as exc:  # raised where no handler caught it
+            if started:
+                raise
+            await send_error(send, 413, exc.detail, [(b"connection", b"close")])
 
-    async def _reject(self, send: Send) -> None:
-        await send_error(send, 413, f"body: over the {self.max_bytes}-byte limit")
+    def _detail(self) -> str:
+        return f"body: over the {self.max_bytes}-byte limit"
 
 
-class _BodyTooLargeError(Exception):
-    pass
+class _BodyTooLargeError(StarletteHTTPException):
+    def __init__(self, detail: str) -> None:
+        super().__init__(413, detail, headers={"Connection": "close"})
 
 
 class HeaderLimit:
@@ -168,6 +180,8 @@ def create_app(
     app.state.service = None
     registry = CollectorRegistry()
     registry.register(ServiceCollector(lambda: app.state.service))
+    app.state.http_connections = None  # the server's connection table (api.server), once served
+    registry.register(ConnectionCollector(lambda: app.state.http_connections))
     app.state.registry = registry
     http_metrics = HttpMetrics(registry)
     # Middlewares, outermost last: header count, proxy headers (only from trusted proxies),

@@ -96,13 +96,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--rate-limit-rps",
         type=float,
         metavar="N",
-        help="requests/s each client may make on average, then 429 (default 2000; 0: no limit)",
+        help="requests/s each client may make on average, then 429 (default 200; 0: no limit)",
     )
     parser.add_argument(
         "--rate-limit-burst",
         type=int,
         metavar="N",
-        help="requests a client may make at once above its rate (default 2000)",
+        help="requests a client may make at once above its rate (default 400)",
     )
     parser.add_argument(
         "--log-level", default="info", choices=("debug", "info", "warning", "error")

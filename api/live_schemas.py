@@ -45,6 +45,13 @@ class LiveDecision(_Frame):
     age_s: float | None
 
 
+class LiveControl(_Frame):
+    """Who has the vehicle (``service``, ``pilot``, ``autopilot``, ``operator``) and why."""
+
+    holder: Literal["service", "pilot", "autopilot", "operator"]
+    reason: str
+
+
 class LiveVehicle(_Frame):
     id: str
     link: Literal["connecting", "up", "link_lost"]
@@ -52,6 +59,7 @@ class LiveVehicle(_Frame):
     armed: bool
     flavour: str | None
     streaming: bool
+    control: LiveControl
     heartbeat_age_s: float | None
     position_m: Point | None
     heading_deg: float | None = Field(

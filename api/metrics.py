@@ -3,20 +3,58 @@
 HTTP request counts and latencies are recorded by a middleware; the placement loop's and the
 link's counters are read when Prometheus scrapes (a custom collector), so the service itself
 knows nothing of Prometheus.
+
+Every label value comes from a closed set, whatever a client sends (any client may send
+anything, and the middleware runs before the token check): the method is one the route takes
+(one of :data:`HTTP_METHODS` where no route matched) or ``other``, the route is a route's
+template (``/v1/reports``) or ``other``, never the raw path; the status is the one the app
+answered. So the text a scrape renders has a bounded size however many odd requests came
+before it (:func:`render_metrics` renders it off the event loop).
 """
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from prometheus_client import CollectorRegistry, Counter, Histogram
+from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 LINK_STATES = ("connecting", "up", "link_lost")
+CONTROL_HOLDERS = ("service", "pilot", "autopilot", "operator")
+HTTP_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
+"""The methods a request is counted under by name; any other: ``other``."""
+OTHER = "other"
+CONNECTION_CLOSE_REASONS = (
+    "client_cap",
+    "evicted",
+    "full",
+    "read_timeout",
+    "write_timeout",
+)
+"""Why the server closed a connection itself (:class:`api.server.ConnectionTable`)."""
+
+
+def method_label(scope: Scope) -> str:
+    """The request's method if the route that matched takes it (no route matched: if it is a
+    standard one), else ``other``: a 405 is counted under ``other``, so that a route has
+    label sets for its own methods only."""
+    method = scope.get("method")
+    allowed = getattr(scope.get("route"), "methods", None)
+    if allowed is not None:
+        return method if method in allowed else OTHER
+    return method if method in HTTP_METHODS else OTHER
+
+
+def route_label(scope: Scope) -> str:
+    """The template of the route that matched (``/v1/policy``), else ``other`` (no route
+    matched, or the request was answered before routing: 401, 413, 429, ...)."""
+    path = getattr(scope.get("route"), "path", None)
+    return path if isinstance(path, str) else OTHER
 
 
 class ServiceCollector(Collector):
@@ -98,7 +136,7 @@ class ServiceCollector(Collector):
 
 def _vehicle_families(views: list[Any]) -> Iterator[Any]:
     """Per-vehicle families, labelled ``vehicle`` (one vehicle: ``uav1``): link state,
-    commanded, armed, setpoints sent, reconnects."""
+    commanded, armed, setpoints sent, reconnects, who has it, foreign MAVLink ignored."""
     link = GaugeMetricFamily(
         "tupa_vehicle_link_state",
         "Each vehicle's MAVLink link state (1 = current)",
@@ -116,6 +154,26 @@ def _vehicle_families(views: list[Any]) -> Iterator[Any]:
     reconnects = CounterMetricFamily(
         "tupa_vehicle_link_reconnects", "MAVLink reconnections, by vehicle", labels=["vehicle"]
     )
+    control = GaugeMetricFamily(
+        "tupa_vehicle_control",
+        "Who has each vehicle (1 = current): service, pilot, autopilot or operator",
+        labels=["vehicle", "holder"],
+    )
+    released = CounterMetricFamily(
+        "tupa_vehicle_control_released",
+        "Times each vehicle left the service's hands (a pilot, a failsafe, an operator)",
+        labels=["vehicle"],
+    )
+    mode_requests = CounterMetricFamily(
+        "tupa_vehicle_mode_requests",
+        "Requests for the guided mode (GUIDED / OFFBOARD) sent to each vehicle",
+        labels=["vehicle"],
+    )
+    foreign = CounterMetricFamily(
+        "tupa_vehicle_foreign_mavlink",
+        "MAVLink messages and datagrams from systems other than the vehicle's, ignored",
+        labels=["vehicle"],
+    )
     for view in views:
         state = view.state
         for name in LINK_STATES:
@@ -124,11 +182,66 @@ def _vehicle_families(views: list[Any]) -> Iterator[Any]:
         armed.add_metric([view.id], float(state.armed))
         setpoints.add_metric([view.id], state.counters.get("setpoints_sent", 0))
         reconnects.add_metric([view.id], state.counters.get("reconnects", 0))
-    yield from (link, commanded, armed, setpoints, reconnects)
+        for holder in CONTROL_HOLDERS:
+            control.add_metric([view.id, holder], 1.0 if state.control == holder else 0.0)
+        released.add_metric([view.id], state.counters.get("control_released", 0))
+        mode_requests.add_metric([view.id], state.counters.get("mode_requests", 0))
+        foreign.add_metric(
+            [view.id],
+            state.counters.get("foreign_messages", 0) + state.counters.get("foreign_datagrams", 0),
+        )
+    yield from (
+        link,
+        commanded,
+        armed,
+        setpoints,
+        reconnects,
+        control,
+        released,
+        mode_requests,
+        foreign,
+    )
+
+
+class ConnectionCollector(Collector):
+    """The server's open connections and why it closed some itself, read at scrape time from
+    ``get_table()`` (an :class:`api.server.ConnectionTable`, ``None`` before a server runs)."""
+
+    def __init__(self, get_table: Callable[[], Any]) -> None:
+        self._get_table = get_table
+
+    def collect(self) -> Iterator[Any]:
+        table = self._get_table()
+        if table is None:
+            return
+        yield GaugeMetricFamily(
+            "tupa_http_connections", "HTTP connections open", value=float(table.total)
+        )
+        yield GaugeMetricFamily(
+            "tupa_http_clients",
+            "Clients (peer addresses) with a connection open",
+            value=float(table.clients),
+        )
+        closed = CounterMetricFamily(
+            "tupa_http_connections_closed",
+            "HTTP connections the server closed itself, by reason",
+            labels=["reason"],
+        )
+        for reason in CONNECTION_CLOSE_REASONS:
+            closed.add_metric([reason], table.closed.get(reason, 0))
+        yield closed
+
+
+async def render_metrics(registry: CollectorRegistry) -> bytes:
+    """The Prometheus text of ``registry``, rendered in a worker thread (collecting and
+    formatting take the time they take: not on the event loop, where every other request
+    waits for them)."""
+    return await asyncio.to_thread(generate_latest, registry)
 
 
 class HttpMetrics:
-    """Request counter and latency histogram, labelled by route template (bounded cardinality)."""
+    """Request counter and latency histogram, labelled by route template, method and status,
+    each from a closed set (bounded cardinality: :func:`method_label`, :func:`route_label`)."""
 
     def __init__(self, registry: CollectorRegistry) -> None:
         self.requests = Counter(
@@ -175,7 +288,7 @@ class HttpMetricsMiddleware:
         try:
             await self.app(scope, receive, recording_send)
         finally:
-            template = getattr(scope.get("route"), "path", "unmatched")
-            method = scope["method"]
+            template = route_label(scope)
+            method = method_label(scope)
             self.metrics.requests.labels(template, method, str(status)).inc()
             self.metrics.latency.labels(template, method).observe(time.perf_counter() - started)

@@ -6,8 +6,9 @@ token and requests that do not (no token, a wrong one: whoever sends them) have 
 buckets per address, so a flood of unauthenticated requests from the controller's own address
 is limited without spending any of the controller's budget. A request that finds the bucket
 empty is answered ``429 Too Many Requests`` with ``Retry-After`` (whole seconds, at least 1)
-before any route runs. The probes ``/healthz`` and ``/readyz`` are never limited, so that a
-client flooding the service cannot make an orchestrator restart it.
+before any route runs. The probes (``GET`` or ``HEAD`` ``/healthz`` and ``/readyz``) are never
+limited, so that a client flooding the service cannot make an orchestrator restart it; any
+other method on those paths is limited like any request.
 
 The middleware runs on the event loop (one thread), so the buckets need no lock. At most
 ``max_clients`` buckets are kept (least recently seen dropped first): memory stays bounded
@@ -32,6 +33,7 @@ from api.responses import send_error
 
 log = logging.getLogger(__name__)
 UNLIMITED_PATHS = frozenset({"/healthz", "/readyz"})
+UNLIMITED_METHODS = frozenset({"GET", "HEAD"})
 
 
 class TokenBuckets:
@@ -95,7 +97,9 @@ class RateLimit:
         self.token = token
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or scope.get("path") in UNLIMITED_PATHS:
+        if scope["type"] != "http" or (
+            scope.get("path") in UNLIMITED_PATHS and scope.get("method") in UNLIMITED_METHODS
+        ):
             await self.app(scope, receive, send)
             return
         client = scope.get("client")

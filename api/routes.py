@@ -10,16 +10,21 @@ second concurrent ``PUT /v1/policy`` gets 409), so they hold at most one worker 
 from __future__ import annotations
 
 import logging
+from dataclasses import asdict
 from typing import Any
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
-from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from prometheus_client import CONTENT_TYPE_LATEST
 
 from api.auth import require_token
+from api.metrics import render_metrics
 from api.schemas import (
+    ControlIn,
+    ControlOut,
     DecisionOut,
+    DecisionTimingOut,
     ErrorOut,
     FleetOut,
     FleetVehicleOut,
@@ -28,6 +33,7 @@ from api.schemas import (
     PolicyOut,
     Readiness,
     ReportIn,
+    ReportOut,
     TakeoffOut,
     Target,
     ValidationErrorOut,
@@ -43,7 +49,7 @@ from service.placement import (
     Report,
     VehicleView,
 )
-from service.vehicle_link import LinkState
+from service.vehicle_link import ControlRefused, LinkState, VehicleLink
 
 _AUTH_RESPONSES: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorOut, "description": "Missing or wrong bearer token"},
@@ -129,6 +135,9 @@ def _vehicle_out(state: LinkState) -> VehicleOut:
             last_refusal=state.takeoff_last_refusal,
         ),
         status_texts=list(state.status_texts),
+        control=ControlOut(
+            holder=state.control, reason=state.control_reason, age_s=state.control_age_s
+        ),
     )
 
 
@@ -168,36 +177,52 @@ def to_report(body: ReportIn, service: PlacementService) -> Report:
 
 @v1.post(
     "/reports",
-    response_model=DecisionOut,
+    response_model=ReportOut,
     summary="Submit one report of all users",
     responses={
-        409: {"model": ErrorOut, "description": "Older than the last accepted report: ignored"},
+        409: {
+            "model": ErrorOut,
+            "description": "Older than the last accepted report (reports are ordered by "
+            "min(timestamp, arrival time)): ignored",
+        },
         **_BODY_RESPONSES,
         422: {
             "model": ValidationErrorOut,
-            "description": "A field is invalid (named in it), or the timestamp is ahead of the "
-            "service's clock by more than `report_max_future_s`",
+            "description": "A field is invalid (named in it), more users than `max_users` "
+            "(`users`), or the timestamp is ahead of the service's clock by more than "
+            "`report_max_future_s`",
         },
     },
 )
-async def post_report(body: ReportIn, request: Request) -> DecisionOut:
-    """Accept the users' latest metrics. Answers with the decision the report triggered
-    (``decision_mode=on-report``) or the current target (``paced``, or a report that cannot be
-    decided at once: ``target`` is null before the first decision). A report that arrives while
-    the MAVLink link is down is kept and decided once the link is back, if still fresh;
-    ``GET /v1/setpoint`` shows that decision."""
+async def post_report(body: ReportIn, request: Request) -> ReportOut:
+    """Accept the users' latest metrics; ``report_outcome`` says what became of the report.
+
+    ``decision_mode=on-report``: decisions never queue. The answer comes when the decision
+    taken from this report ends (``decided``: the answer is that decision; ``held``: the target
+    is held, e.g. the MAVLink link is down: the report is kept and decided once the link is
+    back, if still fresh), at once when a newer report replaces this one before a decision
+    reads it (``superseded``: the newer one is decided instead), or, when decisions are slower
+    than the decision period, 1.9 decision periods after it arrived (``pending``: its decision
+    follows unless a newer report replaces it; ``GET /v1/setpoint`` shows it). The last three
+    answer with the current target. ``paced``: the report is stored for the next period's
+    decision (``stored``), answered at once with the current target. ``target`` is null before
+    the first decision."""
     service = _service(request)
     report = to_report(body, service)
     try:
-        if service.submit_runs_policy:  # off the event loop
-            decision = await run_in_threadpool(service.submit_report, report)
-        else:  # only stores the report (a lock held for microseconds)
-            decision = service.submit_report(report)
+        # On the event loop, so that reports are taken in the order they came (a lock held for
+        # microseconds); a worker thread could take a later report first under load.
+        accepted = service.accept(report)
     except OutOfOrderReportError as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, detail=str(exc)) from None
     except FutureReportError as exc:
         raise _unprocessable(["timestamp"], str(exc)) from None
-    return _setpoint_out(service) if service.is_fleet else _decision_out(decision)
+    if service.submit_waits:  # off the event loop (waits for a decision, bounded)
+        receipt = await run_in_threadpool(service.receipt, accepted)
+    else:
+        receipt = service.receipt(accepted)
+    out = _setpoint_out(service) if service.is_fleet else _decision_out(receipt.decision)
+    return ReportOut(**dict(out), report_outcome=receipt.outcome)
 
 
 @v1.get("/setpoint", response_model=DecisionOut, summary="The current target(s)")
@@ -271,9 +296,81 @@ async def get_fleet_setpoint(vehicle_id: str, request: Request) -> DecisionOut:
     return _decision_out(_one_vehicle(_service(request), vehicle_id).decision)
 
 
+_CONTROL_RESPONSES: dict[int | str, dict[str, Any]] = {
+    409: {
+        "model": ErrorOut,
+        "description": "The vehicle cannot be handed back now (its link is down, it is in a "
+        "return or landing mode, or it flags a failsafe): the reason is named",
+    },
+    **_BODY_RESPONSES,
+    422: {"model": ValidationErrorOut, "description": "A field is invalid (named in it)"},
+}
+
+
+def _change_control(link: VehicleLink, body: ControlIn) -> None:
+    """Hand ``link``'s vehicle back to the service or take it from it; 409 naming the reason
+    when the vehicle cannot be handed back now."""
+    try:
+        if body.holder == "service":
+            link.hand_back(body.reason or "handed back by an operator")
+        else:
+            link.release(body.reason or "released by an operator")
+    except ControlRefused as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, detail=f"control: {exc}") from None
+    log.warning("an operator set the vehicle's control to %s", body.holder)
+
+
+@v1.put(
+    "/vehicle/control",
+    response_model=VehicleOut,
+    summary="Hand the vehicle back to the service, or take it from the service",
+    responses={**_CONTROL_RESPONSES, **_FLEET_CONFLICT},
+)
+async def put_vehicle_control(body: ControlIn, request: Request) -> VehicleOut:
+    """Once a pilot or a failsafe took the vehicle out of the guided mode, the service streams
+    nothing and asks for nothing until an operator hands it back here (``holder: service``);
+    it then streams its next decision and asks for the guided mode during the request window.
+    ``holder: operator`` makes the service let go. The answer is the vehicle's state."""
+    service = _service(request)
+    if service.is_fleet:
+        raise HTTPException(
+            status.HTTP_409_CONFLICT,
+            detail=f"this service drives {len(service.links)} vehicles: "
+            "PUT /v1/vehicles/{vehicle_id}/control",
+        )
+    _change_control(service.link, body)
+    return _vehicle_out(service.vehicle())
+
+
+@v1.put(
+    "/vehicles/{vehicle_id}/control",
+    response_model=FleetVehicleOut,
+    summary="Hand one vehicle back to the service, or take it from the service",
+    responses={**_CONTROL_RESPONSES, **_NO_SUCH_VEHICLE},
+)
+async def put_fleet_vehicle_control(
+    vehicle_id: str, body: ControlIn, request: Request
+) -> FleetVehicleOut:
+    """As ``PUT /v1/vehicle/control``, for one vehicle of the fleet (a single-vehicle service
+    names its vehicle ``uav1``); the fleet re-places the others while one is not commanded."""
+    service = _service(request)
+    _one_vehicle(service, vehicle_id)  # 404 for an unknown id
+    _change_control(service.links[vehicle_id], body)
+    return _fleet_vehicle_out(_one_vehicle(service, vehicle_id))
+
+
+def _policy_out(service: PlacementService, policy: Any) -> PolicyOut:
+    """``policy`` as ``/v1/policy`` shows it, with how long the service's decisions take."""
+    timing = service.decision_timing()
+    return PolicyOut(**policy.describe(), decisions=DecisionTimingOut(**asdict(timing)))
+
+
 @v1.get("/policy", response_model=PolicyOut, summary="The serving policy")
 async def get_policy(request: Request) -> PolicyOut:
-    return PolicyOut(**_service(request).policy.describe())
+    """The serving policy, and how long decisions take against the decision period
+    (``decisions``: a decision slower than the period is an overrun)."""
+    service = _service(request)
+    return _policy_out(service, service.policy)
 
 
 @v1.put(
@@ -291,8 +388,9 @@ def put_policy(body: PolicyIn, request: Request) -> PolicyOut:
     oversized or mismatched checkpoint, or one outside the service's checkpoint directories, is
     refused with 422 (naming the problem; the service log has the detail) and the serving
     policy stays in place. One load at a time: 409 while another is in progress."""
+    service = _service(request)
     try:
-        policy = _service(request).swap_policy(body.policy)
+        policy = service.swap_policy(body.policy)
     except PolicyBusyError as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, detail=str(exc)) from None
     except InputError as exc:
@@ -300,7 +398,7 @@ def put_policy(body: PolicyIn, request: Request) -> PolicyOut:
     except (OSError, ValueError) as exc:  # a name the OS refuses (too long, NUL byte, ...)
         log.warning("policy %r: not a usable path: %s", body.policy, exc)
         raise _unprocessable(["policy"], "policy: not a usable path") from None
-    return PolicyOut(**policy.describe())
+    return _policy_out(service, policy)
 
 
 @probes.get("/healthz", response_model=Health, summary="Liveness")
@@ -336,4 +434,5 @@ async def readyz(request: Request, response: Response) -> Readiness:
     responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}, **RATE_LIMITED},
 )
 async def metrics(request: Request) -> Response:
-    return Response(generate_latest(request.app.state.registry), media_type=CONTENT_TYPE_LATEST)
+    body = await render_metrics(request.app.state.registry)
+    return Response(body, media_type=CONTENT_TYPE_LATEST)

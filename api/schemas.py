@@ -129,6 +129,35 @@ class DecisionOut(BaseModel):
     )
 
 
+class ReportOut(DecisionOut):
+    """The answer to a report: the target, and what became of the report."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "target": {"x_m": 187.5, "y_m": 162.5, "z_m": 25.0},
+                    "source": "policy",
+                    "policy": "oracle",
+                    "decided_at": 1_764_000_001.2,
+                    "report_outcome": "decided",
+                }
+            ]
+        }
+    )
+
+    report_outcome: Literal["decided", "held", "superseded", "pending", "stored"] = Field(
+        description="decided: a decision was taken from this report, and this is it; held: a "
+        "decision was attempted on it and the target is held (the MAVLink link is down: it is "
+        "decided once the link is back, if still fresh; a refused target; a failing policy); "
+        "superseded: a newer report replaced it before a decision read it (answered at once; "
+        "the newer one is decided); pending: its decision had not ended 1.9 decision periods "
+        "after it arrived (decisions are slower than the period; it follows unless a newer "
+        "report replaces it: GET /v1/setpoint shows it); stored: paced mode, kept for the next "
+        "period's decision. Except for decided, the target is the current one"
+    )
+
+
 class TakeoffOut(BaseModel):
     """Where the arm-and-takeoff sequence stands (``--arm-and-takeoff``)."""
 
@@ -137,6 +166,36 @@ class TakeoffOut(BaseModel):
     attempts: int = Field(description="How many times the sequence has started")
     last_refusal: str | None = Field(
         description="Why the last attempt failed, with the vehicle's STATUSTEXT about it"
+    )
+
+
+class ControlOut(BaseModel):
+    """Who has the vehicle, and why (the pilot and the autopilot's failsafes always win)."""
+
+    holder: Literal["service", "pilot", "autopilot", "operator"] = Field(
+        description="service: it streams setpoints and may ask for the guided mode; pilot: the "
+        "vehicle left the guided mode on someone's command; autopilot: a failsafe, a return or a "
+        "landing; operator: released through PUT .../control. Only an operator hands it back."
+    )
+    reason: str = Field(description="What the vehicle did, or how the service got it")
+    age_s: float | None = Field(description="Seconds since the control last changed hands")
+
+
+class ControlIn(_Strict):
+    """Hand the vehicle back to the service, or take it from the service."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        strict=True,
+        json_schema_extra={"examples": [{"holder": "service"}, {"holder": "operator"}]},
+    )
+
+    holder: Literal["service", "operator"] = Field(
+        description="service: hand the vehicle back (refused while it is in a return or landing "
+        "mode or flags a failsafe); operator: the service lets go and streams nothing"
+    )
+    reason: str | None = Field(
+        default=None, max_length=200, description="Noted in the vehicle's control reason"
     )
 
 
@@ -161,6 +220,11 @@ class VehicleOut(BaseModel):
                         "last_refusal": None,
                     },
                     "status_texts": ["INFO: Takeoff detected"],
+                    "control": {
+                        "holder": "service",
+                        "reason": "its take-off sequence",
+                        "age_s": 42.0,
+                    },
                 }
             ]
         }
@@ -177,6 +241,22 @@ class VehicleOut(BaseModel):
     status_texts: list[str] = Field(
         description="The vehicle's latest STATUSTEXT messages, oldest first ('SEVERITY: text')"
     )
+    control: ControlOut
+
+
+class DecisionTimingOut(BaseModel):
+    """How long the service's decisions take, against the decision period. A decision is timed
+    from the policy's call until its target is ready for the link."""
+
+    mode: Literal["paced", "on-report"] = Field(description="The decision mode")
+    period_s: float = Field(description="The decision period, seconds")
+    timed: int = Field(description="Decisions timed since the service started")
+    last_s: float | None = Field(description="The last decision's duration (None before one)")
+    max_s: float | None = Field(description="The longest decision so far (None before one)")
+    overruns: int = Field(
+        description="Decisions longer than the period: while they happen, decisions come once "
+        "per decision rather than once per period, and on-report answers may be `pending`"
+    )
 
 
 class PolicyOut(BaseModel):
@@ -188,6 +268,14 @@ class PolicyOut(BaseModel):
                     "kind": "coordinates",
                     "spec": "policies/checkpoints/ddpg-residual-dr.zip",
                     "metadata": {"algorithm": "ddpg", "strategy": "gen10k", "episodes": 2000},
+                    "decisions": {
+                        "mode": "on-report",
+                        "period_s": 1.0,
+                        "timed": 1200,
+                        "last_s": 0.004,
+                        "max_s": 0.041,
+                        "overruns": 0,
+                    },
                 }
             ]
         }
@@ -197,6 +285,9 @@ class PolicyOut(BaseModel):
     kind: Literal["moves", "coordinates", "placement"]
     spec: str
     metadata: dict[str, object] | None
+    decisions: DecisionTimingOut | None = Field(
+        default=None, description="How long the service's decisions take (GET /v1/policy)"
+    )
 
 
 class PolicyIn(_Strict):

@@ -168,8 +168,11 @@ def start(mock_port: int, token: str, mode: str, policy: str | None = None) -> t
             mode,
             "--log-level",
             "warning",
+            # One load generator is one client: the per-client limits are not what is measured.
+            "--rate-limit-rps",
+            "0",
         ],
-        env={"TUPA_API_TOKEN": token},
+        env={"TUPA_API_TOKEN": token, "TUPA_HTTP_MAX_CONNECTIONS_PER_CLIENT": "512"},
     )
     base = f"http://127.0.0.1:{port}"
     deadline = time.monotonic() + 30

@@ -187,6 +187,9 @@ def main() -> None:
             "--arm-and-takeoff",
             "--log-level",
             "warning",
+            # One load generator is one client: the per-client limits are not what is measured.
+            "--rate-limit-rps",
+            "0",
         ]
         if args.policy:
             serve_args += ["--policy", args.policy]
@@ -194,6 +197,7 @@ def main() -> None:
             serve_args,
             env={
                 "TUPA_API_TOKEN": token,
+                "TUPA_HTTP_MAX_CONNECTIONS_PER_CLIENT": "512",
                 "TUPA_AREA_ORIGIN_NORTH_M": "-250",
                 "TUPA_AREA_ORIGIN_EAST_M": "-250",
             },

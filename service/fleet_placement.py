@@ -10,7 +10,8 @@ decision modes, threads, counters and policy swaps) with K links instead of one:
     service.vehicles()                  # GET /v1/vehicles: each link's state and target
     service.stop()
 
-A decision, once per period (or per report in ``on-report`` mode):
+A decision, once per period (or for the latest report in ``on-report`` mode, coalesced as for
+one vehicle: :mod:`service.placement`):
 
 1. the vehicles that may be commanded: link up, position known, and the system id the fleet
    file names (if any) and no other vehicle's — two connections that reach one vehicle would
@@ -215,6 +216,7 @@ class FleetPlacementService(PlacementService):
             "format": STATE_FORMAT,
             "policy": policy.spec,
             "decisions": {vid: asdict(d) for vid, d in decisions.items()},
+            "control": self._control_document(),
         }
 
     def _restore_targets(self, state: dict[str, Any], path: object) -> None:
@@ -320,6 +322,8 @@ class FleetPlacementService(PlacementService):
             self._count("decisions_rejected")
             log.warning("fleet decision rejected: %s", exc)
             return None
+        finally:
+            self._record_decision_time(time.perf_counter() - started)
         decided_at = time.time()
         decisions = {}
         for vid, target in zip(flying, targets, strict=True):
@@ -328,7 +332,6 @@ class FleetPlacementService(PlacementService):
         with self._lock:
             self._decisions = decisions
             self.counters["decisions"] += 1
-            self.counters["decision_time_us_total"] += int((time.perf_counter() - started) * 1e6)
         self._persist()
         return next(iter(decisions.values()))
 

@@ -230,6 +230,7 @@ def _vehicle(
         "armed": state.armed,
         "flavour": state.flavour,
         "streaming": state.streaming,
+        "control": {"holder": state.control, "reason": state.control_reason},
         "heartbeat_age_s": _number(state.heartbeat_age_s),
         "position_m": _point(state.position_m),
         "heading_deg": _number(state.heading_deg, 1),

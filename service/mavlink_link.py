@@ -18,6 +18,15 @@ take-off sequence are :class:`~service.vehicle_link.VehicleLinkBase`'s; this mod
 * it reads the vehicle's HEARTBEAT (decoded by the base; the vehicle's system and component ids
   are addressed from then on), GLOBAL_POSITION_INT, LOCAL_POSITION_NED, EXTENDED_SYS_STATE,
   EKF_STATUS_REPORT (ArduPilot), COMMAND_ACK and STATUSTEXT;
+* only from the vehicle: its system and component are locked at its first HEARTBEAT for the
+  link's lifetime (:meth:`~service.vehicle_link.VehicleLinkBase._vehicle_ids_match`); the same
+  messages from anyone else change nothing and are counted in ``foreign_messages``, and another
+  system's HEARTBEAT never changes the mode, the armed state or whom the link addresses;
+* on ``udpin`` (and pymavlink's ``udp:``) the transport is a :class:`VehicleUdp`: it talks to the
+  vehicle's address only, and drops every other sender's datagrams unparsed
+  (``foreign_datagrams``), whatever their number;
+* at start, a WARNING when the link runs unsigned and other machines can reach it
+  (:func:`unsigned_exposure`: a serial link, a non-loopback host, ``udpin`` on ``0.0.0.0``);
 * it asks for that telemetry with SET_MESSAGE_INTERVAL (and, on ArduPilot, the older
   REQUEST_DATA_STREAM if no SET_MESSAGE_INTERVAL is accepted);
 * setpoints are SET_POSITION_TARGET_LOCAL_NED, position only (:data:`POSITION_ONLY_TYPE_MASK`),
@@ -33,12 +42,16 @@ take-off sequence are :class:`~service.vehicle_link.VehicleLinkBase`'s; this mod
 from __future__ import annotations
 
 import contextlib
+import errno
+import ipaddress
 import logging
 import os
+import socket
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, Self
 
 from service import mavlink_commands
 from service.modes import GUIDED_MODE_NAME, Flavour, set_mode_numbers
@@ -67,6 +80,188 @@ POSITION_ONLY_TYPE_MASK = (
 )
 """SET_POSITION_TARGET_LOCAL_NED type_mask: use x, y, z only (ignore velocity, accel, yaw)."""
 
+VEHICLE_MESSAGES = frozenset(
+    {
+        "HEARTBEAT",
+        "LOCAL_POSITION_NED",
+        "GLOBAL_POSITION_INT",
+        "EXTENDED_SYS_STATE",
+        "EKF_STATUS_REPORT",
+        "COMMAND_ACK",
+        "STATUSTEXT",
+    }
+)
+"""What the link reads from the vehicle; the same from any other system or component changes
+nothing and is counted in ``foreign_messages``."""
+DATAGRAMS_PER_READ = 256
+"""The most datagrams one read of a :class:`VehicleUdp` takes in (those from other addresses are
+dropped unparsed): a flood of them never holds the I/O loop for longer than that."""
+
+
+class VehicleUdp(mavutil.mavudp):
+    """A ``udpin`` transport that talks to one peer, the vehicle; pymavlink's ``mavudp`` extended
+    at its ``recv_msg``/``write`` seams.
+
+    pymavlink's own UDP server remembers every address that ever sent it a datagram and sends
+    every message to all of them: one datagram from anyone makes it a receiver of every setpoint,
+    and thousands of source ports make every send thousands of ``sendto`` calls. This one:
+
+    * sends nothing until :attr:`peer` is set (the link sets it to the address of the vehicle's
+      first HEARTBEAT on this transport), then to :attr:`peer` only;
+    * once :attr:`peer` is set, drops datagrams from any other address unparsed, counting them in
+      :attr:`foreign_datagrams`, at most ``DATAGRAMS_PER_READ`` per read; it remembers no
+      sender, so neither memory nor the cost of a send grows with the number of senders;
+    * parses each datagram on its own (MAVLink over UDP puts whole packets in a datagram): the
+      bytes of a truncated packet never join the next datagram's, and :attr:`source` is the
+      sender of the datagram the message just returned came from;
+    * binds without ``SO_REUSEADDR`` (pymavlink sets it), so no other local socket can bind the
+      same port and take the vehicle's datagrams while this one is open.
+
+    The peer lasts as long as this transport: when the link recreates it (after a loss), the
+    vehicle's next HEARTBEAT (from its locked system and component) sets it again, so a vehicle
+    that restarted from another source port is found again.
+    """
+
+    def __init__(self, host_port: str, source_system: int, source_component: int) -> None:
+        host, _, port = host_port.rpartition(":")
+        if not host or not port.isdigit():
+            raise ValueError(f"udpin: expected HOST:PORT, got {host_port!r}")
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.bind((host, int(port)))
+        except OSError:
+            sock.close()
+            raise
+        sock.setblocking(False)
+        mavutil.set_close_on_exec(sock.fileno())
+        # What mavudp.__init__ sets, for pymavlink's own methods.
+        self.port = sock
+        self.udp_server = True
+        self.broadcast = False
+        self.last_address = None
+        self.timeout = 0
+        self.clients: set[tuple[str, int]] = set()  # pymavlink's list of receivers: stays empty
+        self.clients_last_alive: dict[tuple[str, int], float] = {}
+        self.resolved_destination_addr = None
+        self.peer: tuple[str, int] | None = None
+        """The only address sent to and heard from (None: nobody yet)."""
+        self.source: tuple[str, int] | None = None
+        """The sender of the datagram the last message returned came from."""
+        self.foreign_datagrams = 0
+        """Datagrams dropped because they came from another address than :attr:`peer`."""
+        self._pending: deque[tuple[Any, tuple[str, int]]] = deque()
+        mavutil.mavfile.__init__(
+            self,
+            sock.fileno(),
+            host_port,
+            source_system=source_system,
+            source_component=source_component,
+            input=True,
+        )
+
+    def recv(self, n: int | None = None) -> bytes:
+        """One datagram's bytes from :attr:`peer` (or anyone before it is set); ``b""`` if none
+        is waiting."""
+        datagram = self._receive()
+        return datagram[0] if datagram is not None else b""
+
+    def _receive(self) -> tuple[bytes, tuple[str, int]] | None:
+        """The next datagram from :attr:`peer` (from anyone before it is set) and its sender;
+        None when none is waiting (after dropping up to ``DATAGRAMS_PER_READ`` others)."""
+        for _ in range(DATAGRAMS_PER_READ):
+            try:
+                data, address = self.port.recvfrom(mavutil.UDP_MAX_PACKET_LEN)
+            except OSError as exc:
+                # ECONNREFUSED: an ICMP error for something we sent; nothing to read.
+                if exc.errno in (errno.EAGAIN, errno.EWOULDBLOCK, errno.ECONNREFUSED):
+                    return None
+                raise
+            if self.peer is not None and address != self.peer:
+                self.foreign_datagrams += 1
+                continue
+            return data, address
+        return None
+
+    def recv_msg(self) -> Any:
+        """The next message from :attr:`peer` (from anyone before it is set), or None (also
+        after ``DATAGRAMS_PER_READ`` datagrams without one)."""
+        for _ in range(DATAGRAMS_PER_READ):
+            if self._pending:
+                break
+            datagram = self._receive()
+            if datagram is None:
+                return None
+            data, address = datagram
+            if self.first_byte:
+                self.auto_mavlink_version(data)
+            mav = self.mav
+            message = mav.parse_char(data)
+            while message is not None:
+                self.post_message(message)
+                self._pending.append((message, address))
+                message = mav.parse_char(b"")
+            if mav.buf_len() > 0:  # a truncated packet: dropped with its datagram
+                mav.buf = bytearray()
+                mav.buf_index = 0
+                mav.expected_length = mavlink.HEADER_LEN_V1 + 2
+                mav.have_prefix_error = False
+        if not self._pending:
+            return None
+        message, self.source = self._pending.popleft()
+        return message
+
+    def write(self, buf: bytes) -> None:
+        """Send ``buf`` to :attr:`peer`; dropped while there is none."""
+        peer = self.peer
+        if peer is not None:
+            with contextlib.suppress(OSError):  # pymavlink's mavudp ignores them too
+                self.port.sendto(buf, peer)
+
+
+def unsigned_exposure(url: str) -> str | None:
+    """Who besides this machine can reach a link on ``url`` (a pymavlink connection string or a
+    MAVSDK URL): None when only this machine can (a loopback address), else a phrase that says
+    why (``listens on every network interface``, ``talks to 10.0.0.2``, ``is a serial link``)."""
+    text = url.strip()
+    scheme, sep, rest = text.partition(":")
+    scheme = scheme.lower()
+    if not sep or text.startswith("/") or scheme == "serial" or text.upper().startswith("COM"):
+        return "is a serial link (whatever else is on that radio or cable can inject messages)"
+    host = rest.removeprefix("//").rpartition(":")[0].strip("[]")
+    listens = scheme in ("udpin", "udp", "tcpin")
+    if host in ("", "0.0.0.0", "::"):
+        return "listens on every network interface" if listens else f"talks to {host or '?'}"
+    if host.lower() == "localhost":
+        return None
+    try:
+        if ipaddress.ip_address(host).is_loopback:
+            return None
+    except ValueError:
+        pass  # a host name: it may resolve to anything
+    return f"listens on {host}" if listens else f"talks to {host}"
+
+
+def warn_if_unsigned(url: str, signed: bool, backend: str) -> bool:
+    """Log a WARNING when a link on ``url`` that other machines can reach runs unsigned;
+    True when it warned."""
+    exposure = unsigned_exposure(url)
+    if signed or exposure is None:
+        return False
+    fix = (
+        "set TUPA_MAVLINK_SIGNING_KEY to the vehicle's key"
+        if backend == "pymavlink"
+        else "the mavsdk backend cannot sign: use the pymavlink backend with "
+        "TUPA_MAVLINK_SIGNING_KEY"
+    )
+    log.warning(
+        "UNSIGNED MAVLink link %s %s: anyone who can send to it can feed the service false "
+        "telemetry and the vehicle false commands; %s (docs/reliability.md, 'Signing and peers')",
+        url,
+        exposure,
+        fix,
+    )
+    return True
+
 
 class MavlinkLink(VehicleLinkBase):
     """The vehicle link and setpoint streamer on pymavlink. See the module docstring."""
@@ -79,6 +274,8 @@ class MavlinkLink(VehicleLinkBase):
         self._conn: Any = None
         self._t0 = time.monotonic()
         self.counters["signing_failures"] = 0
+        self.counters["foreign_messages"] = 0
+        self.counters["foreign_datagrams"] = 0
         self._target_sys = 1
         self._target_comp = 1
         self._landed_state: int | None = None
@@ -87,19 +284,30 @@ class MavlinkLink(VehicleLinkBase):
         self._interval_accepted = False
         self._fallback_streams_sent = False
 
+    def start(self) -> Self:
+        """Start the I/O thread (returns at once); a WARNING first if the link is unsigned and
+        other machines can reach it (:func:`unsigned_exposure`)."""
+        warn_if_unsigned(self.config.url, self.config.signing_key is not None, "pymavlink")
+        return super().start()
+
     # ------------------------------------------------------------------ connection
 
     def _open_transport(self, now: float) -> bool:
         config = self.config
+        scheme, _, address = config.url.strip().partition(":")
         try:
-            conn = mavutil.mavlink_connection(
-                config.url,
-                source_system=config.source_system,
-                source_component=config.source_component,
-                dialect="ardupilotmega",
-                autoreconnect=False,
-                retries=1,
-            )
+            if scheme.lower() in ("udpin", "udp"):  # pymavlink's UDP servers
+                mavutil.set_dialect("ardupilotmega")
+                conn = VehicleUdp(address, config.source_system, config.source_component)
+            else:
+                conn = mavutil.mavlink_connection(
+                    config.url,
+                    source_system=config.source_system,
+                    source_component=config.source_component,
+                    dialect="ardupilotmega",
+                    autoreconnect=False,
+                    retries=1,
+                )
         except (OSError, ValueError) as exc:
             log.debug("cannot open %s: %s", config.url, exc)
             return False
@@ -151,10 +359,26 @@ class MavlinkLink(VehicleLinkBase):
             self._handle(message)
             count += 1
             message = conn.recv_msg()
+        if isinstance(conn, VehicleUdp) and conn.foreign_datagrams:
+            with self._cond:
+                self.counters["foreign_datagrams"] += conn.foreign_datagrams
+            conn.foreign_datagrams = 0
 
     def _handle(self, message: Any) -> None:
+        """One message from the link: the vehicle's HEARTBEAT, telemetry, ACKs and STATUSTEXTs
+        are taken in; from any other system or component they change nothing
+        (``foreign_messages``), and neither does anything else."""
         kind = message.get_type()
         now = time.monotonic()
+        if kind == "BAD_DATA":
+            with self._cond:
+                self.counters["bad_data"] += 1
+                if "signature" in str(getattr(message, "reason", "")).lower():
+                    self.counters["signing_failures"] += 1
+            return
+        if kind not in VEHICLE_MESSAGES:
+            return
+        header = message.get_header()
         if kind == "STATUSTEXT":
             if self._from_vehicle(message):
                 self._note_status_text(message.severity, message.text)
@@ -162,9 +386,14 @@ class MavlinkLink(VehicleLinkBase):
         with self._cond:
             if kind == "HEARTBEAT":
                 fields = (message.autopilot, message.type, message.base_mode, message.custom_mode)
-                if not self._note_heartbeat(*fields, system_id=message.get_srcSystem()):
-                    return  # another ground station or companion, not the vehicle
-                header = message.get_header()
+                if not self._note_heartbeat(
+                    *fields,
+                    system_id=header.srcSystem,
+                    system_status=message.system_status,
+                    component_id=header.srcComponent,
+                ):
+                    return  # a ground station, a companion or another system: not the vehicle
+                self._lock_udp_peer()
                 if (
                     self.config.signing_key is None
                     and getattr(header, "incompat_flags", 0) & mavlink.MAVLINK_IFLAG_SIGNED
@@ -172,6 +401,8 @@ class MavlinkLink(VehicleLinkBase):
                     # It signs, we cannot: it will most likely ignore what we send.
                     self.counters["signed_vehicle_without_key"] += 1
                 self._target_sys, self._target_comp = header.srcSystem, header.srcComponent
+            elif not self._vehicle_ids_match(header.srcSystem, header.srcComponent):
+                return  # not the vehicle's (counted), or before its first HEARTBEAT
             elif kind == "LOCAL_POSITION_NED":
                 self._ned = (message.x, message.y, message.z)
                 self._position_at = now
@@ -194,13 +425,6 @@ class MavlinkLink(VehicleLinkBase):
                     and message.result == mavlink.MAV_RESULT_ACCEPTED
                 ):
                     self._interval_accepted = True
-            elif kind == "BAD_DATA":
-                self.counters["bad_data"] += 1
-                if "signature" in str(getattr(message, "reason", "")).lower():
-                    self.counters["signing_failures"] += 1
-                return
-            else:
-                return
             self._cond.notify_all()
 
     def _on_link_up(self, now: float) -> None:
@@ -208,9 +432,18 @@ class MavlinkLink(VehicleLinkBase):
         self._fallback_streams_sent = False
 
     def _from_vehicle(self, message: Any) -> bool:
-        """The message comes from the vehicle's system (any of its components)."""
+        """The message comes from the vehicle (its locked system and component); one from
+        another is counted in ``foreign_messages``."""
         with self._cond:
-            return message.get_srcSystem() == self._target_sys and self._last_hb is not None
+            return self._vehicle_ids_match(message.get_srcSystem(), message.get_srcComponent())
+
+    def _lock_udp_peer(self) -> None:
+        """On ``udpin``: the vehicle's HEARTBEAT came from its address, the only one this
+        transport talks to and hears from now on (call under ``self._cond``)."""
+        conn = self._conn
+        if isinstance(conn, VehicleUdp) and conn.peer is None and conn.source is not None:
+            conn.peer = conn.source
+            log.info("udpin: the vehicle is at %s:%d; no other sender is heard", *conn.peer)
 
     # ------------------------------------------------------------------ output
 

@@ -20,6 +20,20 @@ The loop, heartbeat supervision, setpoint schedule, mode-request window and take
   component ids from the config; type GCS or, for anything else, MAVSDK's companion computer).
   MAVSDK accepts any URL and retries by itself, so a connection that never hears the vehicle
   within ``heartbeat_timeout_s`` counts as a failed one and is made anew with backoff.
+* which system: the first autopilot MAVSDK discovers, until the vehicle's HEARTBEAT locks its
+  system and component for the link's lifetime; a session made anew after a loss drives only
+  that system, whatever other autopilots MAVSDK discovers (:meth:`MavsdkLink._pick_vehicle`).
+  MAVSDK routes a system's messages to that system's plugins only, so other systems never reach
+  the link; but its plugins take a system's telemetry from any of its components, which only
+  the ``udpin`` path below can filter.
+* ``udpin`` (PX4's 14540): MAVSDK's own UDP server sends everything to every address it has
+  heard from, so a ``udpin`` session is instead a MAVSDK ``raw://`` connection over the link's
+  own socket (:class:`~service.mavsdk_session.PeerUdp`): it sends to the vehicle's address only,
+  drops other senders' datagrams unread (``foreign_datagrams``) and other systems' and
+  components' packets (``foreign_messages``), and keeps nothing per sender. Over ``tcp`` and
+  serial MAVSDK connects itself (one peer by construction); over ``udpout`` too, and there it
+  also sends to anyone who sends to its ephemeral port (use ``tcp``, ``udpin`` or the pymavlink
+  backend where that matters).
 * the vehicle's HEARTBEATs come through the MavlinkDirect plugin, decoded by the base as the
   pymavlink backend's are; positions come from the Telemetry plugin (``position_velocity_ned``,
   ``position``), at ``telemetry_rate_hz`` asked once per connection with ``set_rate_*``; the
@@ -44,7 +58,9 @@ The loop, heartbeat supervision, setpoint schedule, mode-request window and take
 Not supported: **MAVLink 2 signing**. The native binding (mavsdk 4.1) exposes no signing call
 (none in its Python API nor among libcmavsdk's exported functions; MAVSDK declined to plan it in
 mavlink/MAVSDK#1060), so a ``signing_key`` in the config raises ValueError naming it: use the
-``pymavlink`` backend for a signed link.
+``pymavlink`` backend for a signed link; a link other machines can reach is warned about at
+start. Without signing, a sender that copies the vehicle's ids (from its address, or from
+anywhere before the vehicle is found) cannot be told from it, on either backend.
 
 All MAVSDK calls happen in this module's threads, never in the caller's; MAVSDK's callbacks only
 update the snapshot under a condition variable, and no MAVSDK call is made while holding it (a
@@ -57,11 +73,13 @@ from __future__ import annotations
 import json
 import logging
 import math
+import select
 import threading
 import time
 from collections.abc import Callable, Sequence
 from typing import Any, Self
 
+from service.mavlink_link import warn_if_unsigned
 from service.mavsdk_session import Session, mavsdk_url, route_mavsdk_logs_to_python
 from service.modes import Flavour
 from service.vehicle_link import LinkConfig, VehicleLinkBase, mavlink
@@ -69,6 +87,8 @@ from service.vehicle_link import LinkConfig, VehicleLinkBase, mavlink
 log = logging.getLogger(__name__)
 
 MAV_COMP_ID_AUTOPILOT1 = 1
+RAW_WAIT_S = 0.005
+"""``udpin``: the longest a poll waits for a datagram (a new target goes out within a few ms)."""
 ACTION_RESULTS = {
     "COMMAND_DENIED": mavlink.MAV_RESULT_DENIED,
     "COMMAND_DENIED_NOT_LANDED": mavlink.MAV_RESULT_DENIED,
@@ -102,9 +122,13 @@ class MavsdkLink(VehicleLinkBase):
         self._session: Session | None = None
         self._heading_deg: float | None = None
         self._stream_yaw_deg = 0.0
+        self.counters["foreign_messages"] = 0
+        self.counters["foreign_datagrams"] = 0
 
     def start(self) -> Self:
-        """Start the I/O thread (returns at once; the link comes up in the background)."""
+        """Start the I/O thread (returns at once; the link comes up in the background); a
+        WARNING first if other machines can reach the link (this backend never signs)."""
+        warn_if_unsigned(self.config.url, False, "mavsdk")
         route_mavsdk_logs_to_python()
         return super().start()
 
@@ -129,14 +153,37 @@ class MavsdkLink(VehicleLinkBase):
                 session.close()
 
     def _poll(self, wait_s: float) -> None:
-        """Callbacks bring the input: wait for one (or a new target), then look for the vehicle
-        if MAVSDK has not seen it yet."""
-        with self._cond:
-            if not self._stop.is_set():  # close() and set_target() notify: they wake us
-                self._cond.wait(wait_s)
+        """Callbacks bring the input: wait for one (or a new target), or on ``udpin`` for a
+        datagram to hand to MAVSDK; then look for the vehicle if MAVSDK has not seen it yet."""
         session = self._session
+        if session is not None and session.udp is not None:
+            self._feed(session, min(wait_s, RAW_WAIT_S))
+        else:
+            with self._cond:
+                if not self._stop.is_set():  # close() and set_target() notify: they wake us
+                    self._cond.wait(wait_s)
         if session is not None and session.system is None:
             self._find_vehicle(session)
+
+    def _feed(self, session: Session, wait_s: float) -> None:
+        """``udpin``: hand what the vehicle sent (anyone, before it is found) to MAVSDK, waiting
+        up to ``wait_s`` for it; datagrams from other addresses (``foreign_datagrams``) and
+        packets of other systems or components (``foreign_messages``) are dropped."""
+        udp = session.udp
+        assert udp is not None
+        if not select.select([udp], [], [], max(wait_s, 0.0))[0]:
+            return
+        with self._sdk_lock:
+            if self._session is not session:
+                return
+            for datagram in udp.read():
+                session.sdk.pass_received_raw_bytes(datagram)
+            dropped, udp.foreign_datagrams = udp.foreign_datagrams, 0
+            foreign, udp.foreign_packets = udp.foreign_packets, 0
+        if dropped or foreign:
+            with self._cond:
+                self.counters["foreign_datagrams"] += dropped
+                self.counters["foreign_messages"] += foreign
 
     def _ready_to_command(self) -> bool:
         session = self._session
@@ -147,9 +194,13 @@ class MavsdkLink(VehicleLinkBase):
         with self._sdk_lock:
             if self._session is not session:
                 return
-            system = session.sdk.first_autopilot(0.05)
+            system = self._pick_vehicle(session)
             if system is None:
                 return
+            if session.udp is not None and not session.udp.choose_peer(
+                system.get_system_id(), MAV_COMP_ID_AUTOPILOT1
+            ):
+                return  # its HEARTBEAT's address is not known (yet): look again
             session.make_plugins(system)
             session.direct.subscribe_message("HEARTBEAT", self._on_heartbeat, session.system_id)
             session.telemetry.subscribe_position_velocity_ned(self._on_position_ned)
@@ -163,6 +214,32 @@ class MavsdkLink(VehicleLinkBase):
                     self._on_answer,
                 )
         log.info("MAVSDK found autopilot system %s", session.system_id)
+
+    def _pick_vehicle(self, session: Session) -> Any:
+        """The MAVSDK system to drive on ``session``, None while there is none: the first
+        autopilot MAVSDK discovers until the vehicle's HEARTBEAT has locked its system (see
+        :meth:`~service.vehicle_link.VehicleLinkBase._vehicle_ids_match`); from then on (a
+        session made anew after a loss) only that system, whatever other autopilots MAVSDK
+        discovers (each logged once)."""
+        with self._cond:
+            locked = self._vehicle_ids
+        if locked is None:
+            return session.sdk.first_autopilot(0.05)
+        found = None
+        for system in session.sdk.get_systems():
+            system_id = system.get_system_id()
+            if system_id == locked[0]:
+                if system.has_autopilot():
+                    found = system
+            elif system.has_autopilot() and system_id not in self._foreign_logged:
+                with self._cond:
+                    self._foreign_logged.add(system_id)
+                log.warning(
+                    "MAVSDK discovered autopilot system %s; the link stays with system %s",
+                    system_id,
+                    locked[0],
+                )
+        return found
 
     @staticmethod
     def _on_answer(result: Any, _user_data: Any) -> None:
@@ -179,7 +256,13 @@ class MavsdkLink(VehicleLinkBase):
                 self.counters["bad_data"] += 1
             return
         if message.system_id == system_id and message.component_id == MAV_COMP_ID_AUTOPILOT1:
-            self._note_heartbeat(*heartbeat, system_id=system_id)
+            status = fields.get("system_status")
+            self._note_heartbeat(
+                *heartbeat,
+                system_id=system_id,
+                system_status=int(status) if isinstance(status, int | float) else None,
+                component_id=message.component_id,
+            )
 
     def _on_position_ned(self, position_velocity: Any, _user_data: Any) -> None:
         p = position_velocity.position

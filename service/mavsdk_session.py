@@ -5,6 +5,9 @@ MAVSDK's log lines, and the lifetime of one MAVSDK instance (:class:`Session`).
 * :func:`route_mavsdk_logs_to_python` sends MAVSDK's own log lines to the ``mavsdk`` logger: its
   callback (on MAVSDK's native threads) only queues a line, and a thread of ours logs it, so no
   logging handler ever runs on a MAVSDK thread.
+* :class:`PeerUdp`: the socket under a ``udpin`` session. MAVSDK's own UDP server sends every
+  message to every address it has heard from; a ``udpin`` session is instead a MAVSDK ``raw://``
+  connection over this socket, which talks to the vehicle's address only.
 * :class:`Session`: one MAVSDK instance, its connection and plugins, made and torn down safely.
   Tearing a session down (link loss, close) first waits, up to ``UNANSWERED_WAIT_S``, for MAVSDK
   to answer the asynchronous calls still in flight (an ``Offboard.start`` is asked for every
@@ -16,8 +19,10 @@ MAVSDK's log lines, and the lifetime of one MAVSDK instance (:class:`Session`).
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import queue
+import socket
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -111,6 +116,138 @@ def mavsdk_url(url: str) -> str:
     return f"{schemes[scheme.lower()]}://{host}:{port}"
 
 
+DATAGRAMS_PER_READ = 256
+"""The most datagrams one :meth:`PeerUdp.read` takes in: a flood never holds the I/O loop."""
+HEARTBEAT_SOURCES_KEPT = 256
+"""How many (system, component) → address entries :class:`PeerUdp` keeps before the peer is
+chosen (it forgets them all past that, so a spray of ids cannot grow it)."""
+
+
+def packets(datagram: bytes) -> list[tuple[int, int, int, int, int]]:
+    """``(start, end, system, component, message id)`` of each MAVLink 1 or 2 packet in a
+    datagram, read from the headers (neither checksums nor signatures are checked: MAVSDK does
+    that); the walk stops at the first byte that starts no whole packet."""
+    found = []
+    at, size = 0, len(datagram)
+    while at + 8 <= size:
+        magic, length = datagram[at], datagram[at + 1]
+        if magic == 0xFD and at + 12 <= size:
+            signed = datagram[at + 2] & mavlink.MAVLINK_IFLAG_SIGNED
+            end = at + 12 + length + (mavlink.MAVLINK_SIGNATURE_BLOCK_LEN if signed else 0)
+            ids = (datagram[at + 5], datagram[at + 6])
+            message_id = int.from_bytes(datagram[at + 7 : at + 10], "little")
+        elif magic == 0xFE:
+            end = at + 8 + length
+            ids, message_id = (datagram[at + 3], datagram[at + 4]), datagram[at + 5]
+        else:
+            break
+        if end > size:
+            break
+        found.append((at, end, *ids, message_id))
+        at = end
+    return found
+
+
+class PeerUdp:
+    """The socket under a ``udpin`` session, a MAVSDK ``raw://`` connection: it receives on
+    ``host:port`` and hands what it receives to MAVSDK, and sends what MAVSDK sends to one
+    address, :attr:`peer`, the vehicle's (see :meth:`choose_peer`).
+
+    Until the peer is chosen every datagram goes to MAVSDK (so that it can discover the vehicle)
+    and nothing is sent. From then on datagrams from other addresses are dropped unread
+    (:attr:`foreign_datagrams`), and of the peer's only the packets of the vehicle's system and
+    component go to MAVSDK (:attr:`foreign_packets` counts the others): MAVSDK's plugins take a
+    system's telemetry from any of its components. Nothing is kept per sender but the address of
+    the latest HEARTBEAT of each (system, component), at most ``HEARTBEAT_SOURCES_KEPT`` of them
+    and only until the peer is chosen. The socket is bound without ``SO_REUSEADDR``: no other
+    local socket can share the port.
+    """
+
+    def __init__(self, host: str, port: int) -> None:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.bind((host, port))
+        except OSError:
+            sock.close()
+            raise
+        sock.setblocking(False)
+        self.sock = sock
+        self.peer: tuple[str, int] | None = None
+        self.vehicle_ids: tuple[int, int] | None = None
+        self.foreign_datagrams = 0
+        self.foreign_packets = 0
+        self._heartbeat_sources: dict[tuple[int, int], tuple[str, int]] = {}
+
+    def fileno(self) -> int:
+        return self.sock.fileno()
+
+    def read(self) -> list[bytes]:
+        """What MAVSDK should parse of the datagrams waiting (at most ``DATAGRAMS_PER_READ`` are
+        taken in): anyone's before the peer is chosen, then the vehicle's packets only."""
+        datagrams = []
+        for _ in range(DATAGRAMS_PER_READ):
+            try:
+                data, address = self.sock.recvfrom(65535)
+            except OSError as exc:
+                if exc.errno in (errno.EAGAIN, errno.EWOULDBLOCK, errno.ECONNREFUSED):
+                    break
+                raise
+            if self.peer is None:
+                if len(self._heartbeat_sources) >= HEARTBEAT_SOURCES_KEPT:
+                    self._heartbeat_sources.clear()
+                for _, _, system_id, component_id, message_id in packets(data):
+                    if message_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+                        self._heartbeat_sources[(system_id, component_id)] = address
+            elif address != self.peer:
+                self.foreign_datagrams += 1
+                continue
+            else:
+                data = self._vehicles_packets(data)
+            if data:
+                datagrams.append(data)
+        return datagrams
+
+    def _vehicles_packets(self, data: bytes) -> bytes:
+        """The packets of ``data`` from the vehicle's system and component, in order."""
+        found = packets(data)
+        kept = [(a, b) for a, b, *ids, _ in found if tuple(ids) == self.vehicle_ids]
+        self.foreign_packets += len(found) - len(kept)
+        if len(kept) == len(found) and found and found[-1][1] == len(data):
+            return data
+        return b"".join(data[a:b] for a, b in kept)
+
+    def choose_peer(self, system_id: int, component_id: int) -> bool:
+        """Talk only to the address the latest HEARTBEAT of ``system_id``/``component_id`` came
+        from, and take in only that system and component's packets; False (and no peer) when no
+        such HEARTBEAT came."""
+        address = self._heartbeat_sources.get((system_id, component_id))
+        if address is None:
+            return False
+        self.peer, self.vehicle_ids = address, (system_id, component_id)
+        self._heartbeat_sources.clear()
+        log.info("udpin: the vehicle is at %s:%d; no other sender is heard", *address)
+        return True
+
+    def send(self, data: bytes) -> None:
+        """MAVSDK's outgoing bytes (on a MAVSDK thread): to the peer, dropped before it."""
+        peer = self.peer
+        if peer is not None:
+            with contextlib.suppress(OSError):
+                self.sock.sendto(data, peer)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def udpin_address(url: str) -> tuple[str, int] | None:
+    """``(host, port)`` of a MAVSDK ``udpin://HOST:PORT`` (or ``udp://``) URL; None for others."""
+    scheme, sep, rest = url.partition("://")
+    if not sep or scheme.lower() not in ("udpin", "udp"):
+        return None
+    host, _, port = rest.rpartition(":")
+    return (host, int(port)) if host and port.isdigit() else None
+
+
 @dataclass
 class Session:
     """One MAVSDK instance, its connection and (once the vehicle is found) its plugins."""
@@ -135,11 +272,15 @@ class Session:
     unanswered: int = 0
     """Asynchronous calls made through :meth:`call_async` that MAVSDK has not answered yet."""
     answered: threading.Condition = field(default_factory=threading.Condition)
+    udp: PeerUdp | None = None
+    """For ``udpin``: the socket under the instance's ``raw://`` connection (the link feeds it
+    to MAVSDK); None for other URLs, which MAVSDK connects itself."""
 
     @classmethod
     def open(cls, url: str, config: LinkConfig, now: float) -> Session | None:
         """A MAVSDK instance connecting to ``url`` (a MAVSDK URL) with our ids and HEARTBEAT
-        type from ``config``; None when MAVSDK refuses the connection (cannot bind, ...)."""
+        type from ``config``; None when the connection cannot be made (cannot bind, ...).
+        ``udpin`` becomes a ``raw://`` connection over a :class:`PeerUdp`."""
         from mavsdk import ComponentType, Configuration, Mavsdk
 
         component_type = (
@@ -151,14 +292,23 @@ class Session:
         configuration.system_id = config.source_system
         configuration.component_id = config.source_component
         sdk = Mavsdk(configuration)
+        udp: PeerUdp | None = None
         try:
-            sdk.add_any_connection_with_handle(url)
-        except Exception as exc:  # MAVSDK's ConnectionError: refused, cannot bind, ...
+            address = udpin_address(url)
+            if address is None:
+                sdk.add_any_connection_with_handle(url)
+            else:
+                udp = PeerUdp(*address)
+                sdk.subscribe_raw_bytes_to_be_sent(udp.send)  # first: MAVSDK sends at once
+                sdk.add_any_connection_with_handle("raw://")
+        except Exception as exc:  # cannot bind; MAVSDK's ConnectionError: refused, ...
             log.debug("cannot open %s: %s", url, exc)
             sdk.destroy()
             configuration.destroy()
+            if udp is not None:
+                udp.close()
             return None
-        return cls(sdk, now, keep=[configuration])
+        return cls(sdk, now, keep=[configuration], udp=udp)
 
     def make_plugins(self, system: Any) -> None:
         """The plugins the link uses, for the autopilot ``system`` MAVSDK found."""
@@ -195,6 +345,8 @@ class Session:
             self.hold_callbacks(plugin)
         with contextlib.suppress(Exception):
             self.sdk.destroy()  # joins MAVSDK's threads: no callback comes after it
+        if self.udp is not None:
+            self.udp.close()  # after: MAVSDK sends nothing more into it
         self.trampolines.clear()
         for item in self.keep:
             with contextlib.suppress(Exception):

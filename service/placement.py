@@ -4,25 +4,44 @@
 
     service = PlacementService.from_settings(settings)   # opens the MAVLink link
     service.start()
-    service.submit_report(report)      # from POST /v1/reports
+    service.submit(report)             # POST /v1/reports: accept(), then receipt()
     service.current_decision()         # GET /v1/setpoint
     service.stop()
 
 Decisions: with ``decision_mode="paced"`` a background thread decides once every decision period
 (the ``world``'s step, the paper's S, unless ``step_s`` is set) from the latest report; with
-``"on-report"`` each accepted report triggers a decision at once. A decision needs a fresh report
-(received at most ``report_max_age_s`` ago; otherwise the target is held) and the vehicle's
-position (link up; a report that arrives while the link is down is kept, and the decision waits for
-the link: the paced thread retries every step, and in ``on-report`` mode a watcher thread decides
-as soon as the link is back, if the report is still fresh). Every kind of policy decides every
-period while the vehicle flies: a discrete move applies to the zone the vehicle is in and replaces
-the target (:func:`sim.world.move_target`, the environments' rule), so the service acts in the
-world the policy was trained in. Targets go through the link, which clamps them to the geofence.
+``"on-report"`` an accepted report asks a background thread for a decision (see below). A
+decision needs a fresh report (received at most ``report_max_age_s`` ago; otherwise the target
+is held) and the vehicle's position (link up; a report that arrives while the link is down is
+kept, and the decision waits for the link: the paced thread retries every step, and in
+``on-report`` mode the decision thread decides as soon as the link is back, if the report is
+still fresh). Every kind of policy decides every period while the vehicle flies: a discrete move
+applies to the zone the vehicle is in and replaces the target (:func:`sim.world.move_target`, the
+environments' rule), so the service acts in the world the policy was trained in. Targets go
+through the link, which clamps them to the geofence.
 
-Reports are snapshots of all users; each replaces the previous one (users come and go). A report
-whose ``timestamp`` is older than the last accepted one is ignored and counted; one stamped more
-than ``report_max_future_s`` ahead of this machine's clock is refused and counted (accepted, it
-would make every honest report after it "older").
+Decisions never queue. One decision runs at a time, always on the latest report. In
+``on-report`` mode at most one decision is pending: a report that arrives while a decision runs
+waits as *the* next one, and a newer report replaces it (latest wins), so a burst of reports
+costs one decision after the running one, never one each. :meth:`PlacementService.submit` says
+what became of each report (:class:`ReportReceipt`): ``decided`` (a decision was taken from it;
+the answer carries it), ``held`` (a decision was attempted on it but the target is held: no link,
+a stale report, a refused target or a failing policy), ``superseded`` (a newer report replaced it
+before a decision read it; answered at once), ``pending`` (its decision had not ended within
+:data:`REPORT_WAIT_PERIODS` decision periods of its arrival: a decision slower than the period
+runs ahead of it; it stays the next report to decide unless a newer one replaces it) or, in
+``paced`` mode, ``stored``. So a report is answered within two decision periods of its arrival
+(when the HTTP side takes less than a tenth of one), however slow the policy and however many
+reports arrive. Each decision's duration is measured (:meth:`PlacementService.decision_timing`):
+one longer than the decision period is counted as an overrun (``decision_overruns``) and logged
+(at most once a minute); decisions then come once per decision, not once per period.
+
+Reports are snapshots of all users; each replaces the previous one (users come and go). Reports
+are ordered by ``min(timestamp, arrival time)`` (this machine's clock): a report older than the
+last accepted one in that order is ignored and counted (409), a repeat of the last one is
+accepted. A report may be stamped up to ``report_max_future_s`` ahead of this machine's clock
+(clock skew) and counts as stamped when it arrived, so one stamped ahead can never make the honest
+reports after it "older"; one stamped further ahead is refused and counted.
 
 Restarts: with a ``state_file`` the serving policy and the last decision are persisted after each
 decision and swap. On start the persisted policy is loaded again (when it differs from the
@@ -48,10 +67,10 @@ import logging
 import math
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -69,7 +88,19 @@ STATE_FORMAT = "tupa-service-state/1"
 log = logging.getLogger(__name__)
 
 LINK_POLL_S = 0.05
-"""How often the ``on-report`` watcher looks at the link while a report waits for it."""
+"""How often the ``on-report`` decision thread looks at the link while a report waits for it."""
+
+REPORT_WAIT_PERIODS = 1.9
+"""In ``on-report`` mode, how long (in decision periods, from its acceptance) a report waits for
+the decision on it before it is answered ``pending``: about one period for a decision already
+running and one for its own, less a tenth of a period left to the HTTP side (parsing and
+answering a report of 1,000 users takes tens of milliseconds), so that the answer comes within
+two periods of the report's arrival."""
+
+OVERRUN_LOG_EVERY_S = 60.0
+"""At most one log line per this many seconds about decisions slower than the decision period."""
+
+ReportOutcome = Literal["decided", "held", "superseded", "pending", "stored"]
 
 
 @dataclass(frozen=True)
@@ -101,6 +132,55 @@ class Decision:
     """Unix time, seconds."""
 
 
+@dataclass(frozen=True)
+class ReportReceipt:
+    """What became of an accepted report (:meth:`PlacementService.submit`)."""
+
+    outcome: ReportOutcome
+    """``decided``: a decision was taken from this report (``decision`` is it). ``held``: a
+    decision was attempted on it and the target is held (no link: it is decided once the link is
+    back, if still fresh; a stale report; a target the geofence refused; a failing policy).
+    ``superseded``: a newer report replaced it before a decision read it (``on-report``; answered
+    at once, the newer one is decided instead). ``pending``: the decision taken from it had not
+    ended within :data:`REPORT_WAIT_PERIODS` decision periods of its arrival (it follows, unless
+    a newer report replaces it: ``GET /v1/setpoint`` shows it). ``stored``: ``paced`` mode, kept
+    for the next period's decision."""
+    decision: Decision | None
+    """``decided``: the decision taken from the report; otherwise the current one (None before
+    the first)."""
+
+
+@dataclass(frozen=True)
+class AcceptedReport:
+    """A report :meth:`PlacementService.accept` took: its number, and when (monotonic)."""
+
+    seq: int
+    arrived: float
+
+
+@dataclass(frozen=True)
+class DecisionTiming:
+    """How long decisions take against the decision period
+    (:meth:`PlacementService.decision_timing`).
+
+    A decision is timed from the policy's call until its target (a fleet's: checked) is ready
+    for the link; refused targets and failing policies are timed too."""
+
+    mode: str
+    """The decision mode, ``paced`` or ``on-report``."""
+    period_s: float
+    """The decision period."""
+    timed: int
+    """Decisions timed so far."""
+    last_s: float | None
+    """The last decision's duration (None before the first)."""
+    max_s: float | None
+    """The longest so far (None before the first)."""
+    overruns: int
+    """Decisions longer than ``period_s`` so far: while they happen, decisions come once per
+    decision rather than once per period."""
+
+
 def restored_decision(saved: Any) -> Decision:
     """A decision as the state file keeps it (``asdict``), shown again with source
     ``restored``; ValueError, KeyError or TypeError when it is not one."""
@@ -130,11 +210,18 @@ def _vehicle_known(state: LinkState) -> bool:
 
 
 def link_problem(state: LinkState) -> str | None:
-    """Why the link does not let the vehicle be commanded now (None: it does)."""
+    """Why the link does not let the vehicle be commanded now (None: it does): the link is down,
+    no position is known, or the vehicle left the service's hands (:mod:`service.control`)."""
     if state.link != "up":
         return f"mavlink link is {state.link}"
     if state.position_m is None:
         return "no vehicle position yet (telemetry not received)"
+    if state.control != "service":
+        return (
+            f"the {state.control} has the vehicle: {state.control_reason}; the service streams "
+            "nothing until an operator hands it back (PUT /v1/vehicle/control; in a fleet "
+            "/v1/vehicles/ID/control)"
+        )
     return None
 
 
@@ -171,11 +258,23 @@ class PlacementService:
         self._deciding = threading.Lock()  # one decision at a time (see decide_once)
         self._swapping = threading.Lock()  # one policy load at a time (see swap_policy)
         self._stop = threading.Event()
+        self._persisted_control: dict[str, dict[str, str]] = {}  # last written control
         self._thread: threading.Thread | None = None
         self._waiting_for_link = threading.Event()  # a report was held because the link is down
         self._report: Report | None = None
         self._report_received: float | None = None  # monotonic
-        self._last_timestamp_s = -math.inf
+        self._last_order_s = -math.inf  # min(timestamp, arrival) of the last accepted report
+        # Coalescing (on-report): reports are numbered as accepted; a decision records the
+        # number of the report it read; waiting reports are told (under _lock) when a report is
+        # accepted or a decision ends.
+        self._changed = threading.Condition(self._lock)
+        self._wake = threading.Event()  # on-report: a report waits for a decision
+        self._report_seq = 0  # the latest accepted report's number
+        self._reading_seq = 0  # the report the running (or last) decision read
+        self._attempts: deque[tuple[int, Decision | None]] = deque(maxlen=16)  # ended decisions
+        self._decision_last_s: float | None = None
+        self._decision_max_s: float | None = None
+        self._overrun_logged_at = -math.inf  # monotonic
         self._decision: Decision | None = None
         self.counters: Counter[str] = Counter()
         self._takeoff_deferred = False
@@ -188,11 +287,18 @@ class PlacementService:
         return self.world.area
 
     @property
-    def submit_runs_policy(self) -> bool:
-        """Whether :meth:`submit_report` runs the policy before it returns (``on-report``
-        mode: milliseconds to a second for the oracle with hundreds of users), so an event
-        loop should call it from a worker thread; otherwise it only stores the report."""
+    def submit_waits(self) -> bool:
+        """Whether :meth:`receipt` (and :meth:`submit`) may block before it returns
+        (``on-report`` mode: it waits, up to :attr:`report_wait_s`, for the decision on the
+        report), so an event loop should call it from a worker thread; otherwise it answers
+        at once."""
         return self.settings.decision_mode == "on-report"
+
+    @property
+    def report_wait_s(self) -> float:
+        """``on-report``: how long a report waits for its decision before it is answered
+        ``pending`` (:data:`REPORT_WAIT_PERIODS` decision periods)."""
+        return REPORT_WAIT_PERIODS * self.settings.decision_period_s
 
     # ------------------------------------------------------------------ construction
 
@@ -234,18 +340,19 @@ class PlacementService:
         return self
 
     def _start_loop(self) -> None:
-        """The decision thread (``paced``) or the link watcher (``on-report``)."""
+        """The decision thread: once a period (``paced``) or for the latest report
+        (``on-report``)."""
         if self.settings.decision_mode == "paced":
             target, name = self._run, "placement"
         else:
-            target, name = self._decide_when_link_returns, "placement-link-watch"
+            target, name = self._decide_reports, "placement-on-report"
         self._thread = threading.Thread(target=target, name=name, daemon=True)
         self._thread.start()
 
     def stop(self, timeout_s: float = 5.0) -> None:
         self._stop.set()
         self.live.hub.close_all()  # ends the open pages' streams
-        self._waiting_for_link.set()  # wakes the on-report watcher
+        self._wake.set()  # wakes the on-report decision thread
         if self._thread is not None:
             self._thread.join(timeout_s)
             self._thread = None
@@ -258,14 +365,27 @@ class PlacementService:
     # ------------------------------------------------------------------ inputs
 
     def submit_report(self, report: Report) -> Decision | None:
-        """Accept a report; decide at once in ``on-report`` mode. Returns the current decision.
+        """:meth:`submit`, answering only with the receipt's decision."""
+        return self.submit(report).decision
 
-        Raises :class:`OutOfOrderReportError` (and counts it) for a report older than the last one,
-        and :class:`FutureReportError` (counted too) for one stamped more than
-        ``report_max_future_s`` ahead of this machine's clock: accepted, it would make every
-        honest report after it "older" until the clock caught up.
+    def submit(self, report: Report) -> ReportReceipt:
+        """Accept a report and say what became of it: :meth:`accept`, then :meth:`receipt`."""
+        return self.receipt(self.accept(report))
+
+    def accept(self, report: Report) -> AcceptedReport:
+        """Accept a report as the latest (in ``on-report`` mode, ask the decision thread for a
+        decision); never blocks beyond a lock held for microseconds, so an event loop may call
+        it, in the order reports arrive.
+
+        Raises :class:`OutOfOrderReportError` (and counts it) for a report older than the last
+        accepted one, ordering reports by ``min(timestamp, arrival time)``, and
+        :class:`FutureReportError` (counted too) for one stamped more than
+        ``report_max_future_s`` ahead of this machine's clock. A report stamped ahead (within
+        the tolerance) counts as stamped when it arrived, so it cannot make honest reports
+        after it "older".
         """
-        ahead_s = report.timestamp_s - time.time()
+        now_s = time.time()
+        ahead_s = report.timestamp_s - now_s
         if not ahead_s <= self.settings.report_max_future_s:  # also refuses a NaN
             self._count("reports_from_the_future")
             raise FutureReportError(
@@ -273,20 +393,74 @@ class PlacementService:
                 f"report_max_future_s ({self.settings.report_max_future_s:g} s): a report from "
                 "the future; check the controller's clock"
             )
+        order_s = min(report.timestamp_s, now_s)
         with self._lock:
-            if report.timestamp_s < self._last_timestamp_s:
+            if order_s < self._last_order_s:
                 self.counters["reports_out_of_order"] += 1
                 raise OutOfOrderReportError(
                     f"timestamp: {report.timestamp_s} is older than the last accepted report "
-                    f"({self._last_timestamp_s}); ignored"
+                    f"({self._last_order_s}; a report stamped ahead of this service's clock "
+                    "counts as stamped when it arrived); ignored"
                 )
-            self._last_timestamp_s = report.timestamp_s
+            self._last_order_s = order_s
             self._report = report
-            self._report_received = time.monotonic()
+            self._report_received = arrived = time.monotonic()
+            self._report_seq += 1
+            seq = self._report_seq
             self.counters["reports_accepted"] += 1
+            self._changed.notify_all()  # a report waiting for a decision is superseded
         if self.settings.decision_mode == "on-report":
-            self._decide_guarded()
-        return self.current_decision()
+            self._wake.set()
+        return AcceptedReport(seq, arrived)
+
+    def receipt(self, accepted: AcceptedReport) -> ReportReceipt:
+        """What became of an accepted report (:class:`ReportReceipt`).
+
+        ``paced``: stored for the next period's decision (``stored``), at once. ``on-report``:
+        waits until the decision on this report ends (``decided`` or ``held``), a newer report
+        replaces it first (``superseded``, at once), or :attr:`report_wait_s` passes from its
+        acceptance (``pending``). It never waits behind decisions on older reports beyond the
+        one running when the report came. Without a decision thread (not started, or stopped)
+        it decides on the caller's thread."""
+        if self.settings.decision_mode != "on-report":
+            return ReportReceipt("stored", self.current_decision())
+        if self._decider_running():
+            return self._receipt(accepted.seq, accepted.arrived + self.report_wait_s)
+        self._decide_guarded()  # no decision thread: this one decides
+        return self._receipt(accepted.seq, time.monotonic())
+
+    def _decider_running(self) -> bool:
+        thread = self._thread
+        return thread is not None and thread.is_alive() and not self._stop.is_set()
+
+    def _receipt(self, seq: int, deadline: float) -> ReportReceipt:
+        """Wait (until ``deadline``, monotonic) for the decision on report ``seq``, and say
+        what became of the report."""
+        with self._lock:
+            while True:
+                outcome, decision = self._outcome(seq)
+                if outcome is None:
+                    remaining = deadline - time.monotonic()
+                    if remaining > 0:
+                        self._changed.wait(remaining)
+                        continue
+                    outcome = "pending"
+                if outcome in ("superseded", "pending"):
+                    self.counters[f"reports_{outcome}"] += 1
+                break
+        if outcome == "decided":
+            return ReportReceipt(outcome, decision)
+        return ReportReceipt(outcome, self.current_decision())
+
+    def _outcome(self, seq: int) -> tuple[ReportOutcome | None, Decision | None]:
+        """(what became of report ``seq`` so far, None while undecided; the decision taken
+        from it). Called with ``_lock`` held."""
+        for read, decision in self._attempts:
+            if read == seq:
+                return ("held", None) if decision is None else ("decided", decision)
+        if self._report_seq > seq and self._reading_seq != seq:
+            return "superseded", None  # no decision reads it any more: they read the latest
+        return None, None
 
     def swap_policy(self, spec: str) -> Policy:
         """Load and check ``spec`` fully, then swap it in atomically (``InputError`` otherwise:
@@ -376,8 +550,24 @@ class PlacementService:
             self.counters[name] += 1
 
     def snapshot_counters(self) -> dict[str, int]:
+        """The counters by name, among them ``reports_accepted``, ``reports_superseded`` and
+        ``reports_pending`` (``on-report`` answers before a decision on the report:
+        :class:`ReportReceipt`), ``decisions``, ``decisions_timed``, ``decision_overruns``
+        (decisions longer than the decision period) and ``decision_time_us_total``."""
         with self._lock:
             return dict(self.counters)
+
+    def decision_timing(self) -> DecisionTiming:
+        """How long decisions take against the decision period (``GET /v1/policy``)."""
+        with self._lock:
+            return DecisionTiming(
+                mode=self.settings.decision_mode,
+                period_s=self.settings.decision_period_s,
+                timed=self.counters["decisions_timed"],
+                last_s=self._decision_last_s,
+                max_s=self._decision_max_s,
+                overruns=self.counters["decision_overruns"],
+            )
 
     # ------------------------------------------------------------------ the operator view
 
@@ -407,29 +597,54 @@ class PlacementService:
 
     def _tick_live(self) -> None:
         """Once per decision period: the view records and publishes (never blocks; a failure
-        is counted and logged, and never stops the loop)."""
+        is counted and logged, and never stops the loop), and a change of who has a vehicle is
+        written to the state file."""
         try:
             self.live.record(self._moment())
         except Exception:
             self._count("live_errors")
             log.exception("operator view: could not record this period")
+        control = self._control_document()
+        if control != self._persisted_control:
+            self._persisted_control = control
+            self._persist()
+
+    def _control_document(self) -> dict[str, dict[str, str]]:
+        """Who has each vehicle that is not the service's, by id: what a restart must keep (a
+        restarted service must not take back a vehicle its pilot or a failsafe took)."""
+        document = {}
+        for vid, link in self.links.items():
+            state = link.state()
+            if state.control != "service":
+                document[vid] = {"holder": state.control, "reason": state.control_reason}
+        return document
 
     # ------------------------------------------------------------------ deciding
 
     def decide_once(self) -> Decision | None:
         """One decision from the latest report (None when held: stale report, no link).
 
-        Decisions are taken one at a time: in ``on-report`` mode concurrent reports and the link
-        watcher may ask together, and the one that reads the latest report must set the target
-        last (unserialised, a slow decision on an older report could overwrite a newer one)."""
+        Decisions are taken one at a time (the decision thread, and callers such as tests, may
+        ask together; the one that reads the latest report must set the target last). The
+        report it read and what came of it are recorded for the reports waiting on it
+        (:meth:`submit`)."""
         with self._deciding:
-            return self._decide_latest()
+            decision = None
+            try:
+                decision = self._decide_latest()
+            finally:
+                with self._lock:
+                    self._attempts.append((self._reading_seq, decision))
+                    self._changed.notify_all()
+            return decision
 
     def _fresh_report(self) -> tuple[Report, Policy] | None:
         """The latest report and the serving policy, if a report is fresh enough to decide on
-        (a stale one is counted: the target is held)."""
+        (a stale one is counted: the target is held). Every ``_decide_latest`` reads the report
+        through here: it records which report the decision reads."""
         with self._lock:
             report, received, policy = self._report, self._report_received, self._policy
+            self._reading_seq = self._report_seq
         if report is None or received is None:
             return None
         if time.monotonic() - received > self.settings.report_max_age_s:
@@ -448,10 +663,10 @@ class PlacementService:
             self._waiting_for_link.set()
             return None
         vehicle = np.asarray(state.position_m, dtype=float)
-        started = time.perf_counter()
         if self._takeoff_deferred:  # the first decision after a restart (see start())
             self._takeoff_deferred = False
             self.link.arm_and_takeoff(timeout_s=self.settings.takeoff_timeout_s)
+        started = time.perf_counter()
         try:
             target = policy.decide(report.users, vehicle)
             clamped = self.link.set_target(tuple(float(v) for v in target))
@@ -459,13 +674,40 @@ class PlacementService:
             self._count("decisions_rejected")
             log.warning("decision rejected: %s", exc)
             return None
+        finally:
+            self._record_decision_time(time.perf_counter() - started)
         decision = Decision(clamped, "policy", policy.name, time.time())
         with self._lock:
             self._decision = decision
             self.counters["decisions"] += 1
-            self.counters["decision_time_us_total"] += int((time.perf_counter() - started) * 1e6)
         self._persist()
         return decision
+
+    def _record_decision_time(self, elapsed_s: float) -> None:
+        """Record one decision's duration; one longer than the decision period is an overrun
+        (counted; logged at most once every :data:`OVERRUN_LOG_EVERY_S`)."""
+        period_s = self.settings.decision_period_s
+        now = time.monotonic()
+        with self._lock:
+            self.counters["decisions_timed"] += 1
+            self.counters["decision_time_us_total"] += int(elapsed_s * 1e6)
+            self._decision_last_s = elapsed_s
+            self._decision_max_s = max(elapsed_s, self._decision_max_s or 0.0)
+            overrun = elapsed_s > period_s
+            if overrun:
+                self.counters["decision_overruns"] += 1
+            log_it = overrun and now - self._overrun_logged_at >= OVERRUN_LOG_EVERY_S
+            if log_it:
+                self._overrun_logged_at = now
+            overruns = self.counters["decision_overruns"]
+        if log_it:
+            log.warning(
+                "a decision took %.3g s, longer than the decision period (%g s): decisions come "
+                "once per decision, not once per period (%d such decisions so far)",
+                elapsed_s,
+                period_s,
+                overruns,
+            )
 
     def _decide_guarded(self) -> None:
         """:meth:`decide_once`, where a policy bug holds the target instead of failing the
@@ -476,12 +718,15 @@ class PlacementService:
             self._count("decision_errors")
             log.exception("decision failed; holding the current target")
 
-    def _decide_when_link_returns(self) -> None:
-        """``on-report`` mode: a report held because the link was down is decided once the link
-        is up again (if still fresh: :meth:`decide_once` holds a stale one), not only when the
-        next report happens to arrive. It also gives the operator view its period."""
+    def _decide_reports(self) -> None:
+        """``on-report`` mode's decision thread: decides the latest report whenever one waits
+        (one decision at a time; reports that arrive meanwhile make one pending decision, not
+        one each). A report held because the link was down is decided once the link is up
+        again (if still fresh: :meth:`decide_once` holds a stale one), not only when the next
+        report happens to arrive. It also gives the operator view its period."""
         period_s = self.settings.decision_period_s
         next_tick = time.monotonic()
+        waiting_link = False
         while not self._stop.is_set():
             now = time.monotonic()
             if now >= next_tick:  # the operator view's period (decisions come with reports)
@@ -489,13 +734,18 @@ class PlacementService:
                 next_tick += period_s
                 if next_tick <= now:  # fell behind: the next period from now
                     next_tick = now + period_s
-            if not self._waiting_for_link.wait(min(0.5, max(0.0, next_tick - now))):
+            timeout_s = min(0.5, max(0.0, next_tick - now))
+            if waiting_link and not self._wake.is_set():
+                if not self._can_decide():
+                    self._stop.wait(min(LINK_POLL_S, timeout_s))
+                    continue
+                self._wake.set()  # the link is back: decide the held report
+            if not self._wake.wait(timeout_s) or self._stop.is_set():
                 continue
-            if self._can_decide() and not self._stop.is_set():
-                self._waiting_for_link.clear()
-                self._decide_guarded()
-            else:
-                self._stop.wait(LINK_POLL_S)
+            self._wake.clear()
+            self._waiting_for_link.clear()
+            self._decide_guarded()
+            waiting_link = self._waiting_for_link.is_set()
 
     def _run(self) -> None:
         step_s = self.settings.decision_period_s
@@ -520,6 +770,7 @@ class PlacementService:
             "format": STATE_FORMAT,
             "policy": policy.spec,
             "decision": asdict(decision) if decision else None,
+            "control": self._control_document(),
         }
 
     def _persist(self) -> None:
@@ -550,7 +801,28 @@ class PlacementService:
             return True
         self._restore_policy(state.get("policy"), path)
         self._restore_targets(state, path)
+        self._restore_control(state.get("control"), path)
         return True
+
+    def _restore_control(self, saved: object, path: object) -> None:
+        """Leave each vehicle that was not the service's when it stopped with whoever had it
+        (a pilot, a failsafe, an operator): only an operator hands it back."""
+        if saved is None:
+            return
+        if not isinstance(saved, dict):
+            log.warning("ignoring the control in the state file %s: not an object", path)
+            self._count("state_restore_errors")
+            return
+        for vid, entry in saved.items():
+            holder = entry.get("holder") if isinstance(entry, dict) else None
+            link = self.links.get(vid)
+            if link is None or holder not in ("pilot", "autopilot", "operator"):
+                log.warning("ignoring the control of %r in the state file %s", vid, path)
+                self._count("state_restore_errors")
+                continue
+            reason = str(entry.get("reason", ""))[:300]
+            link.release(f"{reason} (before the service restarted)", holder)
+        self._persisted_control = self._control_document()
 
     def _restore_targets(self, state: dict[str, Any], path: object) -> None:
         """Show the persisted target as the current decision (source ``restored``)."""

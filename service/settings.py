@@ -57,7 +57,9 @@ class ServiceSettings(BaseSettings):
     insecure: bool = False
     """Allow serving without ``api_token`` (local experiments only)."""
     decision_mode: DecisionMode = "paced"
-    """``paced``: one decision every ``step_s`` from the latest report; ``on-report``: at once."""
+    """``paced``: one decision every ``step_s`` from the latest report; ``on-report``: a
+    decision for each report as it arrives, one at a time, the latest report winning (reports
+    that arrive during a decision replace each other: one pending decision at most)."""
     world: str = "closed-loop"
     """The world the policy was trained for (:mod:`sim.world`): its decision period is the
     service's, unless ``step_s`` is given."""
@@ -76,10 +78,13 @@ class ServiceSettings(BaseSettings):
     """Where the area's south-west corner at z = 0 lies from the vehicle's home (local NED)."""
     max_users: int = Field(default=1000, ge=1)
     max_body_bytes: int = Field(default=1_000_000, ge=1024)
-    rate_limit_rps: float = Field(default=2000.0, ge=0, allow_inf_nan=False)
+    rate_limit_rps: float = Field(default=200.0, ge=0, allow_inf_nan=False)
     """Requests per second each client (peer address) may make on average; 0: no limit. Over
-    it: 429 with ``Retry-After``. The probes (``/healthz``, ``/readyz``) are never limited."""
-    rate_limit_burst: int = Field(default=2000, ge=1)
+    it: 429 with ``Retry-After``. The probes (``/healthz``, ``/readyz``) are never limited.
+    The default is well under what the service serves on one core (about 700-1,000 simple
+    requests a second), so that no one client can take all of it, and far above what a
+    network controller needs (a report per vehicle per decision period)."""
+    rate_limit_burst: int = Field(default=400, ge=1)
     """How many requests a client may make at once above its rate (the token bucket's size)."""
     queueing: Literal["fq-codel", "mac-only"] = "fq-codel"
     """The network model variant the ``oracle`` baseline optimises for."""
@@ -109,7 +114,15 @@ class ServiceSettings(BaseSettings):
     http_keep_alive_s: int = Field(default=5, ge=1, le=3600)
     """How long an idle keep-alive connection is kept open between requests."""
     http_max_connections: int = Field(default=512, ge=8)
-    """Connections (and requests in progress) at once; beyond: 503 at once."""
+    """Connections at once, all clients together (each carries one request at a time). At the
+    cap, a new connection takes the place of one held by the client holding the most, if it
+    holds more than the newcomer; else the newcomer is closed at once (:mod:`api.server`)."""
+    http_max_connections_per_client: int = Field(default=32, ge=1, le=100_000)
+    """Connections one client (peer address) may hold at once; beyond: closed at once, nothing
+    answered. ``trusted_proxies`` are exempt (they speak for many clients)."""
+    http_write_timeout_s: float = Field(default=30.0, gt=0, le=3600, allow_inf_nan=False)
+    """How long a connection may hold unsent bytes without taking any (its client reads
+    nothing: a response, pipelined answers, a close waiting to flush); then it is reset."""
     live_max_streams: int = Field(default=16, ge=1, le=1000)
     """Operator-view streams (``GET /v1/live/events``, one per open page) at once; beyond: 503
     with ``Retry-After``. Each holds one of the ``http_max_connections`` for as long as it is

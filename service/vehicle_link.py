@@ -41,7 +41,9 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Literal, Self
 
+from service import control as vehicle_control
 from service import mavlink_commands
+from service.control import Control, ControlHolder
 from service.frames import FrameConfig, area_to_ned, ned_to_area
 from service.modes import GUIDED_MODE_NAME, Flavour, flavour_of, mode_name, set_mode_numbers
 from sim.config import AreaConfig
@@ -111,6 +113,10 @@ def result_name(result: int | None) -> str:
 def signing_key_from_passphrase(passphrase: str) -> bytes:
     """A 32-byte MAVLink 2 signing key from a passphrase (SHA-256, as MAVProxy does)."""
     return hashlib.sha256(passphrase.encode()).digest()
+
+
+class ControlRefused(Exception):  # noqa: N818 (a refusal, not a programming error)
+    """The vehicle cannot be handed back to the service now (the message says why)."""
 
 
 class TakeoffRefused(Exception):  # noqa: N818 (a refusal, not a programming error)
@@ -200,6 +206,17 @@ class LinkState:
     """Where the vehicle's nose points, degrees clockwise from north (None: not reported)."""
     system_id: int | None = None
     """The vehicle's MAVLink system id, from its HEARTBEAT; None before the first one."""
+    component_id: int | None = None
+    """The vehicle's MAVLink component id (its autopilot's), locked with ``system_id`` at the
+    first vehicle HEARTBEAT: messages from any other system or component are not the vehicle's."""
+    control: ControlHolder = "service"
+    """Who has the vehicle (:mod:`service.control`): ``service`` (it streams and may ask for the
+    guided mode), ``pilot``, ``autopilot`` (a failsafe, a return or a landing) or ``operator``
+    (released through the API). Only an operator hands it back to the service."""
+    control_reason: str = ""
+    """Why: what the vehicle did when it left the service's hands, or how the service got it."""
+    control_age_s: float | None = None
+    """Seconds since the control last changed hands."""
 
 
 class VehicleLink(ABC):
@@ -235,6 +252,21 @@ class VehicleLink(ABC):
     ) -> Future[None]:
         """Arm and climb to ``z_m`` (area frame; default the area's ``z_min_m``), only when
         asked, retrying refusals until ``timeout_s``; the Future completes when airborne."""
+
+    @abstractmethod
+    def hand_back(self, reason: str = "handed back by an operator") -> None:
+        """An operator hands the vehicle back to the service: the target from before is dropped,
+        and the next target set streams and asks for the guided mode during its request window.
+        :class:`ControlRefused` while the vehicle cannot be taken (link down, a return or landing
+        mode, a failsafe flagged)."""
+
+    @abstractmethod
+    def release(
+        self, reason: str = "released by an operator", holder: ControlHolder = "operator"
+    ) -> None:
+        """The vehicle is not the service's: it stops streaming and asks for nothing until
+        :meth:`hand_back`. An operator's release (``holder`` ``operator``), or a restart that
+        restores who had the vehicle when the service stopped."""
 
     def __enter__(self) -> Self:
         return self.start()
@@ -301,6 +333,14 @@ class VehicleLinkBase(VehicleLink):
         self._position_at: float | None = None
         self._relative_alt_m: float | None = None
         self._system_id: int | None = None  # the vehicle's, from its HEARTBEAT
+        # (system, component) locked at the first vehicle HEARTBEAT, for this object's lifetime
+        # (see _vehicle_ids_match); foreign systems already logged, at most 256.
+        self._vehicle_ids: tuple[int, int | None] | None = None
+        self._foreign_logged: set[int] = set()
+        self._system_status: int | None = None  # HEARTBEAT.system_status
+        self._control = Control("service", "waiting for the vehicle", time.monotonic())
+        self._failsafe_text: tuple[float, str] | None = None  # the latest failsafe STATUSTEXT
+        self._control_fresh = False  # handed back: the next HEARTBEAT is the new baseline
         self._heading_deg: float | None = None  # GLOBAL_POSITION_INT.hdg (MAVSDK: its heading)
         self._home_amsl_m: float | None = None
         self._ekf_flags: int | None = None  # ArduPilot's EKF_STATUS_REPORT.flags, when it sends it
@@ -311,6 +351,7 @@ class VehicleLinkBase(VehicleLink):
         self._hold_setpoints = False
         self._stream_since: float | None = None
         self._mode_wanted_until = 0.0
+        self._mode_asked_at = -math.inf  # the latest guided-mode request (monotonic)
         # Take-off bookkeeping (under self._cond).
         self._takeoff = "idle"
         self._takeoff_phase: str | None = None
@@ -418,6 +459,10 @@ class VehicleLinkBase(VehicleLink):
                 status_texts=tuple(text for _, text in self._status_texts),
                 heading_deg=self._heading_deg,
                 system_id=self._system_id,
+                component_id=self._vehicle_ids[1] if self._vehicle_ids else None,
+                control=self._control.holder,
+                control_reason=self._control.reason,
+                control_age_s=now - self._control.since_s,
             )
 
     def set_target(self, target_m: Sequence[float]) -> tuple[float, float, float]:
@@ -425,7 +470,9 @@ class VehicleLinkBase(VehicleLink):
 
         A target outside the area volume is clamped to it (logged and counted); NaN or infinite
         coordinates raise ValueError and change nothing. A new target goes out at the I/O loop's
-        next iteration, and asks for the guided mode for ``mode_request_window_s``.
+        next iteration and opens a window of ``mode_request_window_s`` in which the guided mode
+        is asked for; the same target set again opens none (the paced loop sets it every period).
+        Nothing streams while the service does not hold the vehicle (:mod:`service.control`).
         """
         try:
             clamped, was_clamped = clamp_point(target_m, self.config.area)
@@ -440,8 +487,9 @@ class VehicleLinkBase(VehicleLink):
             if clamped != self._target_m:
                 self._target_dirty = True
                 self._cond.notify_all()  # wakes an I/O loop waiting on it: out at once
+                # A new target (only): the guided mode may be asked for during the window.
+                self._mode_wanted_until = time.monotonic() + self.config.mode_request_window_s
             self._target_m = clamped
-            self._mode_wanted_until = time.monotonic() + self.config.mode_request_window_s
         return clamped
 
     def clear_target(self) -> None:
@@ -449,6 +497,51 @@ class VehicleLinkBase(VehicleLink):
         with self._cond:
             self._target_m = None
             self._stream_since = None
+
+    def hand_back(self, reason: str = "handed back by an operator") -> None:
+        """Give the vehicle back to the service (see :meth:`VehicleLink.hand_back`)."""
+        with self._cond:
+            refusal = vehicle_control.handback_refusal(
+                self._flavour, self._mode_locked(), self._health == "up", self._failsafe_flagged()
+            )
+            if refusal is not None:
+                raise ControlRefused(refusal)
+            self._set_control(Control("service", reason, time.monotonic()))
+            # The target from before the vehicle left is stale: the next decision streams.
+            self._target_m = None
+            self._stream_since = None
+            # A mode change made before the hand-back but heard after it is not a new takeover.
+            self._control_fresh = True
+
+    def release(
+        self, reason: str = "released by an operator", holder: ControlHolder = "operator"
+    ) -> None:
+        """Take the vehicle from the service (see :meth:`VehicleLink.release`)."""
+        if holder == "service":
+            raise ValueError("holder: release gives the vehicle to someone other than the service")
+        with self._cond:
+            self._set_control(Control(holder, reason, time.monotonic()))
+
+    def _set_control(self, control: Control) -> None:
+        """Change who has the vehicle, logged and counted (call under ``self._cond``)."""
+        if control == self._control:
+            return
+        was = self._control.holder
+        self._control = control
+        if control.holder != "service":
+            self._stream_since = None
+            self.counters["control_released"] += 1
+            log.warning("the %s has the vehicle: %s", control.holder, control.reason)
+        elif was != "service":
+            self.counters["control_handed_back"] += 1
+            log.info("the service has the vehicle again: %s", control.reason)
+
+    def _failsafe_flagged(self) -> bool:
+        """The vehicle's HEARTBEAT flags a failsafe (call under ``self._cond``)."""
+        return self._system_status in (
+            vehicle_control.MAV_STATE_CRITICAL,
+            vehicle_control.MAV_STATE_EMERGENCY,
+        )
 
     def arm_and_takeoff(
         self, z_m: float | None = None, timeout_s: float = TAKEOFF_TIMEOUT_S
@@ -493,6 +586,7 @@ class VehicleLinkBase(VehicleLink):
             self._takeoff_attempts = 0
             self._takeoff_last_refusal = None
             self._hold_setpoints = True
+            self._set_control(Control("service", "its take-off sequence", time.monotonic()))
         self._workers.append(worker)
         worker.start()
         return future
@@ -612,25 +706,59 @@ class VehicleLinkBase(VehicleLink):
         base_mode: int,
         custom_mode: int,
         system_id: int | None = None,
+        system_status: int | None = None,
+        component_id: int | None = None,
     ) -> bool:
-        """A HEARTBEAT heard on the link (from MAVLink system ``system_id``). False, and nothing
-        changes, when it is not the vehicle's (a ground station or a companion computer:
-        autopilot INVALID, or type GCS or ONBOARD_CONTROLLER). Otherwise the flavour, mode,
-        armed state and system id are the vehicle's, and the link is up; telemetry from before a
-        loss no longer counts as fresh."""
+        """A HEARTBEAT heard on the link (from MAVLink system ``system_id``, component
+        ``component_id``). False, and nothing changes, when it is not the vehicle's: a ground
+        station, a companion computer or a peripheral (autopilot INVALID, or type GCS,
+        ONBOARD_CONTROLLER, GIMBAL, CAMERA, ADSB, ...), or another system or component than the
+        vehicle's (:meth:`_vehicle_ids_match`: the first vehicle HEARTBEAT locks them; others are
+        counted in ``foreign_messages``). Otherwise the
+        flavour, mode, armed state and system id are the vehicle's, and the link is up; telemetry
+        from before a loss no longer counts as fresh. Outside the service's take-off, a mode
+        change, a return or landing mode or a disarm takes the vehicle out of the service's hands
+        (:func:`service.control.after_heartbeat`)."""
         if autopilot == mavlink.MAV_AUTOPILOT_INVALID or vehicle_type in (
             mavlink.MAV_TYPE_GCS,
             mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
+            # Peripherals, some of which send an autopilot in their HEARTBEAT: never the vehicle
+            # (the first vehicle HEARTBEAT locks its ids).
+            mavlink.MAV_TYPE_ANTENNA_TRACKER,
+            mavlink.MAV_TYPE_GIMBAL,
+            mavlink.MAV_TYPE_ADSB,
+            mavlink.MAV_TYPE_CAMERA,
+            mavlink.MAV_TYPE_CHARGING_STATION,
+            mavlink.MAV_TYPE_FLARM,
+            mavlink.MAV_TYPE_SERVO,
+            mavlink.MAV_TYPE_ODID,
+            mavlink.MAV_TYPE_BATTERY,
+            mavlink.MAV_TYPE_PARACHUTE,
+            mavlink.MAV_TYPE_LOG,
+            mavlink.MAV_TYPE_OSD,
+            mavlink.MAV_TYPE_IMU,
+            mavlink.MAV_TYPE_GPS,
+            mavlink.MAV_TYPE_WINCH,
+            mavlink.MAV_TYPE_ILLUMINATOR,
+            mavlink.MAV_TYPE_GRIPPER,
         ):
             return False
         now = time.monotonic()
         with self._cond:
+            if system_id is not None and not self._vehicle_ids_match(
+                system_id, component_id, lock=True
+            ):
+                return False
+            previous_mode, previous_armed = self._mode_locked(), self._armed
+            after_loss = self._health == "link_lost"
             self._flavour = flavour = flavour_of(autopilot)
             if system_id is not None:
                 self._system_id = system_id
             self._custom_mode = custom_mode
             self._armed = bool(base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            self._system_status = system_status
             self._last_hb = now
+            self._follow_control(previous_mode, previous_armed, after_loss, now)
             if self._health != "up":
                 log.info("vehicle HEARTBEAT (%s): link up", flavour)
                 self._health = "up"
@@ -640,6 +768,71 @@ class VehicleLinkBase(VehicleLink):
                 self._on_link_up(now)
             self._cond.notify_all()
         return True
+
+    def _vehicle_ids_match(
+        self, system_id: int, component_id: int | None, lock: bool = False
+    ) -> bool:
+        """Whether a message from ``system_id``/``component_id`` is the vehicle's (call under
+        ``self._cond``). The first vehicle HEARTBEAT (``lock``) locks the pair for this link's
+        lifetime: a transport recreated after a loss keeps it, so another system heard while the
+        vehicle is silent never takes its place; only a new link (a restarted service) chooses
+        again. Before the lock nothing is the vehicle's; after it, a message from another pair
+        is counted in ``foreign_messages`` and each foreign system is logged once. A None
+        ``component_id`` matches on the system alone."""
+        if self._vehicle_ids is None:
+            if not lock:
+                return False
+            self._vehicle_ids = (system_id, component_id)
+            log.info("vehicle: MAVLink system %s component %s", system_id, component_id)
+            return True
+        locked_system, locked_component = self._vehicle_ids
+        if system_id == locked_system and (
+            component_id is None or locked_component is None or component_id == locked_component
+        ):
+            return True
+        self.counters["foreign_messages"] += 1
+        if system_id not in self._foreign_logged:
+            self._foreign_logged.add(system_id)
+            log.warning(
+                "MAVLink system %s component %s sends vehicle messages on the link of system %s "
+                "component %s: ignored (counted in foreign_messages; only signing keeps out a "
+                "sender that copies the vehicle's ids)",
+                system_id,
+                component_id,
+                locked_system,
+                locked_component,
+            )
+        return False
+
+    def _follow_control(
+        self, previous_mode: str | None, previous_armed: bool, after_loss: bool, now: float
+    ) -> None:
+        """Who has the vehicle after this HEARTBEAT (call under ``self._cond``); the take-off
+        sequence owns the vehicle's modes while it runs, and a disarm after it makes the
+        take-off ``idle`` again."""
+        if self._takeoff == "running" or self._flavour is None:
+            return
+        mode = self._mode_locked()
+        assert mode is not None
+        failsafe_text = None
+        if self._failsafe_text is not None:
+            at, text = self._failsafe_text
+            if now - at <= vehicle_control.FAILSAFE_EVIDENCE_S:
+                failsafe_text = text
+        fresh, self._control_fresh = self._control_fresh, False
+        seen = vehicle_control.Observation(
+            flavour=self._flavour,
+            mode=mode,
+            armed=self._armed,
+            previous_mode=None if fresh else previous_mode,
+            previous_armed=None if fresh else previous_armed,
+            failsafe_flagged=self._failsafe_flagged(),
+            failsafe_text=failsafe_text,
+            after_link_loss=after_loss,
+        )
+        self._set_control(vehicle_control.after_heartbeat(self._control, seen, now))
+        if previous_armed and not self._armed and self._takeoff == "airborne":
+            self._takeoff = "idle"
 
     def _stream_setpoint(self, now: float) -> None:
         """The current target as one setpoint, if one streams; counted when it went out."""
@@ -663,20 +856,33 @@ class VehicleLinkBase(VehicleLink):
                 self.counters["setpoints_sent"] += 1
 
     def _streaming_now(self) -> bool:
-        return self._health == "up" and self._target_m is not None and not self._hold_setpoints
+        return (
+            self._health == "up"
+            and self._target_m is not None
+            and not self._hold_setpoints
+            and self._control.service_has_it
+        )
 
     def _guided_mode_due(self, now: float) -> Flavour | None:
         """The flavour when the guided mode (GUIDED / OFFBOARD) should be asked for now, counted
-        as a mode request; None when not: no target streams, the request window is closed, the
-        vehicle is already in it, or (PX4) the stream has not run ``px4_stream_lead_s`` yet."""
+        as a mode request; None when not: no target streams (which includes: the service does
+        not hold the vehicle), the request window is closed, the vehicle is already in it or in a
+        return or landing mode, it flags a failsafe, no HEARTBEAT came since the last request
+        (its answer is not known yet: asking again could undo a pilot's switch made meanwhile),
+        or (PX4) the stream has not run ``px4_stream_lead_s`` yet."""
         with self._cond:
             flavour = self._flavour
+            mode = self._mode_locked()
             if (
                 flavour not in GUIDED_MODE_NAME
                 or not self._streaming_now()
                 or now > self._mode_wanted_until
-                or self._custom_mode is None
-                or mode_name(flavour, self._custom_mode) == GUIDED_MODE_NAME[flavour]
+                or mode is None
+                or mode == GUIDED_MODE_NAME[flavour]
+                or vehicle_control.is_return_or_land(flavour, mode)
+                or self._failsafe_flagged()
+                or self._last_hb is None
+                or self._last_hb <= self._mode_asked_at
             ):
                 return None
             if flavour == "px4" and (
@@ -685,6 +891,7 @@ class VehicleLinkBase(VehicleLink):
             ):
                 return None
             self.counters["mode_requests"] += 1
+            self._mode_asked_at = now
             return flavour
 
     def _note_status_text(self, severity: int, text: str) -> None:
@@ -696,6 +903,8 @@ class VehicleLinkBase(VehicleLink):
         name = entry.name.removeprefix("MAV_SEVERITY_") if entry is not None else str(severity)
         with self._cond:
             self._status_texts.append((time.monotonic(), f"{name}: {text}"))
+            if vehicle_control.is_failsafe_text(severity, text):
+                self._failsafe_text = (time.monotonic(), text)
             self._cond.notify_all()
         level = logging.WARNING if severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO
         log.log(level, "vehicle says: %s", text)
@@ -803,6 +1012,11 @@ class VehicleLinkBase(VehicleLink):
                 self._hold_setpoints = False
                 self._mode_wanted_until = time.monotonic() + self.config.mode_request_window_s
                 alt_now_m = self._relative_alt_m or 0.0
+                mode = self._mode_locked()
+                if vehicle_control.is_return_or_land(self._flavour, mode):
+                    self._set_control(
+                        Control("autopilot", f"the vehicle is in {mode}", time.monotonic())
+                    )
             log.info("airborne at %.1f m above home", alt_now_m)
             future.set_result(None)
         except Exception as exc:

@@ -83,7 +83,7 @@ def associate(
     return new, handover
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _associate(
     rx: np.ndarray,
     current: np.ndarray,
@@ -113,7 +113,7 @@ def _associate(
             handover[b, u] = own >= 0 and new[b, u] != own
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _open_power(
     uav: np.ndarray,
     users: np.ndarray,

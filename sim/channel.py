@@ -204,7 +204,7 @@ def rician_power_gain(rng: np.random.Generator, k_db: float, size: tuple[int, ..
     return draws[0]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _combine_parts(draws: np.ndarray, los: float, sigma: float) -> None:
     """``draws[0] = (los + sigma·draws[0])² + (sigma·draws[1])²`` in place, (2, N)."""
     for i in range(draws.shape[1]):

@@ -461,7 +461,7 @@ def _components(hears: np.ndarray) -> np.ndarray:
     return np.argmax(reach > 0, axis=2)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _row_index(row_of_user: np.ndarray, k: int) -> np.ndarray:
     """Rows of the fleets' cells (B·K, n): row b·K + r lists, in user order, the users u with
     ``row_of_user[b, u] == r``, padded with -1 to the fullest row's count n."""
@@ -481,7 +481,7 @@ def _row_index(row_of_user: np.ndarray, k: int) -> np.ndarray:
     return index
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _gather(values: np.ndarray, index: np.ndarray, k: int, pad: float) -> np.ndarray:
     """Per-user values (B, U) laid out in rows (B·K, n), ``pad`` where a row has no user."""
     out = np.full(index.shape, pad)
@@ -494,7 +494,7 @@ def _gather(values: np.ndarray, index: np.ndarray, k: int, pad: float) -> np.nda
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _gather_cells(
     users: np.ndarray,
     load: np.ndarray,
@@ -526,7 +526,7 @@ def _gather_cells(
     return xy, offered, queues
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _scatter_cells(
     index: np.ndarray,
     k: int,
@@ -582,7 +582,7 @@ def _scatter_result(
     return throughput, delay, plr, QueueState(backlog, codel, at_cap), snr, connected
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _fleet_metrics(
     throughput: np.ndarray,
     delay: np.ndarray,

@@ -147,7 +147,7 @@ def fleet_observations(
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _fill_fleet_maps(
     out: np.ndarray, uav: np.ndarray, users: np.ndarray, association: np.ndarray, zone_m: float
 ) -> None:

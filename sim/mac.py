@@ -33,7 +33,7 @@ from sim.config import MacConfig
 _MAX_CONTENDERS = 1024
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def fair_txop_rate(
     attempt_rate: np.ndarray, overhead_s: np.ndarray, mpdu_s: np.ndarray, max_mpdus: np.ndarray
 ) -> float:
@@ -65,7 +65,7 @@ def fair_txop_rate(
     return np.inf
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def effective_contenders(attempt_rate: np.ndarray, nu: float) -> float:
     """Stations contending for a typical TXOP: backlogged ones count 1, light ones r / nu."""
     total = 0.0
@@ -74,7 +74,7 @@ def effective_contenders(attempt_rate: np.ndarray, nu: float) -> float:
     return max(total, 1.0)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def contention_overhead(
     n_contenders: float, collision_table: np.ndarray, slot_s: float, cw_min: int
 ) -> tuple[float, float]:
@@ -89,7 +89,7 @@ def contention_overhead(
     return slot_s * cw_min / (n + 1.0), 1.0 / (1.0 - p)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def idle_slots_per_transmission(n_contenders: float, collision_prob: float, cw_min: int) -> float:
     """Mean idle slots between two transmissions in Bianchi's model, ``n_contenders`` stations.
 

@@ -493,7 +493,7 @@ def _check_step_values(uav: np.ndarray, users: np.ndarray, load: np.ndarray, ste
         raise InputError(f"step_s: must be a positive number, got {step_s!r}")
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _values_ok(uav: np.ndarray, users: np.ndarray, load: np.ndarray) -> bool:
     """True when :func:`_check_step_values` surely passes these arrays: every value finite and
     far from overflowing a sum, every load non-negative. False sends the caller to it."""
@@ -509,7 +509,7 @@ def _values_ok(uav: np.ndarray, users: np.ndarray, load: np.ndarray) -> bool:
     return total < 1e300  # False for any NaN or infinity too
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _simulate(
     kt: tuple,
     packet_bits: float,
@@ -675,7 +675,7 @@ def _simulate(
                 )
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _stall_fractions(
     k: _Constants,
     attempt_rate: np.ndarray,

@@ -127,7 +127,7 @@ def build_observations(
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _fill_maps_many(
     out: np.ndarray,
     uav: np.ndarray,
@@ -164,7 +164,7 @@ def _fill_maps_many(
         )
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _fill_maps(
     out: np.ndarray,
     uav_x_m: float,

@@ -112,7 +112,7 @@ class LinkTable:
         return cls(mcs, expected)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def expected_link(expected: np.ndarray, snr_db: float) -> tuple[float, float, float, float]:
     """Expected-mode link (overhead_s, mpdu_s, max_mpdus, success) at a mean SNR, interpolated."""
     position = (min(max(snr_db, SNR_GRID_MIN_DB), SNR_GRID_MAX_DB) - SNR_GRID_MIN_DB) / (
@@ -130,7 +130,7 @@ def expected_link(expected: np.ndarray, snr_db: float) -> tuple[float, float, fl
     )
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def sampled_link(
     expected: np.ndarray,
     per_mid_db: np.ndarray,

@@ -43,7 +43,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def advance_queue(
     backlog_pkts: float,
     codel_count: float,
@@ -146,7 +146,7 @@ def advance_queue(
     return dropped + drops, waited / step_s, end - drops, new_count, held
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _at_cap_wait_integral(
     cap_pkts: float, arrival_pps: float, service_pps: float, tau_a_s: float, tau_b_s: float
 ) -> float:

@@ -42,7 +42,7 @@ MAX_FAILURES = 32
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _excess_over(mean_s: float, std_s: float, limit_s: float) -> float:
     """E[(G − limit)⁺] for G normal with ``mean_s`` and ``std_s``."""
     if std_s <= 0.0:
@@ -52,7 +52,7 @@ def _excess_over(mean_s: float, std_s: float, limit_s: float) -> float:
     return std_s * math.exp(-0.5 * z * z) / _SQRT_2PI + (mean_s - limit_s) * tail
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def mean_backoff_slots(failure_prob: float, cw_min: int, cw_max: int) -> float:
     """Mean backoff slots drawn per attempt by a station whose attempts fail with this
     probability: the attempt after k failures in a row (probability ∝ q^k) draws CW_k / 2."""
@@ -66,7 +66,7 @@ def mean_backoff_slots(failure_prob: float, cw_min: int, cw_max: int) -> float:
     return total
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def backoff_stall(
     failure_prob: float,
     slot_time_s: float,
@@ -136,7 +136,7 @@ def stall_table(lifetime_s: float, cw_min: int, cw_max: int) -> np.ndarray:
     return table
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def stall_lookup(table: np.ndarray, failure_prob: float, slot_time_s: float) -> tuple[float, float]:
     """:func:`backoff_stall` (no own airtime) interpolated in ``table`` (:func:`stall_table`)."""
     fq = min(max(failure_prob, 0.0), Q_MAX) / Q_MAX * (Q_POINTS - 1)
@@ -153,7 +153,7 @@ def stall_lookup(table: np.ndarray, failure_prob: float, slot_time_s: float) -> 
     return _bilinear(table[0], i, j, a, b), _bilinear(table[1], i, j, a, b)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _bilinear(grid: np.ndarray, i: int, j: int, a: float, b: float) -> float:
     return (
         (1.0 - a) * (1.0 - b) * grid[i, j]

@@ -352,6 +352,8 @@ class Vehicle:
         return self.set_mode_spec(self.flavour.mode(name))
 
     def set_mode_spec(self, spec: ModeSpec) -> CommandOutcome:
+        """A mode command (counted per mode asked for, as ``mode_commands_<NAME>``)."""
+        self.counters[f"mode_commands_{spec.name}"] += 1
         if spec == self.mode:
             return CommandOutcome(MavResult.ACCEPTED, "already in mode")
         position_checked = self.armed or not self.flavour.mode_position_check_armed_only
@@ -455,6 +457,15 @@ class Vehicle:
         else:
             return CommandOutcome(MavResult.DENIED, f"speed type {speed_type}")
         return CommandOutcome(MavResult.ACCEPTED)
+
+    def set_battery_remaining(self, remaining_pct: float) -> None:
+        """The simulator's battery knob (as ``SIM_BATT_VOLTAGE`` on ArduPilot SITL): the pack
+        holds ``remaining_pct`` of its capacity from now on, and drains from there; the battery
+        failsafe acts at its next check if that is at or below its threshold."""
+        if not 0.0 <= remaining_pct <= 100.0:
+            raise ValueError(f"remaining_pct: must be in [0, 100], got {remaining_pct!r}")
+        battery = self._battery
+        battery.consumed_mah = battery.capacity_mah * (1.0 - remaining_pct / 100.0)
 
     def note_gcs_heartbeat(self) -> None:
         """A ground station (or companion computer) HEARTBEAT arrived."""

@@ -26,7 +26,15 @@ from collections.abc import Sequence
 from concurrent.futures import Future
 from typing import Self
 
-from service.vehicle_link import TAKEOFF_TIMEOUT_S, LinkConfig, LinkHealth, LinkState, VehicleLink
+from service.control import Control, ControlHolder
+from service.vehicle_link import (
+    TAKEOFF_TIMEOUT_S,
+    ControlRefused,
+    LinkConfig,
+    LinkHealth,
+    LinkState,
+    VehicleLink,
+)
 from sim.geometry import clamp_point
 
 Vec3 = tuple[float, float, float]
@@ -86,6 +94,7 @@ class FakeLink(VehicleLink):
         self._takeoff_future: Future[None] | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        self._control = Control("service", "waiting for the vehicle", time.monotonic())
 
     # ------------------------------------------------------------------ VehicleLink
 
@@ -128,6 +137,9 @@ class FakeLink(VehicleLink):
                 takeoff_phase="climbing" if self._takeoff == "running" else None,
                 takeoff_attempts=self._takeoff_attempts,
                 system_id=self.system_id if heard else None,
+                control=self._control.holder,
+                control_reason=self._control.reason,
+                control_age_s=time.monotonic() - self._control.since_s,
             )
 
     def set_target(self, target_m: Sequence[float]) -> tuple[float, float, float]:
@@ -147,6 +159,26 @@ class FakeLink(VehicleLink):
     def clear_target(self) -> None:
         with self._cond:
             self._target = None
+
+    def hand_back(self, reason: str = "handed back by an operator") -> None:
+        with self._cond:
+            if self._health != "up":
+                raise ControlRefused("the vehicle's link is not up")
+            self._control = Control("service", reason, time.monotonic())
+
+    def release(
+        self, reason: str = "released by an operator", holder: ControlHolder = "operator"
+    ) -> None:
+        with self._cond:
+            self._control = Control(holder, reason, time.monotonic())
+
+    def vehicle_leaves(
+        self, holder: ControlHolder = "pilot", reason: str = "left OFFBOARD"
+    ) -> None:
+        """The vehicle leaves the service's hands (a pilot's switch, a failsafe): nothing streams
+        until :meth:`hand_back`."""
+        with self._cond:
+            self._control = Control(holder, reason, time.monotonic())
 
     def arm_and_takeoff(
         self, z_m: float | None = None, timeout_s: float = TAKEOFF_TIMEOUT_S
@@ -205,7 +237,12 @@ class FakeLink(VehicleLink):
         self._advance_takeoff()
 
     def _streaming(self) -> bool:
-        return self._health == "up" and self._target is not None and self._takeoff != "running"
+        return (
+            self._health == "up"
+            and self._target is not None
+            and self._takeoff != "running"
+            and self._control.holder == "service"
+        )
 
     def _advance_takeoff(self) -> None:
         """Arm once the vehicle is heard; complete the take-off once at its altitude."""

@@ -401,6 +401,11 @@
       const dl = document.createElement("dl");
       fact(dl, "mode", `${vehicle.mode || "–"}${vehicle.armed ? ", armed" : ", disarmed"}`);
       fact(dl, "streaming", vehicle.streaming ? "yes" : "no");
+      const control = vehicle.control || { holder: "service", reason: "" };
+      fact(dl, "control", control.holder === "service" ? "service" : `${control.holder}: ${control.reason}`, {
+        testid: `control-${vehicle.id}`,
+        holder: control.holder,
+      });
       fact(dl, "position", point(vehicle.position_m));
       fact(dl, "heading", vehicle.heading_deg === null ? "from track" : `${fmt(vehicle.heading_deg, 0)}°`);
       fact(dl, "target", point(vehicle.target_m));

@@ -19,18 +19,74 @@ with a token: ``--address auto`` finds a cluster started on this machine with it
 cluster elsewhere give its token as Ray reads it (``RAY_AUTH_TOKEN`` or
 ``RAY_AUTH_TOKEN_PATH``), or the connection fails, naming the address.
 Without ``--address`` a private Ray instance starts on this machine with as many CPUs as it
-has (or ``--workers``), bound to 127.0.0.1, without the dashboard, and stops with the command.
+has (or ``--workers``), listening on loopback only, without the dashboard, and stops with the
+command (:func:`init_local_ray`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import socket
+from collections.abc import Iterator
 from typing import Any
 
 from policies.sweep.backends import Outcome, machine_cores, one_line
 from sim.errors import InputError
+
+#: Ray's switch for single-machine instances (its default on Windows and macOS, where it does not
+#: support clusters): "0" makes Ray's node address the loopback one.
+SINGLE_MACHINE_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+
+
+@contextlib.contextmanager
+def _single_machine() -> Iterator[None]:
+    """Ray in single-machine mode while a local instance starts.
+
+    On Linux Ray deliberately replaces a loopback node address (``ray.init(_node_ip_address=
+    "127.0.0.1")``, ``ray start --node-ip-address 127.0.0.1``) with the machine's network
+    address, so that other nodes could join, and its GCS server, raylet, agents and workers
+    listen there (and, in older Ray, on every interface). With clusters switched off
+    (``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0``) the node address is the loopback one and every
+    server binds to it. Ray reads that variable when it is imported, so the already imported
+    constant is switched too; the processes Ray starts inherit the variable. Both are restored
+    afterwards (the running instance keeps its address).
+    """
+    from ray._private import ray_constants
+
+    saved_env = os.environ.get(SINGLE_MACHINE_ENV)
+    saved_flag = getattr(ray_constants, "ENABLE_RAY_CLUSTER", None)
+    os.environ[SINGLE_MACHINE_ENV] = "0"
+    ray_constants.ENABLE_RAY_CLUSTER = False
+    try:
+        yield
+    finally:
+        if saved_env is None:
+            os.environ.pop(SINGLE_MACHINE_ENV, None)
+        else:
+            os.environ[SINGLE_MACHINE_ENV] = saved_env
+        if saved_flag is None:
+            with contextlib.suppress(AttributeError):
+                del ray_constants.ENABLE_RAY_CLUSTER
+        else:
+            ray_constants.ENABLE_RAY_CLUSTER = saved_flag
+
+
+def init_local_ray(num_cpus: int, logging_level: int = logging.WARNING) -> None:
+    """Start a private Ray instance on this machine, listening on loopback only: ``num_cpus``
+    CPUs, no dashboard, workers' output not sent to the driver. (``tests/policies`` starts its
+    instances with it too.)"""
+    import ray
+
+    with _single_machine():
+        ray.init(
+            num_cpus=num_cpus,
+            include_dashboard=False,
+            _node_ip_address="127.0.0.1",
+            logging_level=logging_level,
+            log_to_driver=False,
+        )
 
 
 def _run(payload: dict[str, Any]) -> dict[str, Any]:
@@ -76,13 +132,7 @@ class RayBackend:
                     f"--address: cannot reach a Ray cluster at {address}: {one_line(exc)}"
                 ) from None
         else:
-            ray.init(
-                num_cpus=workers or machine_cores(),
-                include_dashboard=False,
-                _node_ip_address="127.0.0.1",
-                logging_level=logging.WARNING,
-                log_to_driver=False,
-            )
+            init_local_ray(workers or machine_cores())
             self._owned = True
         cpus = int(ray.cluster_resources().get("CPU", 1))
         self.slots = max(1, min(workers, cpus) if workers else cpus)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import shutil
 import threading
+import time
 import zipfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,10 +20,14 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app
 from api.auth import token_matches
+from service.placement import PlacementService
 from service.policy_runtime import SHIPPED_CHECKPOINTS, SHIPPED_DDQN
 from service.settings import ServiceSettings
+from service.vehicle_link import LinkConfig
 from sitl_mock.config import VehicleConfig
 from sitl_mock.server import MockAutopilot
+from tests.fakes import FakeLink
+from tests.gated_policy import GatedPolicy
 from tests.helpers import wait_for
 from tests.offline import offline_service
 
@@ -79,6 +84,7 @@ def client(mock: MockAutopilot, checkpoint_dir: Path) -> Iterator[TestClient]:
         policy="load-weighted",
         decision_mode="on-report",
         max_body_bytes=200_000,
+        rate_limit_rps=0.0,  # the hot-swap test posts from three threads as fast as it can
     )
     with TestClient(create_app(settings)) as test_client:
         wait_for(lambda: test_client.get("/readyz").status_code == 200, 15.0, message="link up")
@@ -160,6 +166,7 @@ def test_report_triggers_a_decision_inside_the_geofence(client: TestClient, cloc
     assert response.status_code == 200, response.text
     body = response.json()
     assert body["source"] == "policy" and body["policy"] == "load-weighted"
+    assert body["report_outcome"] == "decided"  # the decision taken from this report
     target = body["target"]
     assert 0 <= target["x_m"] <= 500 and 0 <= target["y_m"] <= 500
     assert 25 <= target["z_m"] <= 100
@@ -274,7 +281,11 @@ def test_vehicle_in_the_area_frame(client: TestClient) -> None:
 
 
 def test_policy_get_and_switch(client: TestClient) -> None:
-    assert client.get("/v1/policy", headers=AUTH).json()["name"] == "load-weighted"
+    serving = client.get("/v1/policy", headers=AUTH).json()
+    assert serving["name"] == "load-weighted"
+    timing = serving["decisions"]  # how long decisions take against the period
+    assert timing["mode"] == "on-report" and timing["period_s"] == 1.0
+    assert timing["timed"] >= 0 and timing["overruns"] >= 0
     switched = client.put("/v1/policy", json={"policy": "min-distance"}, headers=AUTH)
     assert switched.status_code == 200 and switched.json()["name"] == "min-distance"
     assert client.get("/v1/policy", headers=AUTH).json()["kind"] == "placement"
@@ -408,7 +419,52 @@ def test_report_while_the_link_is_down_is_accepted_and_waits() -> None:
             "policy": None,
             "decided_at": None,
             "targets": None,
+            "report_outcome": "held",  # kept, and decided once the link is back
         }
         ready = test_client.get("/readyz")
         assert ready.status_code == 503
         assert any("link" in reason for reason in ready.json()["reasons"])
+
+
+def test_a_report_behind_a_slow_decision_is_answered_pending_within_two_periods() -> None:
+    """A decision slower than the period (a policy held by the test) does not hold the report's
+    answer: ``pending`` with the current target, and ``GET /v1/policy`` counts the overrun."""
+    policy = GatedPolicy()
+    settings = ServiceSettings(api_token=TOKEN, decision_mode="on-report", step_s=0.2)
+    link = FakeLink(LinkConfig("tcp:127.0.0.1:1"), position_m=(250.0, 250.0, 30.0))
+
+    def factory(s: ServiceSettings) -> PlacementService:
+        return PlacementService(s, link, policy)
+
+    try:
+        with TestClient(create_app(settings, service_factory=factory)) as test_client:
+            answer = test_client.post(
+                "/v1/reports", json={"timestamp": 1.0, "users": [user(1)]}, headers=AUTH
+            )
+            assert answer.status_code == 200
+            assert answer.json()["report_outcome"] == "pending"
+            assert answer.json()["target"] is None  # nothing decided yet
+            policy.wait_started(1)
+            wait_for(  # the decision has been running longer than the period
+                lambda: time.monotonic() - policy.started_at[0] > 0.2, 15.0, message="overrun"
+            )
+            policy.open()
+            wait_for(
+                lambda: test_client.get("/v1/setpoint", headers=AUTH).json()["target"],
+                15.0,
+                message="the pending report decided",
+            )
+            timing = test_client.get("/v1/policy", headers=AUTH).json()["decisions"]
+            assert timing["timed"] == 1 and timing["overruns"] == 1
+            assert timing["max_s"] > timing["period_s"] == 0.2
+    finally:
+        policy.open()
+
+
+def test_paced_mode_answers_stored() -> None:
+    settings = ServiceSettings(api_token=TOKEN, policy="min-distance")
+    with TestClient(create_app(settings, service_factory=offline_service)) as test_client:
+        answer = test_client.post(
+            "/v1/reports", json={"timestamp": 1.0, "users": [user(1)]}, headers=AUTH
+        )
+        assert answer.status_code == 200 and answer.json()["report_outcome"] == "stored"

@@ -77,8 +77,9 @@ def test_one_report_gives_each_vehicle_its_target_and_vehicles_shows_them(
         assert v["setpoint"]["target"] == decision["targets"][v["id"]]
         assert v["vehicle"]["link"] == "up" and v["vehicle"]["position"]["z_m"] == 30.0
     one = client.get("/v1/vehicles/uav2", headers=AUTH).json()
-    for entry in (one, vehicles["vehicles"][1]):  # the only field that moves with time
+    for entry in (one, vehicles["vehicles"][1]):  # the only fields that move with time
         entry["vehicle"].pop("heartbeat_age_s")
+        assert entry["vehicle"]["control"].pop("age_s") >= 0.0
     assert one == vehicles["vehicles"][1]
     setpoint = client.get("/v1/vehicles/uav3/setpoint", headers=AUTH).json()
     assert setpoint["target"] == decision["targets"]["uav3"]
@@ -132,6 +133,7 @@ def test_a_single_vehicle_service_lists_its_one_vehicle() -> None:
         assert vehicles["separation_m"] is None
         (only,) = vehicles["vehicles"]
         assert only["id"] == "uav1" and only["commanded"] and only["system_id"] == 1
+        assert decision.pop("report_outcome") == "decided"  # the report's answer only
         assert only["setpoint"] == decision
         assert client.get("/readyz").json()["vehicles"] is None
 

@@ -88,3 +88,54 @@ def test_error_responses_are_documented_with_models(client: TestClient) -> None:
     for code in ("400", "401", "409", "413", "422", "429"):
         assert "application/json" in post[code]["content"], code
     assert paths["/v1/setpoint"]["get"]["security"] == [{"HTTPBearer": []}]
+
+
+def test_a_chunked_body_over_the_limit_is_413_not_400(client: TestClient) -> None:
+    """No ``Content-Length`` (chunked): the limit is found while the body is read."""
+    limit = ServiceSettings(policy="min-distance").max_body_bytes
+
+    def chunks() -> Iterator[bytes]:
+        sent = 0
+        while sent <= limit:
+            yield b" " * 65536
+            sent += 65536
+
+    response = client.post(
+        "/v1/reports", content=chunks(), headers={**AUTH, "content-type": "application/json"}
+    )
+    assert response.status_code == 413, response.text
+    assert response.json() == {"detail": f"body: over the {limit}-byte limit"}
+    assert response.headers["connection"] == "close"
+    declared = client.post(
+        "/v1/reports",
+        content=b" " * (limit + 1),
+        headers={**AUTH, "content-type": "application/json"},
+    )
+    assert declared.status_code == 413 and declared.headers["connection"] == "close"
+    ok = client.post("/v1/reports", json={"timestamp": 2e9, "users": [USER]}, headers=AUTH)
+    assert ok.status_code in (200, 422), ok.text  # not limited: a small body passes
+
+
+@pytest.mark.parametrize("path", ["/healthz", "/nowhere/x", "/v1/policy"])
+def test_metrics_labels_stay_in_a_closed_set_whatever_the_method_and_path(path: str) -> None:
+    """Made-up methods and paths, with and without the token: every label value of
+    ``tupa_http_requests_total`` is a standard method or ``other``, a route template or
+    ``other``, and the text does not grow with the number of odd requests."""
+    settings = ServiceSettings(api_token=TOKEN, policy="min-distance", rate_limit_rps=0)
+    with TestClient(create_app(settings, service_factory=offline_service)) as fresh:
+        for i in range(5):
+            fresh.request(f"M{i}{'X' * 200}", f"{path}/{'y' * i}", headers=AUTH)
+        before = len(fresh.get("/metrics").content)
+        for i in range(5, 105):
+            fresh.request(f"M{i}{'X' * 200}", f"{path}/{'y' * i}")
+            fresh.request(f"M{i}{'X' * 200}", f"{path}/{'y' * i}", headers=AUTH)
+        text = fresh.get("/metrics").text
+    assert len(text) - before < 2000, len(text) - before
+    templates = {"other", "/healthz", "/v1/policy", "/metrics"}
+    for line in text.splitlines():
+        if line.startswith("tupa_http_requests_total{"):
+            inside = line[line.index("{") + 1 : line.index("}")]
+            labels = dict(part.split("=", 1) for part in inside.split(","))
+            assert labels["method"].strip('"') in {"GET", "other"}, line
+            assert labels["route"].strip('"') in templates, line
+    assert "XXXX" not in text and "yyyy" not in text

@@ -72,6 +72,20 @@ def test_a_report_from_the_future_is_refused_and_locks_nobody_out(
     assert _post(client, time.time()).status_code == 200
 
 
+def test_a_report_stamped_ahead_within_the_tolerance_locks_no_honest_report_out(
+    client: TestClient,
+) -> None:
+    """Reports are ordered by min(timestamp, arrival time): one stamped 4.9 s ahead (accepted,
+    clock skew) counts as stamped when it arrived, so every honest report after it is in order;
+    one older than the last honest report is still refused."""
+    assert _post(client, time.time() + 4.9).status_code == 200
+    for _ in range(5):
+        response = _post(client, time.time())
+        assert response.status_code == 200, response.text
+    late = _post(client, time.time() - 30.0)
+    assert late.status_code == 409 and "older" in late.json()["detail"]
+
+
 @pytest.mark.parametrize("timestamp", [1e300, 1.7976931348623157e308])
 def test_an_absurd_timestamp_is_refused_naming_the_field(
     client: TestClient, timestamp: float

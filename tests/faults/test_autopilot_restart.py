@@ -3,10 +3,12 @@
 ``tupa serve`` (pymavlink link, TCP) flies a PX4-flavoured mock in OFFBOARD; the mock process is
 SIGKILLed while the vehicle streams towards its target. The service must report ``link_lost``
 within its 3 s heartbeat timeout (plus the polling margin), stop streaming, keep reconnecting,
-and, once a new mock listens on the same port, stream the current target again within 5 s of
-the mock's return. Measured at the new mock (its received-setpoint counter). The new mock
-starts on the ground and disarmed: the stream resumes; flying again would need a new takeoff,
-which the service does not do by itself.
+and, once a new mock listens on the same port, see the link up again within 5 s of the mock's
+return. The new mock starts on the ground, disarmed and out of OFFBOARD: the vehicle changed
+mode while the link was lost, so it is the autopilot's (``service.control``): nothing streams
+and no mode is asked for until an operator hands it back (``PUT /v1/vehicle/control``); then
+the next decision streams at once. Measured at the new mock (its counters). Flying again would
+need a new takeoff, which the service does not do by itself.
 """
 
 from __future__ import annotations
@@ -72,18 +74,34 @@ def test_autopilot_killed_mid_flight_then_restarted(harness: Harness) -> None:
 
     again = harness.mock(*PX4_FAST, "--listen", f"tcp:127.0.0.1:{port}")
     back = time.monotonic()
+    # It came back rebooted, on the ground and out of OFFBOARD: the autopilot's, not ours.
+    vehicle = wait_for(
+        lambda: (v := api.vehicle())["link"] == "up" and v["control"]["holder"] != "service" and v,
+        RESUME_WITHIN_S + 2.0,
+        0.05,
+        "link up, and the service letting go",
+    )
+    report_recovery("autopilot back -> link up, left to an operator", time.monotonic() - back)
+    assert vehicle["control"]["holder"] == "autopilot"
+    assert "while the link was lost" in vehicle["control"]["reason"]
+    assert vehicle["streaming"] is False
+    quiet_from = api.vehicle()["heartbeat_age_s"]
+    wait_for(lambda: api.vehicle()["heartbeat_age_s"] < quiet_from, 3.0, 0.05, "a HEARTBEAT")
+    assert again.stats()["setpoints_received"] == 0
+    assert again.stats().get("mode_commands_OFFBOARD", 0) == 0
+
+    # An operator hands it back; the next decision streams again, steadily (>= 5 Hz).
+    handed = time.monotonic()
+    answer = api.client.put("/v1/vehicle/control", json={"holder": "service"})
+    assert answer.status_code == 200, answer.text
+    assert api.report(USERS_EAST).json()["source"] == "policy"
     wait_for(
         lambda: again.stats()["setpoints_received"] >= 1,
-        RESUME_WITHIN_S + 2.0,
+        RESUME_WITHIN_S,
         0.05,
         "setpoints at the restarted mock",
     )
-    resumed_after_s = time.monotonic() - back
-    report_recovery("autopilot back -> setpoints at the vehicle", resumed_after_s)
-    assert resumed_after_s <= RESUME_WITHIN_S
-    vehicle = wait_for(lambda: (v := api.vehicle())["link"] == "up" and v, 3.0, 0.05, "link up")
-    assert vehicle["streaming"] is True
-    # The stream is the current target: unchanged by the outage, and steady again (>= 5 Hz).
+    report_recovery("hand-back -> setpoints at the vehicle", time.monotonic() - handed)
     assert target_xyz(api.setpoint()) == pytest.approx(target)
     count = again.stats()["setpoints_received"]
     started = time.monotonic()

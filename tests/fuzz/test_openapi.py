@@ -20,6 +20,7 @@ import pytest
 import schemathesis
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, settings
+from schemathesis.checks import not_a_server_error
 from schemathesis.specs.openapi.checks import positive_data_acceptance
 
 from api.app import create_app
@@ -89,9 +90,23 @@ def running_app() -> Iterator[None]:
 SEMANTIC_422 = {("POST", "/v1/reports"), ("PUT", "/v1/policy")}
 
 
+# Documented 503: not ready. The fuzzer's own PUT /v1/vehicle/control may take the vehicle from
+# the service (or a hand-back may meet PX4's offboard-loss hold), and then readiness says so.
+DOCUMENTED_503 = {("GET", "/readyz")}
+
+
 def _excluded(case: Any) -> list[Any]:
     operation = (case.operation.method.upper(), case.operation.path)
-    return [positive_data_acceptance] if operation in SEMANTIC_422 else []
+    excluded = [positive_data_acceptance] if operation in SEMANTIC_422 else []
+    if operation in DOCUMENTED_503:
+        excluded.append(not_a_server_error)
+    return excluded
+
+
+def _below_500(case: Any, status_code: int) -> bool:
+    """No server error, except a documented 503 (readiness) on the operation's own method."""
+    documented = (case.operation.method.upper(), case.operation.path) in DOCUMENTED_503
+    return status_code < 500 or (documented and _as_documented(case) and status_code == 503)
 
 
 def _as_documented(case: Any) -> bool:
@@ -103,7 +118,7 @@ def _as_documented(case: Any) -> bool:
 @EXAMPLES
 def test_with_the_token(case: Any) -> None:
     response = case.call_and_validate(headers=AUTH, excluded_checks=_excluded(case))
-    assert response.status_code < 500
+    assert _below_500(case, response.status_code), response.text
 
 
 @schema.parametrize()
@@ -114,7 +129,7 @@ def test_with_a_wrong_token(case: Any) -> None:
     )
     if case.path.startswith("/v1/") and _as_documented(case):
         assert response.status_code == 401, response.text
-    assert response.status_code < 500
+    assert _below_500(case, response.status_code), response.text
 
 
 @schema.parametrize()
@@ -126,4 +141,4 @@ def test_without_a_token(case: Any) -> None:
     response = case.call_and_validate(excluded_checks=_excluded(case))
     if case.path.startswith("/v1/") and _as_documented(case):
         assert response.status_code == 401, response.text
-    assert response.status_code < 500
+    assert _below_500(case, response.status_code), response.text

@@ -17,7 +17,7 @@ import pytest
 ray = pytest.importorskip("ray", reason="ray is not installed (pip install 'tupa[ray]')")
 
 from policies.sweep.backends import LocalBackend  # noqa: E402
-from policies.sweep.ray_backend import RayBackend  # noqa: E402
+from policies.sweep.ray_backend import RayBackend, init_local_ray  # noqa: E402
 from policies.sweep.runner import run_sweep  # noqa: E402
 from policies.sweep.spec import load_spec  # noqa: E402
 from service.cli import main  # noqa: E402
@@ -26,14 +26,9 @@ from tests.policies.test_sweep import kill_worker_once, read_state, tiny_spec  #
 
 @pytest.fixture
 def local_ray():
-    """A private Ray instance: 2 CPUs, bound to 127.0.0.1, no dashboard; shut down after."""
-    ray.init(
-        num_cpus=2,
-        include_dashboard=False,
-        _node_ip_address="127.0.0.1",
-        log_to_driver=False,
-        logging_level="WARNING",
-    )
+    """A private Ray instance, started as the sweep starts its own: 2 CPUs, listening on
+    loopback only, no dashboard; shut down after."""
+    init_local_ray(2)
     try:
         yield ray
     finally:

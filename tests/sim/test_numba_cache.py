@@ -37,3 +37,26 @@ def test_cache_directory_is_named_by_the_hash_of_every_sim_source():
 def test_a_cache_directory_the_caller_sets_wins(tmp_path):
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
     assert _cache_dir(env) == str(tmp_path)
+
+
+def test_every_numba_kernel_of_the_sim_releases_the_gil():
+    """The service decides on its own thread while the event loop answers HTTP and the link
+    streams setpoints: a kernel that held the GIL through a 1,000-user decision stalled both
+    (PX4's offboard-loss failsafe fired). Every compiled kernel in ``sim`` is ``nogil``."""
+    import importlib
+    import pkgutil
+
+    from numba.core.registry import CPUDispatcher
+
+    import sim
+
+    kernels = {}
+    for info in pkgutil.iter_modules(sim.__path__):
+        if info.name.startswith("ns3"):
+            continue  # the optional ns-3 backend needs its extra
+        module = importlib.import_module(f"sim.{info.name}")
+        for name, value in vars(module).items():
+            if isinstance(value, CPUDispatcher) and value.__module__ == module.__name__:
+                kernels[f"{module.__name__}.{name}"] = value.targetoptions.get("nogil", False)
+    assert len(kernels) >= 20
+    assert [name for name, nogil in kernels.items() if not nogil] == []
