@@ -202,7 +202,7 @@ async def post_report(body: ReportIn, request: Request) -> ReportOut:
     is held, e.g. the MAVLink link is down: the report is kept and decided once the link is
     back, if still fresh), at once when a newer report replaces this one before a decision
     reads it (``superseded``: the newer one is decided instead), or, when decisions are slower
-    than the decision period, 1.9 decision periods after it arrived (``pending``: its decision
+    than the decision period, 1.75 decision periods after it arrived (``pending``: its decision
     follows unless a newer report replaces it; ``GET /v1/setpoint`` shows it). The last three
     answer with the current target. ``paced``: the report is stored for the next period's
     decision (``stored``), answered at once with the current target. ``target`` is null before

@@ -151,7 +151,7 @@ class ReportOut(DecisionOut):
         "decision was attempted on it and the target is held (the MAVLink link is down: it is "
         "decided once the link is back, if still fresh; a refused target; a failing policy); "
         "superseded: a newer report replaced it before a decision read it (answered at once; "
-        "the newer one is decided); pending: its decision had not ended 1.9 decision periods "
+        "the newer one is decided); pending: its decision had not ended 1.75 decision periods "
         "after it arrived (decisions are slower than the period; it follows unless a newer "
         "report replaces it: GET /v1/setpoint shows it); stored: paced mode, kept for the next "
         "period's decision. Except for decided, the target is the current one"

@@ -31,7 +31,7 @@ before a decision read it; answered at once), ``pending`` (its decision had not 
 :data:`REPORT_WAIT_PERIODS` decision periods of its arrival: a decision slower than the period
 runs ahead of it; it stays the next report to decide unless a newer one replaces it) or, in
 ``paced`` mode, ``stored``. So a report is answered within two decision periods of its arrival
-(when the HTTP side takes less than a tenth of one), however slow the policy and however many
+(when the HTTP side takes less than a quarter of one), however slow the policy and however many
 reports arrive. Each decision's duration is measured (:meth:`PlacementService.decision_timing`):
 one longer than the decision period is counted as an overrun (``decision_overruns``) and logged
 (at most once a minute); decisions then come once per decision, not once per period.
@@ -90,10 +90,10 @@ log = logging.getLogger(__name__)
 LINK_POLL_S = 0.05
 """How often the ``on-report`` decision thread looks at the link while a report waits for it."""
 
-REPORT_WAIT_PERIODS = 1.9
+REPORT_WAIT_PERIODS = 1.75
 """In ``on-report`` mode, how long (in decision periods, from its acceptance) a report waits for
 the decision on it before it is answered ``pending``: about one period for a decision already
-running and one for its own, less a tenth of a period left to the HTTP side (parsing and
+running and one for its own, less a quarter of a period left to the HTTP side (parsing and
 answering a report of 1,000 users takes tens of milliseconds), so that the answer comes within
 two periods of the report's arrival."""
 
