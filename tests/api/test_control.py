@@ -12,12 +12,11 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app
 from api.live_schemas import LiveFrameOut
-from service.fleet_placement import FleetPlacementService, load_fleet_policy
 from service.placement import PlacementService
 from service.policy_runtime import load_policy
 from service.settings import ServiceSettings
 from service.vehicle_link import LinkConfig
-from tests.api.test_fleet_api import AUTH, TOKEN, URLS, report_body
+from tests.api.fleet_helpers import AUTH, TOKEN, URLS, report_body
 from tests.fakes import FakeLink
 
 
@@ -119,27 +118,6 @@ def test_control_needs_the_token_and_a_handback_needs_the_link(
     assert answer.status_code == 409
     assert answer.json()["detail"] == "control: the vehicle's link is not up"
     assert link.state().control == "autopilot"
-
-
-@pytest.fixture
-def fleet() -> Iterator[tuple[TestClient, dict[str, FakeLink]]]:
-    settings = ServiceSettings(fleet_mavlink=URLS, api_token=TOKEN, decision_mode="on-report")
-    world = settings.policy_world()
-    links = {
-        f"uav{i + 1}": FakeLink(
-            LinkConfig(url, area=world.area), position_m=(200.0 + 60 * i, 250.0, 30.0),
-            system_id=i + 1,
-        )
-        for i, url in enumerate(URLS)
-    }  # fmt: skip
-
-    def factory(s: ServiceSettings) -> PlacementService:
-        spec = s.fleet_spec()
-        policy = load_fleet_policy("kmeans-load-weighted", world, spec.separation_m)
-        return FleetPlacementService(s, links, policy, spec, world)
-
-    with TestClient(create_app(settings, service_factory=factory)) as client:
-        yield client, links
 
 
 def test_a_fleet_vehicle_released_is_left_alone_and_the_others_cover_its_users(
