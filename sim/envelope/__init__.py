@@ -1,0 +1,27 @@
+"""The flight-safety envelope: where one vehicle may be and how it gets there.
+
+* :mod:`sim.envelope.volume`: :class:`Envelope` (inclusion polygon, exclusion volumes, altitude
+  band, clearance, speed limit) and its exact point and segment checks.
+* :mod:`sim.envelope.paths`: :func:`legal_target` and :func:`plan_path` (direct, over, around,
+  or :class:`Hold`).
+* :mod:`sim.envelope.files`: the ``tupa-envelope/1`` JSON format and its checks.
+
+Pure geometry on shapely, shared by whatever flies a vehicle (the service's link, the world's
+flight model), so that what is trained, evaluated and flown keeps to the same envelope.
+"""
+
+from sim.envelope.files import ENVELOPE_FORMAT, envelope_from_document, load_envelope
+from sim.envelope.paths import FlightPath, Hold, legal_target, plan_path
+from sim.envelope.volume import Envelope, Exclusion
+
+__all__ = [
+    "ENVELOPE_FORMAT",
+    "Envelope",
+    "Exclusion",
+    "FlightPath",
+    "Hold",
+    "envelope_from_document",
+    "legal_target",
+    "load_envelope",
+    "plan_path",
+]
