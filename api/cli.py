@@ -12,8 +12,9 @@ Serve the placement API and stream the chosen targets to the autopilot over MAVL
 
 Every option can also come from a TUPA_* environment variable (TUPA_MAVLINK, TUPA_POLICY,
 TUPA_API_TOKEN, TUPA_MAVLINK_SIGNING_KEY, TUPA_DECISION_MODE, ...); options win. Without an API
-token the service refuses to start unless --insecure is given. The vehicle is never armed unless
---arm-and-takeoff is given.
+token (TUPA_API_TOKEN, or --api-token-file FILE) the service refuses to start unless --insecure
+is given. A connection string pymavlink cannot open is refused at start, as in a fleet file.
+The vehicle is never armed unless --arm-and-takeoff is given.
 
 Examples:
   TUPA_API_TOKEN=secret tupa serve --mavlink tcp:127.0.0.1:5760          # ArduPilot SITL
@@ -24,6 +25,7 @@ Examples:
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "serve",
+        allow_abbrev=False,
         help="run the placement service (HTTP API + MAVLink setpoint streaming)",
         description=_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -32,8 +34,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--mavlink",
         metavar="CONN",
         action="append",
-        help="pymavlink connection string; repeat it to drive a fleet whose vehicles share one "
-        "frame (vehicles uav1, uav2, ...)",
+        help="pymavlink connection string: tcp:HOST:PORT, tcpin:, udp:, udpin:, udpout:, "
+        "udpbcast:, or a serial device path (default tcp:127.0.0.1:5760); repeat it to drive a "
+        "fleet whose vehicles share one frame (vehicles uav1, uav2, ...)",
     )
     parser.add_argument(
         "--fleet-file",
@@ -72,7 +75,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--host", help="address to listen on (default 127.0.0.1)")
     parser.add_argument("--port", type=int, help="port to listen on (default 8080; 0: any free)")
     parser.add_argument(
-        "--api-token-file", type=Path, metavar="FILE", help="read the API token from FILE"
+        "--api-token-file",
+        type=Path,
+        metavar="FILE",
+        help="read the API token from FILE (or set TUPA_API_TOKEN)",
     )
     parser.add_argument(
         "--insecure", action="store_true", default=None, help="allow serving without a token"

@@ -66,7 +66,7 @@ def main() -> None:
         sys.exit("chromium is missing: apt-get install chromium")
     out_dir = Path(tempfile.mkdtemp(prefix="tupa-demo-"))
     demo = TupaProcess(
-        ["demo", "--scenarios", "1", "--steps", str(args.steps), "--out", str(out_dir)],
+        ["demo", "--n-scenarios", "1", "--steps", str(args.steps), "--out", str(out_dir)],
         "tupa-demo",
         cwd=REPO,
     )

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 from sim.config import ENVIRONMENTS
 
@@ -12,6 +15,7 @@ from sim.config import ENVIRONMENTS
 def register(subparsers: argparse._SubParsersAction) -> None:
     demo = subparsers.add_parser(
         "demo",
+        allow_abbrev=False,
         help="closed loop: sitl-mock + tupa serve + a simulated network controller",
         description="Start the autopilot simulator, the placement service and a network "
         "controller played by the embedded simulator; fly a few heterogeneous scenarios in real "
@@ -36,7 +40,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "period)",
     )
     demo.add_argument(
-        "--scenarios", type=int, help="how many (default 3; the fleet demo plays one)"
+        "--scenarios",
+        metavar="FILE",
+        help="fly the scenarios of this tupa-scenarios/1 file, in its environment (default: "
+        "heterogeneous ones generated with --seed); the last one with walking users",
+    )
+    demo.add_argument(
+        "--n-scenarios",
+        type=int,
+        metavar="N",
+        help="how many scenarios: generated ones (default 3), or the first N of --scenarios "
+        "FILE (the fleet demo plays one)",
     )
     demo.add_argument(
         "--steps", type=int, help="1-s steps per scenario (default 40; the fleet demo's 60)"
@@ -46,9 +60,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     demo.add_argument(
         "--environment",
         choices=ENVIRONMENTS,
-        default="open",
+        default=None,
         help="what stands on the ground: the simulated network's channel and the service's "
-        "(default open, the paper's)",
+        "(default: the --scenarios file's, else open, the paper's)",
     )
     demo.add_argument(
         "--out", type=Path, metavar="DIR", help="default runs/demo (the fleet's: runs/demo-fleet)"
@@ -57,6 +71,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     ctl = subparsers.add_parser(
         "controller-sim",
+        allow_abbrev=False,
         help="a network controller played by the simulator, POSTing reports to a service",
         description="Every step: read the vehicle's true position from the autopilot over "
         "MAVLink, compute each user's metrics there with the embedded network model, POST them "
@@ -98,6 +113,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ctl.add_argument("--count", type=int, default=5, help="generated scenarios (default 5)")
     ctl.add_argument("--steps", type=int, default=60, help="steps per scenario (default 60)")
     ctl.add_argument("--step-s", type=float, default=1.0)
+    ctl.add_argument(
+        "--wait-s",
+        type=float,
+        default=30.0,
+        metavar="S",
+        help="how long to keep trying a service that is not answering yet at start (it may be "
+        "starting beside this one; default 30); then one line and exit code 2",
+    )
     ctl.add_argument("--seed", type=int, default=1)
     ctl.set_defaults(handler=_controller_sim)
 
@@ -117,24 +140,39 @@ def _demo(args: argparse.Namespace) -> int:
         raise InputError(f"--uavs: must be in 1..{MAX_UAVS}, got {args.uavs}")
     if args.uavs > 1:
         return _fleet_demo(args)
-    from closed_loop.demo import DemoConfig, run_demo
+    from dataclasses import replace
 
-    scenarios = 3 if args.scenarios is None else args.scenarios
+    import closed_loop.demo as demo
+
     steps = 40 if args.steps is None else args.steps
-    _positive("scenarios", scenarios)
     _positive("steps", steps)
-    run_demo(
-        DemoConfig(
-            policy=args.policy,
-            scenarios=scenarios,
-            steps=steps,
-            seed=args.seed,
-            flavour=args.flavour,
-            out_dir=Path("runs/demo") if args.out is None else args.out,
-            environment=args.environment,
-        )
+    cfg = demo.DemoConfig(
+        policy=args.policy,
+        scenario_file=None if args.scenarios is None else _scenario_file(args.scenarios),
+        n_scenarios=args.n_scenarios,
+        steps=steps,
+        seed=args.seed,
+        flavour=args.flavour,
+        out_dir=Path("runs/demo") if args.out is None else args.out,
+        environment=args.environment,
     )
+    area, _ = demo.demo_scenarios(cfg)  # a bad file or count: one line before anything starts
+    demo.run_demo(replace(cfg, environment=area.environment))
     return 0
+
+
+def _scenario_file(text: str) -> Path:
+    """``--scenarios``' file; a bare count (what ``--scenarios`` took before it took a file, as
+    every other command's does) is refused naming ``--n-scenarios``."""
+    from sim.errors import InputError
+
+    path = Path(text)
+    if text.strip().isdigit() and not path.exists():
+        raise InputError(
+            f"--scenarios: takes a scenario file (tupa-scenarios/1 JSON), as tupa eval's does; "
+            f"for {text.strip()} generated scenarios use --n-scenarios {text.strip()}"
+        )
+    return path
 
 
 def _fleet_demo(args: argparse.Namespace) -> int:
@@ -143,7 +181,9 @@ def _fleet_demo(args: argparse.Namespace) -> int:
     from sim.errors import InputError
 
     if args.scenarios is not None:
-        raise InputError("--scenarios: the fleet demo (--uavs 2..8) plays one scenario")
+        raise InputError("--scenarios: the fleet demo (--uavs 2..8) plays its own hot spots")
+    if args.n_scenarios is not None:
+        raise InputError("--n-scenarios: the fleet demo (--uavs 2..8) plays one scenario")
     steps = 60 if args.steps is None else args.steps
     _positive("steps", steps)
     run_fleet_demo(
@@ -154,7 +194,7 @@ def _fleet_demo(args: argparse.Namespace) -> int:
             seed=args.seed,
             flavour=args.flavour,
             out_dir=Path("runs/demo-fleet") if args.out is None else args.out,
-            environment=args.environment,
+            environment=args.environment or "open",
         )
     )
     return 0
@@ -163,15 +203,17 @@ def _fleet_demo(args: argparse.Namespace) -> int:
 def _controller_sim(args: argparse.Namespace) -> int:
     if args.fleet_file is not None:
         return _fleet_controller_sim(args)
-    import httpx
-
     from closed_loop.controller import SimulatedNetwork, TruePosition, run_scenario
+    from service.fleet_spec import check_connection
     from service.frames import FrameConfig
     from sim.config import AreaConfig
+    from sim.errors import InputError
     from sim.scenarios import generate_scenarios
 
     _positive("steps", args.steps)
     _positive("step-s", args.step_s)
+    if not args.wait_s >= 0:
+        raise InputError(f"--wait-s: must be >= 0, got {args.wait_s}")
     area = AreaConfig(environment=args.environment)
     if args.scenarios is not None:
         from sim.files import load_scenarios
@@ -180,26 +222,25 @@ def _controller_sim(args: argparse.Namespace) -> int:
     else:
         _positive("count", args.count)
         scenarios = generate_scenarios(args.count, args.users, seed=args.seed)
-    token = os.environ.get("TUPA_API_TOKEN", "")
-    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    check_connection(args.mavlink, "--mavlink")
     frames = FrameConfig(args.area_origin_north_m, args.area_origin_east_m)
-    vehicle = TruePosition(args.mavlink, frames).start()
-    try:
-        with httpx.Client(base_url=args.api, headers=headers, timeout=10.0) as client:
+    with _service_client(args.api, args.wait_s) as client, _one_line_errors(args.api, "--mavlink"):
+        vehicle = TruePosition(args.mavlink, frames).start()
+        try:
+            vehicle.wait(timeout_s=POSITION_TIMEOUT_S)
             for i, scenario in enumerate(scenarios):
                 network = SimulatedNetwork(scenario, area=area, seed=args.seed + i)
                 records = run_scenario(network, vehicle, client, args.steps, args.step_s)
                 mean = sum(r.utility for r in records) / len(records)
                 print(f"scenario {scenario.id}: mean utility {mean:.3f}", flush=True)
-    finally:
-        vehicle.close()
+        finally:
+            vehicle.close()
     return 0
 
 
 def _fleet_controller_sim(args: argparse.Namespace) -> int:
     """``tupa controller-sim --fleet-file FILE``: :mod:`closed_loop.fleet_controller` driving
     the fleet the file names, one report of all users per step."""
-    import httpx
     import numpy as np
 
     from closed_loop.controller import TruePosition
@@ -210,6 +251,7 @@ def _fleet_controller_sim(args: argparse.Namespace) -> int:
     )
     from service.fleet_spec import load_fleet_file
     from sim.config import AreaConfig
+    from sim.errors import InputError
     from sim.fleet import FleetConfig
     from sim.scenarios import generate_scenarios
     from sim.users import UserDynamics
@@ -217,6 +259,8 @@ def _fleet_controller_sim(args: argparse.Namespace) -> int:
 
     _positive("steps", args.steps)
     _positive("step-s", args.step_s)
+    if not args.wait_s >= 0:
+        raise InputError(f"--wait-s: must be >= 0, got {args.wait_s}")
     spec = load_fleet_file(args.fleet_file)
     area = AreaConfig(environment=args.environment)
     if args.scenarios is not None:
@@ -229,14 +273,17 @@ def _fleet_controller_sim(args: argparse.Namespace) -> int:
             args.count, args.users, seed=args.seed, area=area, family="hotspots"
         )
     fleet = FleetConfig(n_uavs=len(spec), separation_m=spec.separation_m)
-    token = os.environ.get("TUPA_API_TOKEN", "")
-    headers = {"Authorization": f"Bearer {token}"} if token else {}
-    vehicles = {
-        v.id: TruePosition(v.mavlink, v.frames, system_id=v.system_id).start()
-        for v in spec.vehicles
-    }
-    try:
-        with httpx.Client(base_url=args.api, headers=headers, timeout=10.0) as client:
+    with (
+        _service_client(args.api, args.wait_s) as client,
+        _one_line_errors(args.api, "--fleet-file"),
+    ):
+        vehicles = {
+            v.id: TruePosition(v.mavlink, v.frames, system_id=v.system_id).start()
+            for v in spec.vehicles
+        }
+        try:
+            for vehicle in vehicles.values():
+                vehicle.wait(timeout_s=POSITION_TIMEOUT_S)
             for i, scenario in enumerate(scenarios):
                 rng = np.random.default_rng(args.seed * 1000 + i)
                 users = UserDynamics(
@@ -253,7 +300,86 @@ def _fleet_controller_sim(args: argparse.Namespace) -> int:
                     f"{m['min_throughput_bps'] / 1e6:.2f} Mbit/s, handovers {m['handovers']}",
                     flush=True,
                 )
-    finally:
-        for vehicle in vehicles.values():
-            vehicle.close()
+        finally:
+            for vehicle in vehicles.values():
+                vehicle.close()
     return 0
+
+
+POSITION_TIMEOUT_S = 30.0
+"""How long ``tupa controller-sim`` waits for each autopilot's first position."""
+HTTP_TIMEOUT_S = 10.0
+"""How long it waits for each answer of the service."""
+
+
+@contextmanager
+def _service_client(api: str, wait_s: float) -> Iterator[Any]:  # an httpx.Client (lazy import)
+    """A client of the service at ``api`` carrying ``TUPA_API_TOKEN``, checked first by one
+    authenticated request (``GET /v1/policy``), tried again every half second for ``wait_s``
+    while nothing answers (a service starting beside this one): a service that is down, refuses
+    the token or is not a TUPA service is an ``InputError`` naming ``--api`` or
+    ``TUPA_API_TOKEN``."""
+    import time
+
+    import httpx
+
+    from sim.errors import InputError
+
+    token = os.environ.get("TUPA_API_TOKEN", "")
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    deadline = time.monotonic() + wait_s
+    with httpx.Client(base_url=api, headers=headers, timeout=HTTP_TIMEOUT_S) as client:
+        with _one_line_errors(api, "--mavlink"):
+            while True:
+                try:
+                    response = client.get("/v1/policy")
+                    break
+                except (httpx.ConnectError, httpx.RemoteProtocolError):
+                    if time.monotonic() >= deadline:
+                        raise
+                    time.sleep(0.5)
+            if response.status_code == 401:
+                raise InputError(
+                    f"TUPA_API_TOKEN: the service at {api} refused TUPA_API_TOKEN "
+                    "(401 Unauthorized): it is not the service's token"
+                    if token
+                    else f"TUPA_API_TOKEN: not set, and the service at {api} wants a token "
+                    "(401 Unauthorized)"
+                )
+            response.raise_for_status()
+        yield client
+
+
+@contextmanager
+def _one_line_errors(api: str, position_option: str) -> Iterator[None]:
+    """What may end a controller's run, as one ``InputError`` line: the service refusing a
+    request (``--api``: the request, the status and the service's reason), unreachable or not
+    answering (``--api``), an autopilot giving no position (``position_option``)."""
+    import httpx
+
+    from sim.errors import InputError
+
+    try:
+        yield
+    except httpx.HTTPStatusError as exc:
+        request, response = exc.request, exc.response
+        try:
+            detail = response.json().get("detail")
+        except (ValueError, AttributeError):
+            detail = None
+        reason = f": {' '.join(str(detail).split())[:200]}" if detail else ""
+        raise InputError(
+            f"--api: the service at {api} answered {request.method} {request.url.path} with "
+            f"{response.status_code} {response.reason_phrase}{reason}"
+        ) from None
+    except httpx.TimeoutException:
+        raise InputError(
+            f"--api: the service at {api} did not answer within {HTTP_TIMEOUT_S:g} s"
+        ) from None
+    except httpx.TransportError as exc:
+        raise InputError(
+            f"--api: cannot reach the service at {api} ({' '.join(str(exc).split())}); is "
+            "tupa serve running there?"
+        ) from None
+    except TimeoutError as exc:
+        raise InputError(f"{position_option}: {exc}") from None

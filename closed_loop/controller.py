@@ -36,9 +36,10 @@ class TruePosition:
 
     Asks system ``system_id`` for LOCAL_POSITION_NED at ``rate_hz`` (ArduPilot sends nothing
     until asked) and keeps the latest one it sends; :meth:`wait` blocks until a position is
-    known or the time is up. A fleet's vehicles have system ids 1..K, each read by its own
-    instance with its own ``frames`` (every vehicle has its own home); ``system_id=None`` asks
-    every system (broadcast) and keeps any system's position.
+    known or the time is up (``TimeoutError`` naming the autopilot, and why it could not be
+    reached when it refused the connection). A fleet's vehicles have system ids 1..K, each read
+    by its own instance with its own ``frames`` (every vehicle has its own home);
+    ``system_id=None`` asks every system (broadcast) and keeps any system's position.
     """
 
     def __init__(
@@ -57,6 +58,7 @@ class TruePosition:
         self.system_id = system_id
         self._conn: Any = None
         self._position: tuple[float, float, float] | None = None
+        self._refusal: str | None = None  # why the last try to connect failed
         self._cond = threading.Condition()
         self._stop = threading.Event()
         self._thread = threading.Thread(
@@ -83,14 +85,28 @@ class TruePosition:
             while self._position is None:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
-                    raise TimeoutError(f"no position from the autopilot at {self.url}")
+                    why = f" ({self._refusal.lower()})" if self._refusal else ""
+                    raise TimeoutError(f"no position from the autopilot at {self.url}{why}")
                 self._cond.wait(remaining)
             return self._position
 
+    def _connect(self) -> bool:
+        """Open the connection, trying again every second while the autopilot refuses it (it
+        may still be starting); False once closed before it opened."""
+        while not self._stop.is_set():
+            try:
+                self._conn = mavutil.mavlink_connection(
+                    self.url, source_system=254, source_component=190, autoreconnect=True
+                )
+                return True
+            except OSError as exc:  # refused, unreachable: the reason goes into wait()'s error
+                self._refusal = exc.strerror or str(exc)
+                self._stop.wait(1.0)
+        return False
+
     def _run(self) -> None:
-        self._conn = mavutil.mavlink_connection(
-            self.url, source_system=254, source_component=190, autoreconnect=True
-        )
+        if not self._connect():
+            return
         interval_us = int(1e6 / self.rate_hz)
         asked_at = -1e9
         while not self._stop.is_set():

@@ -43,7 +43,11 @@ from sim.world import World, get_world
 @dataclass(frozen=True)
 class DemoConfig:
     policy: str | None = None  # None: the service's default (the tracking oracle)
-    scenarios: int = 3
+    scenario_file: Path | None = None
+    """A ``tupa-scenarios/1`` file whose scenarios are played (the first ``n_scenarios`` when
+    given); None: generated ones (:func:`pick_scenarios`)."""
+    n_scenarios: int | None = None
+    """How many scenarios (without a file: generated, default 3)."""
     steps: int = 40
     step_s: float = 1.0
     speed_mps: float = 10.0
@@ -52,7 +56,8 @@ class DemoConfig:
     out_dir: Path = Path("runs/demo")
     queueing: str = "fq-codel"
     world: str = "closed-loop"
-    environment: str = "open"
+    environment: str | None = None
+    """The channel environment (None: the scenario file's, else ``open``)."""
 
 
 COMPARED = ("min-distance", "load-weighted", "oracle")
@@ -68,14 +73,49 @@ def pick_scenarios(n: int, seed: int, area: AreaConfig) -> list[Scenario]:
     return [pool[order[int(q * (len(pool) - 1))]] for q in quantiles]
 
 
-def demo_world(index: int, cfg: DemoConfig) -> World:
-    """The world scenario ``index`` plays in: the last one has moving users."""
-    name = "closed-loop-moving" if index == cfg.scenarios - 1 and cfg.scenarios > 1 else cfg.world
+def demo_scenarios(cfg: DemoConfig) -> tuple[AreaConfig, list[Scenario]]:
+    """The area the demo flies in and the scenarios it plays, in order.
+
+    With ``cfg.scenario_file``: the file's scenarios (the first ``cfg.n_scenarios`` when
+    given), in the file's channel environment unless ``cfg.environment`` names it too
+    (``InputError`` when they differ, or when the file's area is not the demo's). Without:
+    ``cfg.n_scenarios`` (default 3) generated heterogeneous ones (:func:`pick_scenarios`) in
+    ``cfg.environment`` (default ``open``). ``InputError`` for a count that is not positive.
+    """
+    from sim.errors import InputError
+
+    if cfg.n_scenarios is not None and cfg.n_scenarios < 1:
+        raise InputError(f"--n-scenarios: must be positive, got {cfg.n_scenarios}")
+    if cfg.scenario_file is None:
+        area = AreaConfig(environment=cfg.environment or "open")
+        return area, pick_scenarios(cfg.n_scenarios or 3, cfg.seed, area)
+    from sim.files import load_scenarios
+
+    area, scenarios = load_scenarios(cfg.scenario_file)
+    if cfg.environment is not None and cfg.environment != area.environment:
+        raise InputError(
+            f"--environment: {cfg.environment}, but {cfg.scenario_file} is in {area.environment}"
+            " (drop --environment to fly the file's)"
+        )
+    if replace(area, environment="open") != AreaConfig():
+        raise InputError(
+            f"--scenarios: {cfg.scenario_file}: the demo flies the default area "
+            f"({AreaConfig().size_x_m:g} m x {AreaConfig().size_y_m:g} m, zones and altitudes as "
+            "tupa scenarios generate writes them); this file's area differs"
+        )
+    if not scenarios:
+        raise InputError(f"--scenarios: {cfg.scenario_file}: scenarios: empty (nothing to fly)")
+    return area, scenarios[: cfg.n_scenarios]
+
+
+def demo_world(index: int, count: int, cfg: DemoConfig) -> World:
+    """The world scenario ``index`` of ``count`` plays in: the last one has moving users."""
+    name = "closed-loop-moving" if index == count - 1 and count > 1 else cfg.world
     world = get_world(name)
     network = NetworkConfig().with_queueing(cfg.queueing)  # type: ignore[arg-type]
     return replace(
         world,
-        area=replace(world.area, environment=cfg.environment),
+        area=replace(world.area, environment=cfg.environment or "open"),
         network=network,
         episode_steps=cfg.steps,
         step_s=cfg.step_s,
@@ -219,8 +259,8 @@ def run_demo(cfg: DemoConfig) -> dict[str, Any]:
     """Fly the served policy and the loop baselines side by side (one autopilot simulator and
     one service each), every scenario from home, and compare them with the simulator-flown
     tracking oracle and shipped checkpoints."""
-    area = AreaConfig(environment=cfg.environment)
-    scenarios = pick_scenarios(cfg.scenarios, cfg.seed, area)
+    area, scenarios = demo_scenarios(cfg)
+    cfg = replace(cfg, environment=area.environment)
     home_xy = (area.size_x_m / 2, area.size_y_m / 2)
     specs = {"served": cfg.policy, **{name: name for name in LOOP_BASELINES}}
     loops: dict[str, _Loop] = {}
@@ -250,7 +290,7 @@ def run_demo(cfg: DemoConfig) -> dict[str, Any]:
             loads = ", ".join(f"{v / 1e6:.1f}" for v in scenario.load_bps)
             _in_parallel({k: (lambda lp=lp: _fly_to(lp, home_xy, area, 120.0))
                           for k, lp in loops.items()})  # fmt: skip
-            world = demo_world(i, cfg)
+            world = demo_world(i, len(scenarios), cfg)
             users_seed = cfg.seed * 1000 + i
             _say(
                 f"\nscenario {i + 1}/{len(scenarios)} ({world.name}): H = {h:.2f}, loads "

@@ -37,10 +37,78 @@ from sim.files import atomic_write_bytes, atomic_write_json
 from sim.observation import observation_shape as area_observation_shape
 
 CHECKPOINT_FORMAT = "tupa-checkpoint/1"
+RUN_FILE = "run.json"
+"""A training run's state in its directory: its configuration and the episodes done."""
+LATEST_CHECKPOINT = Path("checkpoints") / "latest.zip"
+"""A training run's latest checkpoint, relative to its directory (periodic, and on an
+interruption)."""
+REPLAY_BUFFER = "latest_replay.pkl"
+"""The replay buffer saved beside the latest checkpoint, when the run was asked to."""
 
 
 def metadata_path(checkpoint: Path) -> Path:
     return checkpoint.with_suffix(".json")
+
+
+@dataclass(frozen=True)
+class TrainingRun:
+    """What a ``tupa train`` output directory holds, read without loading any model."""
+
+    directory: Path
+    finished: bool
+    """Whether ``model.zip`` is there (the run ended and was evaluated)."""
+    latest: Path | None
+    """``checkpoints/latest.zip``, when there is one."""
+    episodes_done: int | None
+    episodes: int | None
+    """The episodes the run was to train (its target)."""
+    test_scenarios: str | None
+
+    @property
+    def interrupted(self) -> bool:
+        """Stopped before the end (Ctrl-C, SIGTERM, a crash) with a checkpoint to show for it."""
+        return not self.finished and self.latest is not None
+
+    def progress(self) -> str:
+        """``35 of 2000 episodes`` (or less, when ``run.json`` does not say)."""
+        if self.episodes_done is None:
+            return "episodes unknown"
+        target = f" of {self.episodes}" if self.episodes is not None else ""
+        return f"{self.episodes_done}{target} episodes"
+
+
+def training_run(directory: Path | str, read_state: bool = True) -> TrainingRun | None:
+    """The training run in ``directory``, or None when it holds none (no ``run.json``,
+    ``model.zip`` or ``checkpoints/latest.zip``). With ``read_state`` the counts and the test
+    set come from ``run.json`` (unknown when it cannot be read); without, no file is read, only
+    looked at (for a directory a client named)."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        return None
+    finished = (directory / "model.zip").is_file()
+    latest = directory / LATEST_CHECKPOINT
+    has_latest = latest.is_file()
+    state_file = directory / RUN_FILE
+    if not (finished or has_latest or state_file.is_file()):
+        return None
+    state: Any = {}
+    if read_state and state_file.is_file():
+        try:
+            state = json.loads(state_file.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            state = {}
+    state = state if isinstance(state, dict) else {}
+    config = state.get("config")
+    config = config if isinstance(config, dict) else {}
+    done, target = state.get("episodes_done"), config.get("episodes")
+    return TrainingRun(
+        directory=directory,
+        finished=finished,
+        latest=latest if has_latest else None,
+        episodes_done=done if isinstance(done, int) else None,
+        episodes=target if isinstance(target, int) else None,
+        test_scenarios=str(config["test_scenarios"]) if config.get("test_scenarios") else None,
+    )
 
 
 def git_commit() -> str | None:
@@ -117,7 +185,8 @@ def read_checkpoint(
     max_bytes: int | None = None,
 ) -> CheckpointFiles:
     """Read checkpoint ``path`` (a zip, or a training directory holding ``model.zip``) and its
-    metadata JSON, each opened once and checked as opened; ``CheckpointError`` otherwise.
+    metadata JSON, each opened once and checked as opened; ``CheckpointError`` otherwise (for
+    an interrupted run's directory, which has no ``model.zip``, naming its latest checkpoint).
 
     With ``allowed_dirs`` both files must lie inside one of those directories. The path is
     resolved once (links and ``..``), checked, and the resolved file is opened without
@@ -130,18 +199,29 @@ def read_checkpoint(
     """
     shown = Path(path)
     roots = _roots(allowed_dirs)
+    run = None
     try:
         resolved = _resolve_inside(shown, shown, roots)
         if resolved.is_dir():
+            run = training_run(resolved, read_state=False)
             shown = shown / "model.zip"
             resolved = _resolve_inside(resolved / "model.zip", shown, roots)
     except CheckpointError:
         raise
     except (OSError, RuntimeError, ValueError) as exc:  # too long a name, a loop of links, NUL
         raise CheckpointError(shown, "cannot open the checkpoint", _reason(exc)) from None
-    zip_bytes, real_path = _read_checked(
-        resolved, shown, roots, max_bytes, missing=NO_SUCH_CHECKPOINT, what="checkpoint"
-    )
+    try:
+        zip_bytes, real_path = _read_checked(
+            resolved, shown, roots, max_bytes, missing=NO_SUCH_CHECKPOINT, what="checkpoint"
+        )
+    except CheckpointError as exc:
+        if run is None or not run.interrupted or exc.problem != NO_SUCH_CHECKPOINT:
+            raise
+        raise CheckpointError(
+            shown,
+            NO_SUCH_CHECKPOINT,
+            f"an interrupted run: its latest checkpoint is {shown.parent / LATEST_CHECKPOINT}",
+        ) from None
     meta_shown = metadata_path(shown)
     try:
         meta_resolved = _resolve_inside(metadata_path(real_path), meta_shown, roots)

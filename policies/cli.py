@@ -61,6 +61,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     evaluate = subparsers.add_parser(
         "eval",
+        allow_abbrev=False,
         help="evaluate placement policies on a scenario file and write the results as JSON",
         description=_EVAL_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -213,7 +214,7 @@ def world_from_args(args: argparse.Namespace, default: str, area: object = None)
 
 def _eval(args: argparse.Namespace) -> int:
     from policies.evaluation import evaluate_policy, format_results
-    from policies.registry import PLACEMENTS, resolve_policy
+    from policies.registry import PLACEMENTS, close_names, resolve_policy, unknown_name
     from sim.errors import InputError
     from sim.files import atomic_write_json, load_scenarios
 
@@ -221,9 +222,12 @@ def _eval(args: argparse.Namespace) -> int:
         return _eval_fleet(args)
     if args.replan_every is not None:
         raise InputError("--replan-every: only with --uavs (fleet placements)")
-    names = list(dict.fromkeys(args.policy))  # drop repeats, keep the order
+    names = list(dict.fromkeys(_latest_of_interrupted(n) for n in args.policy))
     for name in names:
         if name not in PLACEMENTS and not Path(name).exists():
+            close = close_names(name, PLACEMENTS)
+            if close:
+                raise InputError(unknown_name(name, close, PLACEMENTS, "--policy"))
             raise InputError(
                 f"--policy: {name!r} is neither a policy ({', '.join(PLACEMENTS)}) "
                 "nor an existing checkpoint"
@@ -271,6 +275,27 @@ def _eval(args: argparse.Namespace) -> int:
     )
     print(format_results(results))
     return 0
+
+
+def _latest_of_interrupted(spec: str) -> str:
+    """``spec``, or for the directory of an interrupted training run (no ``model.zip``) its
+    latest checkpoint, said on standard error."""
+    import sys
+
+    from policies.checkpoints import training_run
+    from policies.registry import PLACEMENTS
+
+    if spec in PLACEMENTS:
+        return spec
+    run = training_run(spec)
+    if run is None or not run.interrupted or run.latest is None:
+        return spec
+    print(
+        f"tupa eval: {spec}: an interrupted run (no model.zip): evaluating its latest "
+        f"checkpoint, {run.latest} ({run.progress()})",
+        file=sys.stderr,
+    )
+    return str(run.latest)
 
 
 def _eval_fleet(args: argparse.Namespace) -> int:
@@ -366,6 +391,7 @@ table; policies/report/fleet.py).
 def _register_report(subparsers: argparse._SubParsersAction) -> None:
     report = subparsers.add_parser(
         "report",
+        allow_abbrev=False,
         help="draw the paper's figures and write results.md from tupa eval results",
         description=_REPORT_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -137,8 +137,11 @@ def evaluate_policy(
     world: World = PAPER,
     seed: int = 0,
     progress: bool = True,
+    on_scenario: Callable[[], object] | None = None,
 ) -> dict[str, Any]:
     """Run one episode per scenario in ``world`` and summarise (see the module doc).
+    ``progress``: a bar on standard error (on a terminal only); ``on_scenario`` is called after
+    each scenario (a caller's own progress).
 
     Returns ``{"policy", "world", "environment", "n_scenarios", "mean_utility", "median_utility",
     "p25_utility", "mean_time_to_final_s", "seed", "queueing", "episode_steps", "mode",
@@ -170,6 +173,8 @@ def evaluate_policy(
                 "trace": [round(float(u), 4) for u in episode.utility],
             }
         )
+        if on_scenario is not None:
+            on_scenario()
     values = np.array([row["utility"] for row in rows])
     return {
         "policy": agent.name,

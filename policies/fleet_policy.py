@@ -27,6 +27,7 @@ from policies.fleet_baselines import FLEET_BASELINES, KMeansPlacement
 from policies.fleet_oracle import FleetOracle, FleetOracleConfig
 from policies.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
 from policies.interface import ReportedUsers
+from policies.registry import close_names, unknown_name
 from sim.association import associate_at
 from sim.errors import InputError
 from sim.fleet import MAX_UAVS, FleetConfig
@@ -185,10 +186,14 @@ def resolve_fleet_policy(
 ) -> FleetPlacementPolicy | FleetCheckpointServing:
     """The fleet policy ``spec`` for ``world``: a name of :data:`FLEET_POLICIES`, or a fleet
     checkpoint (a directory or ``model.zip`` written by ``tupa train --uavs K``; only from
-    ``allowed_dirs`` when given, within ``max_bytes``). InputError naming ``policy`` otherwise."""
+    ``allowed_dirs`` when given, within ``max_bytes``). InputError naming ``policy`` otherwise
+    (with the close names for a misspelt one)."""
     spec = str(spec).strip()
     if spec in FLEET_POLICIES:
         return FleetPlacementPolicy(spec, world, float(separation_m))
+    close = close_names(spec, FLEET_POLICIES)
+    if close:
+        raise InputError(unknown_name(spec, close, FLEET_POLICIES, "policy"))
     path = Path(spec)
     if not spec or not (path.is_dir() or path.suffix == ".zip"):
         raise InputError(

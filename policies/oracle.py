@@ -589,7 +589,9 @@ def _benchmark(argv: list[str] | None = None) -> None:
 
     from sim.scenarios import Scenario, generate_scenarios
 
-    parser = argparse.ArgumentParser(prog="python -m policies.oracle", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="python -m policies.oracle", description=__doc__, allow_abbrev=False
+    )
     parser.add_argument("--scenarios", type=int, default=500)
     parser.add_argument("--users", type=int, default=3)
     parser.add_argument("--seed", type=int, default=3)

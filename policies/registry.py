@@ -12,7 +12,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import difflib
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 from policies.adapters import CheckpointPolicy, StaticPolicy
@@ -51,6 +52,28 @@ def make_placement(name: str, world: World = PAPER) -> Placement:
     except KeyError:
         raise ValueError(f"unknown policy {name!r} (choices: {', '.join(PLACEMENTS)})") from None
     return factory(world)
+
+
+def close_names(spec: str, names: Iterable[str]) -> list[str]:
+    """The names among ``names`` that ``spec`` reads as a misspelling of, closest first
+    (:func:`difflib.get_close_matches`, ignoring case and ``_`` for ``-``); none for a spec
+    that reads as a path (a separator, a ``.zip``, a leading ``.`` or ``~``) or is too long for
+    a name. Looks at the text only, never at the file system."""
+    text = str(spec).strip()
+    if len(text) > 64 or text.endswith(".zip") or text.startswith((".", "~")):
+        return []
+    if "/" in text or "\\" in text:
+        return []
+    return difflib.get_close_matches(text.lower().replace("_", "-"), list(names), n=3, cutoff=0.75)
+
+
+def unknown_name(spec: str, close: Sequence[str], names: Iterable[str], field: str) -> str:
+    """The one-line error for a misspelt policy name: ``field``, the name, the closest name
+    and every name there is."""
+    return (
+        f"{field}: unknown policy {spec!r}: did you mean {close[0]!r}? (a checkpoint path, or "
+        f"one of {', '.join(names)})"
+    )
 
 
 def resolve_policy(

@@ -13,13 +13,23 @@ generated scenarios as episodes, each once; gen500 on 500 unique generated scena
 Presets (policies/presets.py): paper (the paper's hyper-parameters) or fast (tuned for 2 CPU
 cores). Writes into --out: model.zip + model.json (the final checkpoint and its metadata),
 checkpoints/latest.zip every --checkpoint-every episodes, learning_curve.json, run.json, and
-TensorBoard logs in tb/. Ctrl-C saves a resumable checkpoint; --resume DIR continues it.
+TensorBoard logs in tb/.
+
+Progress goes to standard error: once a few episodes have been timed with learning under way,
+one line with the estimated time of the run, then the episodes done and the time left (a bar
+on a terminal, a line every 30 s elsewhere), and the final evaluation's progress.
+
+Ctrl-C or SIGTERM (timeout, systemd, docker stop) saves checkpoints/latest.zip and run.json,
+says so, and exits (130, 143); --resume DIR continues it, tupa eval --policy DIR evaluates it.
+The replay buffer (hundreds of MB) is saved with it only with --save-replay-buffer; without,
+a resumed run starts from an empty buffer.
 """
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "train",
+        allow_abbrev=False,
         help="train a DDQN or DDPG placement policy",
         description=_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -164,7 +174,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--no-final-eval", action="store_true", help="skip the final evaluation on the test set"
     )
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--no-progress", action="store_true", help="no progress, estimate or time left"
+    )
+    parser.add_argument(
+        "--save-replay-buffer",
+        action="store_true",
+        help="on Ctrl-C or SIGTERM, also save the replay buffer (checkpoints/latest_replay.pkl, "
+        "up to about 1 GB with the presets' buffers), so that --resume continues with it",
+    )
     parser.add_argument(
         "--resume",
         type=Path,
@@ -212,7 +230,7 @@ def _train(args: argparse.Namespace) -> int:
     if args.resume is not None:
         from policies.training import resume_config, train
 
-        config = resume_config(args.resume, args.episodes)
+        config = resume_config(args.resume, args.episodes, args.save_replay_buffer)
         metadata = train(config, resume=True)
     else:
         missing = [
@@ -248,6 +266,7 @@ def _train(args: argparse.Namespace) -> int:
             curve_scenarios=args.curve_scenarios,
             final_eval=not args.no_final_eval,
             progress=not args.no_progress,
+            save_replay_buffer=args.save_replay_buffer,
         )
         metadata = train(config)
     evaluation = metadata.get("evaluation")

@@ -14,21 +14,32 @@
    its own episode (100 steps from home).
 3. **Agent** from the preset (``policies.presets``) with the paper's CNN
    (``policies.networks.ZoneMapsCNN``); GPU when torch sees one, CPU otherwise.
-4. **Callbacks**: a progress bar (episodes, recent utility, ETA), TensorBoard logs, a checkpoint
-   every ``checkpoint_every`` episodes (``checkpoints/latest.zip``), and evaluations on part of
-   the test set at 100, 200, 500, 1000, … episodes for the learning curve.
-5. **Save**: ``model.zip`` and ``model.json`` (metadata with the final evaluation on the whole
-   test set, beside min-distance and the oracle), written atomically.
+4. **Callbacks**: progress on standard error (episodes, recent utility, time left:
+   :class:`policies.progress.Progress`) and, once a few episodes have been timed with learning
+   under way, one line with the estimated time of the whole run; TensorBoard logs; a checkpoint
+   every ``checkpoint_every`` episodes (``checkpoints/latest.zip``); evaluations on part of the
+   test set at 100, 200, 500, 1000, … episodes for the learning curve.
+5. **Save**: ``checkpoints/latest.zip`` with the trained policy, then the final evaluation on
+   the whole test set beside min-distance and the oracle (with its own progress), then
+   ``model.zip`` and ``model.json`` (metadata with that evaluation), written atomically.
 
-Ctrl-C saves ``checkpoints/latest.zip`` (with the replay buffer) and stops; ``resume(out_dir)``
-continues from it with the same step counter.
+Ctrl-C, or SIGTERM (what ``timeout``, systemd and ``docker stop`` send), stops the run and
+saves ``checkpoints/latest.zip`` and ``run.json`` (the replay buffer too, as
+``latest_replay.pkl``, only with ``save_replay_buffer``: it is hundreds of megabytes); the
+:class:`TrainingInterrupted` raised says what was saved where. ``train(config, resume=True)``
+continues from it with the same step counter (and an empty replay buffer when none was saved).
 """
 
 from __future__ import annotations
 
 import json
+import signal
+import sys
+import threading
 import time
 from collections import deque
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -41,10 +52,18 @@ from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.noise import NormalActionNoise
 
 from policies.adapters import CheckpointPolicy
-from policies.checkpoints import algorithm_class, git_commit, save_checkpoint
+from policies.checkpoints import (
+    LATEST_CHECKPOINT,
+    REPLAY_BUFFER,
+    RUN_FILE,
+    algorithm_class,
+    git_commit,
+    save_checkpoint,
+)
 from policies.evaluation import evaluate_policy
 from policies.networks import ZoneMapsCNN
 from policies.presets import NetworkPreset, Preset, get_preset
+from policies.progress import Progress, format_duration
 from policies.registry import make_placement
 from policies.residual import ResidualActions, residual_metadata
 from sim.config import ENVIRONMENTS, AreaConfig, NetworkConfig, Queueing
@@ -59,7 +78,8 @@ STRATEGIES: tuple[str, ...] = ("spec", "gen10k", "gen500")
 TRAIN_SEED_OFFSET = 1_000_000
 GEN500_UNIQUE = 500
 CURVE_POINTS: tuple[int, ...] = (100, 200, 500, 1_000, 2_000, 5_000, 10_000, 20_000, 50_000)
-RUN_FILE = "run.json"
+ESTIMATE_EPISODES = 3
+"""Episodes timed, once learning has started, before the run's estimated time is said."""
 
 
 @dataclass(frozen=True)
@@ -87,6 +107,7 @@ class TrainConfig:
     curve_scenarios: int = 100
     final_eval: bool = True
     progress: bool = True
+    save_replay_buffer: bool = False  # on an interruption, beside latest.zip (large)
 
     def __post_init__(self) -> None:
         if self.strategy not in STRATEGIES:
@@ -311,20 +332,35 @@ def episode_bar(total: int, desc: str, initial: int = 0) -> Any:
 
 
 class TrainingCallback(BaseCallback):
-    """Progress bar, periodic checkpoints and learning-curve evaluations, counted in episodes."""
+    """Progress (with the time left) and the run's estimated time, periodic checkpoints and
+    learning-curve evaluations, counted in episodes.
+
+    The estimate is said once, after :data:`ESTIMATE_EPISODES` episodes have been timed with
+    learning under way (the episodes before ``learning_starts`` train nothing, and are much
+    faster): the time the run has taken so far plus the episodes left at the timed pace.
+    """
 
     def __init__(self, run: _Run) -> None:
         super().__init__()
         self.run = run
         self.recent_utility: deque[float] = deque(maxlen=50)
-        self.bar: Any = None
+        self.progress: Progress | None = None
+        self._timed_from: tuple[float, int] | None = None  # (time, episodes) learning started
+        self._estimated = False
+
+    @property
+    def label(self) -> str:
+        return f"{self.run.config.algorithm}-{self.run.config.strategy}"
 
     def _on_training_start(self) -> None:
-        if self.run.config.progress:
-            config = self.run.config
-            self.bar = episode_bar(
-                config.episodes, f"{config.algorithm}-{config.strategy}", self.run.episodes_done
-            )
+        config = self.run.config
+        self.progress = Progress(
+            config.episodes,
+            self.label,
+            "ep",
+            initial=self.run.episodes_done,
+            enabled=config.progress,
+        )
 
     def _on_step(self) -> bool:
         for info in self.locals.get("infos", []):
@@ -333,9 +369,9 @@ class TrainingCallback(BaseCallback):
                 continue
             self.run.episodes_done += 1
             self.recent_utility.append(episode["r"] / max(episode["l"], 1))
-            if self.bar is not None:
-                self.bar.update(1)
-                self.bar.set_postfix(utility=f"{np.mean(self.recent_utility):.3f}")
+            if self.progress is not None:
+                self.progress.update(1, utility=f"{np.mean(self.recent_utility):.3f}")
+                self._estimate()
             self.logger.record("rollout/episode_utility", float(np.mean(self.recent_utility)))
             done = self.run.episodes_done
             if done % self.run.config.checkpoint_every == 0 and done < self.run.config.episodes:
@@ -344,9 +380,40 @@ class TrainingCallback(BaseCallback):
                 self.run.add_curve_point(self.model, done)
         return self.run.episodes_done < self.run.config.episodes
 
-    def _on_training_end(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
+    def _estimate(self) -> None:
+        """Time the first episodes that learn; say the run's estimated time once."""
+        if self._estimated or self.progress is None or not self.progress.enabled:
+            return
+        if self.model.num_timesteps < self.model.learning_starts:
+            return
+        now, done = time.monotonic(), self.run.episodes_done
+        if self._timed_from is None:
+            self._timed_from = (now, done)
+            return
+        since, first = self._timed_from
+        timed = done - first
+        if timed < ESTIMATE_EPISODES:
+            return
+        self._estimated = True
+        config = self.run.config
+        per_episode = (now - since) / timed
+        total = self.progress.elapsed_s() + per_episode * max(config.episodes - done, 0)
+        todo = config.episodes - self.progress.initial
+        which = f"{todo} episodes" if not self.progress.initial else f"the {todo} episodes left"
+        then = (
+            f", then the final evaluation on the {len(self.run.test)} test scenarios"
+            if config.final_eval
+            else ""
+        )
+        self.progress.write(
+            f"{self.label}: about {format_duration(total)} for {which} ({per_episode:.2f} s an "
+            f"episode, timed over episodes {first + 1}-{done} once learning started){then}"
+        )
+
+    def close(self) -> None:
+        """End the progress (also when the run stopped early)."""
+        if self.progress is not None:
+            self.progress.close()
 
 
 class _Run:
@@ -404,10 +471,10 @@ class _Run:
         }
 
     def save_latest(self, model: Any, with_replay_buffer: bool = False) -> None:
-        checkpoint = self.config.out_dir / "checkpoints" / "latest.zip"
+        checkpoint = self.config.out_dir / LATEST_CHECKPOINT
         save_checkpoint(model, checkpoint, self.metadata(model))
         if with_replay_buffer:
-            model.save_replay_buffer(checkpoint.with_name("latest_replay.pkl"))
+            model.save_replay_buffer(checkpoint.with_name(REPLAY_BUFFER))
         atomic_write_json(
             self.config.out_dir / RUN_FILE,
             {
@@ -417,11 +484,37 @@ class _Run:
             },
         )
 
-    def evaluate(self, model: Any, scenarios: list[Scenario]) -> dict[str, Any]:
+    def evaluate(
+        self, model: Any, scenarios: list[Scenario], on_scenario: Any = None
+    ) -> dict[str, Any]:
         c = self.config
         metadata = {"algorithm": c.algorithm, "strategy": c.strategy, **residual_metadata(c.action)}
         agent = CheckpointPolicy(model, metadata, world=self.world)
-        return evaluate_policy(agent, scenarios, self.world, seed=0, progress=False)
+        return evaluate_policy(
+            agent, scenarios, self.world, seed=0, progress=False, on_scenario=on_scenario
+        )
+
+    def interrupted(
+        self, model: Any, stop: KeyboardInterrupt, during: str | None = None
+    ) -> TrainingInterrupted:
+        """Save what resumes the run (further signals held off meanwhile) and say so: the
+        :class:`TrainingInterrupted` to raise."""
+        terminated = isinstance(stop, _Terminated)
+        out, c = self.config.out_dir, self.config
+        with _signals_held():
+            self.save_latest(model, with_replay_buffer=c.save_replay_buffer)
+        where = (
+            f"during {during}, after all {self.episodes_done} episodes"
+            if during
+            else f"after {self.episodes_done} of {c.episodes} episodes"
+        )
+        replay = f" and its replay buffer ({REPLAY_BUFFER})" if c.save_replay_buffer else ""
+        message = (
+            f"interrupted ({'SIGTERM' if terminated else 'Ctrl-C'}) {where}; saved "
+            f"{out / LATEST_CHECKPOINT}{replay}: tupa train --resume {out} continues it, "
+            f"tupa eval --policy {out} evaluates it"
+        )
+        return TrainingInterrupted(message, signal.SIGTERM if terminated else signal.SIGINT)
 
     def add_curve_point(self, model: Any, episodes: int) -> None:
         from policies.report.curves import write_learning_curve
@@ -455,8 +548,65 @@ class _Run:
         return medians
 
 
+class TrainingInterrupted(KeyboardInterrupt):
+    """A run stopped by Ctrl-C or SIGTERM, after saving what resumes it. The message is one
+    line saying when it stopped and what was saved where; ``exit_code`` is the shell's for the
+    signal (130 for Ctrl-C, 143 for SIGTERM)."""
+
+    def __init__(self, message: str, signal_number: int = signal.SIGINT) -> None:
+        super().__init__(message)
+        self.exit_code = 128 + int(signal_number)
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised wherever the run is, as Ctrl-C raises ``KeyboardInterrupt``."""
+
+    exit_code = 128 + signal.SIGTERM
+
+
+@contextmanager
+def _sigterm_stops_training() -> Iterator[None]:
+    """While the block runs (in the main thread only: signals go there), SIGTERM stops it as
+    Ctrl-C does; the previous handler is put back after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def terminate(signum: int, frame: object) -> None:
+        raise _Terminated
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+@contextmanager
+def _signals_held() -> Iterator[None]:
+    """Ctrl-C and SIGTERM ignored while the block runs (the save after an interruption: a
+    second Ctrl-C must not cut it short), in the main thread; handlers put back after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+
+
 def train(config: TrainConfig, resume: bool = False) -> dict[str, Any]:
-    """Run (or, with ``resume``, continue) a training run; returns the final metadata."""
+    """Run (or, with ``resume``, continue) a training run; returns the final metadata.
+
+    Ctrl-C or SIGTERM (while this runs in the main thread) saves the latest checkpoint and
+    raises :class:`TrainingInterrupted` saying where (see the module doc)."""
+    with _sigterm_stops_training():
+        return _train(config, resume)
+
+
+def _train(config: TrainConfig, resume: bool) -> dict[str, Any]:
     run_state = _read_run(config.out_dir) if resume else None
     run = _Run(config, *(run_state or (0, 0.0)))
     if not run.test:
@@ -471,12 +621,18 @@ def train(config: TrainConfig, resume: bool = False) -> dict[str, Any]:
         env = make_env(
             config.algorithm, run.train_set, config.train_worlds(run.area), config.action
         )
-    latest = config.out_dir / "checkpoints" / "latest.zip"
+    latest = config.out_dir / LATEST_CHECKPOINT
     if resume:
         model = algorithm_class(config.algorithm).load(latest, env=env, device="auto")
-        replay = latest.with_name("latest_replay.pkl")
+        replay = latest.with_name(REPLAY_BUFFER)
         if replay.exists():
             model.load_replay_buffer(replay)
+        elif config.progress:
+            print(
+                f"resuming {config.out_dir} with an empty replay buffer (none was saved: "
+                "--save-replay-buffer keeps it on an interruption)",
+                file=sys.stderr,
+            )
         # Episodes visit the training set in order: continue where the run stopped.
         env.unwrapped.scenarios._next = run.episodes_done % len(run.train_set)
     else:
@@ -495,29 +651,49 @@ def train(config: TrainConfig, resume: bool = False) -> dict[str, Any]:
             reset_num_timesteps=not resume,
             tb_log_name=f"{config.algorithm}-{config.strategy}",
         )
-    except KeyboardInterrupt:
-        run.save_latest(model, with_replay_buffer=True)
-        raise
+    except KeyboardInterrupt as stop:
+        callback.close()
+        raise run.interrupted(model, stop) from None
     finally:  # flushes TensorBoard's last events and ends its writer thread
+        callback.close()
         if getattr(model, "_logger", None) is not None:  # None: learn failed before setting it
             model.logger.close()
-    evaluation = final_evaluation(run, model) if config.final_eval else None
+    try:
+        run.save_latest(model)  # the trained policy on disk before the (long) final evaluation
+        evaluation = final_evaluation(run, model) if config.final_eval else None
+    except KeyboardInterrupt as stop:
+        raise run.interrupted(model, stop, during="the final evaluation") from None
     metadata = run.metadata(model, evaluation)
     save_checkpoint(model, config.out_dir / "model.zip", metadata)
-    run.save_latest(model)
     return metadata
 
 
 def final_evaluation(run: _Run, model: Any) -> dict[str, Any]:
-    """The trained policy on the whole test set, beside min-distance and the oracle."""
+    """The trained policy on the whole test set, beside min-distance and the oracle, with one
+    progress over the three (they can take minutes)."""
+    progress = Progress(
+        3 * len(run.test), "final evaluation", "scenarios", enabled=run.config.progress
+    )
+    progress.write(
+        f"final evaluation on the {len(run.test)} test scenarios: the trained policy, "
+        "min-distance and the oracle"
+    )
+    try:
+        per_policy = {"policy": run.evaluate(model, run.test, on_scenario=progress.update)}
+        for name in ("min-distance", "oracle"):
+            per_policy[name] = evaluate_policy(
+                make_placement(name, run.world),
+                run.test,
+                run.world,
+                seed=0,
+                progress=False,
+                on_scenario=progress.update,
+            )
+    finally:
+        progress.close()
     summary: dict[str, Any] = {}
-    per_policy = {}
-    for name in ("min-distance", "oracle"):
-        per_policy[name] = evaluate_policy(
-            make_placement(name, run.world), run.test, run.world, seed=0, progress=False
-        )
-    per_policy["policy"] = run.evaluate(model, run.test)
-    for name, result in per_policy.items():
+    for name in ("min-distance", "oracle", "policy"):
+        result = per_policy[name]
         summary[name] = {k: result[k] for k in ("mean_utility", "median_utility", "p25_utility")}
     oracle = per_policy["oracle"]["mean_utility"]
     summary["ratio_to_oracle"] = per_policy["policy"]["mean_utility"] / oracle
@@ -527,7 +703,7 @@ def final_evaluation(run: _Run, model: Any) -> dict[str, Any]:
 
 def _read_run(out_dir: Path) -> tuple[int, float]:
     path = out_dir / RUN_FILE
-    if not (out_dir / "checkpoints" / "latest.zip").exists() or not path.exists():
+    if not (out_dir / LATEST_CHECKPOINT).exists() or not path.exists():
         raise InputError(
             f"--resume: {out_dir} holds no interrupted run (no checkpoints/latest.zip)"
         )
@@ -535,12 +711,17 @@ def _read_run(out_dir: Path) -> tuple[int, float]:
     return int(state["episodes_done"]), float(state["wall_time_s"])
 
 
-def resume_config(out_dir: Path, episodes: int | None = None) -> TrainConfig:
-    """The configuration of the run in ``out_dir`` (optionally with a new episode target)."""
+def resume_config(
+    out_dir: Path, episodes: int | None = None, save_replay_buffer: bool = False
+) -> TrainConfig:
+    """The configuration of the run in ``out_dir`` (optionally with a new episode target, and
+    saving the replay buffer on an interruption from now on)."""
     path = out_dir / RUN_FILE
     if not path.exists():
         raise InputError(f"--resume: {out_dir} holds no training run ({RUN_FILE} missing)")
     config = TrainConfig.from_dict(json.loads(path.read_text())["config"])
+    if save_replay_buffer:
+        config = replace(config, save_replay_buffer=True)
     return replace(config, episodes=episodes) if episodes else config
 
 

@@ -25,6 +25,7 @@ _COMMAND_MODULES: tuple[str, ...] = (
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="tupa",
+        allow_abbrev=False,
         description="Traffic-aware UAV placement: simulate, train, evaluate and serve.",
     )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
@@ -45,9 +46,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except InputError as exc:
         print(f"tupa {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as stop:  # Ctrl-C; a command may say what it saved, and where
+        said = str(stop)
+        print(f"tupa {args.command}: {said}" if said else "interrupted", file=sys.stderr)
+        return int(getattr(stop, "exit_code", 130))
     return int(result or 0)
 
 

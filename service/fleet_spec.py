@@ -20,6 +20,7 @@ a positive number, an unknown key.
 
 from __future__ import annotations
 
+import difflib
 import math
 import re
 from dataclasses import dataclass
@@ -37,6 +38,16 @@ DEFAULT_SEPARATION_M = 10.0
 
 _ID = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 _NETWORK_SCHEMES = ("tcp", "tcpin", "udp", "udpin", "udpout", "udpbcast")
+_MAVSDK_SCHEMES = (
+    "udp",
+    "udpin",
+    "udpout",
+    "tcp",
+    "tcpin",
+    "tcpout",
+    "serial",
+    "serialflowcontrol",
+)
 _VEHICLE_KEYS = frozenset(
     {
         "id",
@@ -78,13 +89,23 @@ class FleetSpec:
         return len(self.vehicles)
 
 
-def check_connection(url: str, field: str) -> str:
-    """``url`` if pymavlink can open it (``tcp:HOST:PORT``, ``udpin:``, ``udpout:``, ``udp:``,
-    ``tcpin:``, ``udpbcast:``, or a serial device path with an optional ``,BAUD``); otherwise
-    InputError naming ``field``."""
+def check_connection(url: str, field: str, backend: str | None = None) -> str:
+    """``url`` if the link can open it (``tcp:HOST:PORT``, ``udpin:``, ``udpout:``, ``udp:``,
+    ``tcpin:``, ``udpbcast:``, or a serial device path with an optional ``,BAUD``; and, unless
+    ``backend`` is ``"pymavlink"``, a MAVSDK URL such as ``udpin://HOST:PORT``, which the
+    ``mavsdk`` backend passes through); otherwise InputError naming ``field`` and the problem
+    (with the known scheme closest to a mistyped one). The one check of a connection string: a
+    fleet file's, ``--mavlink``'s, and ``TUPA_MAVLINK``'s."""
     text = url.strip() if isinstance(url, str) else ""
     if not text:
         raise InputError(f"{field}: must be a MAVLink connection string, got {url!r}")
+    if "://" in text and text.partition("://")[0] in _MAVSDK_SCHEMES:
+        if backend == "pymavlink":
+            raise InputError(
+                f"{field}: {text!r} is a MAVSDK URL, which only --mavlink-backend mavsdk opens; "
+                "pymavlink takes SCHEME:HOST:PORT (udpin:0.0.0.0:14540)"
+            )
+        return text
     if text.startswith(("/", "COM")):  # a serial device (optionally ",BAUD")
         baud = text.partition(",")[2]
         if baud and not baud.isdigit():
@@ -92,8 +113,10 @@ def check_connection(url: str, field: str) -> str:
         return text
     scheme, sep, rest = text.partition(":")
     if not sep or scheme not in _NETWORK_SCHEMES:
+        close = difflib.get_close_matches(scheme, _NETWORK_SCHEMES, n=1) if sep else []
+        hint = f"did you mean {close[0]}:{rest}? " if close else ""
         raise InputError(
-            f"{field}: unknown connection {text!r}: expected one of "
+            f"{field}: unknown connection {text!r}: {hint}expected one of "
             f"{', '.join(s + ':HOST:PORT' for s in _NETWORK_SCHEMES)} or a serial device path"
         )
     host, sep, port = rest.rpartition(":")

@@ -68,15 +68,20 @@ def load_policy(
     and what its zip expands to (:func:`policies.checkpoints.load_checkpoint`).
 
     Raises :class:`InputError` ``policy: <problem>``, without paths or library text (it may go
-    back to an HTTP client); the detail, naming the file, is logged as a warning. Nothing is
+    back to an HTTP client); the detail, naming the file, is logged as a warning. A spec that
+    reads as a misspelt placement name (not a path: :func:`policies.registry.close_names`) is
+    refused as an unknown policy naming the close names. Nothing is
     swapped in by this function, so a failure leaves the serving policy untouched.
     """
     from policies.checkpoints import CheckpointError
-    from policies.registry import PLACEMENTS, resolve_policy
+    from policies.registry import PLACEMENTS, close_names, resolve_policy, unknown_name
 
     spec = str(spec).strip()
     if not spec:
         raise InputError("policy: must be a checkpoint path or one of " + ", ".join(PLACEMENTS))
+    close = [] if spec in PLACEMENTS else close_names(spec, PLACEMENTS)
+    if close:  # a misspelt name, not a path: said as such (the text only, no file looked at)
+        raise InputError(unknown_name(spec, close, PLACEMENTS, "policy"))
     try:
         policy = resolve_policy(spec, world, allowed_dirs=allowed_dirs, max_bytes=max_bytes)
     except CheckpointError as exc:

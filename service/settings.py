@@ -216,12 +216,20 @@ class ServiceSettings(BaseSettings):
         return bytes.fromhex(key.get_secret_value()) if key is not None else None
 
     def check_startable(self) -> None:
-        """Refuse to serve without a token unless ``insecure`` (ValueError naming the field)."""
+        """Refuse to serve what cannot be served (ValueError naming the option or field): a
+        MAVLink connection string the link could not open (``--mavlink``, checked as a fleet
+        file's are: :func:`service.fleet_spec.check_connection`), a fleet file beside repeated
+        ``--mavlink``, no token unless ``insecure``."""
+        from service.fleet_spec import check_connection
+
         if self.fleet_file is not None and self.fleet_mavlink:
             raise ValueError("fleet_file: give a fleet file or repeated --mavlink, not both")
+        if self.fleet_file is None:
+            for url in self.fleet_mavlink or (self.mavlink,):
+                check_connection(url, "--mavlink", self.mavlink_backend)
         token = self.api_token.get_secret_value() if self.api_token else ""
         if not token and not self.insecure:
             raise ValueError(
-                "api_token: no token configured; set TUPA_API_TOKEN (or --api-token), "
-                "or pass --insecure for a local experiment"
+                "api_token: no token configured; set TUPA_API_TOKEN or pass --api-token-file "
+                "FILE, or --insecure for a local experiment"
             )

@@ -11,10 +11,13 @@ from sim.scenarios import FAMILIES
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    scenarios = subparsers.add_parser("scenarios", help="generate and inspect scenario files")
+    scenarios = subparsers.add_parser(
+        "scenarios", help="generate and inspect scenario files", allow_abbrev=False
+    )
     scenarios_sub = scenarios.add_subparsers(dest="scenarios_command", required=True)
     generate = scenarios_sub.add_parser(
         "generate",
+        allow_abbrev=False,
         help="draw a seeded set of scenarios (users' positions and loads) and write it as JSON",
     )
     generate.add_argument("--n", type=int, default=500, help="number of scenarios (default 500)")
@@ -44,10 +47,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     generate.add_argument("--out", type=Path, required=True, help="output file (JSON)")
     generate.set_defaults(handler=_generate)
 
-    sim = subparsers.add_parser("sim", help="run the network model")
+    sim = subparsers.add_parser("sim", help="run the network model", allow_abbrev=False)
     sim_sub = sim.add_subparsers(dest="sim_command", required=True)
     evaluate = sim_sub.add_parser(
         "evaluate",
+        allow_abbrev=False,
         help="simulate given UAV positions (a tupa-cases/1 file) and write per-user metrics",
     )
     evaluate.add_argument("cases", type=Path, help="case file (tupa-cases/1 JSON)")

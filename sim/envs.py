@@ -299,6 +299,11 @@ class _FapEnv(gym.Env, ABC):
         return info
 
 
+class ResetNeededError(gym.error.ResetNeeded, RuntimeError):
+    """Something only an episode has (the action mask) was asked for before ``reset()``: the
+    error Gymnasium's order check raises for ``step()``, and a ``RuntimeError``."""
+
+
 class FapDiscreteEnv(_FapEnv):
     """13 moves on the zone grid, from the zone the vehicle is in; invalid moves are masked."""
 
@@ -308,11 +313,18 @@ class FapDiscreteEnv(_FapEnv):
         world: World | Sequence[World] | None = None,
         model: NetworkModel | None = None,
     ) -> None:
+        self._mask: np.ndarray | None = None  # known once an episode has started
         super().__init__(scenarios, world, model)
         self.action_space = spaces.Discrete(len(MOVES))
 
     def action_masks(self) -> np.ndarray:
-        """Boolean mask of the moves that keep the target inside the volume (``stay`` always)."""
+        """Boolean mask of the moves that keep the target inside the volume (``stay`` always),
+        from the zone the vehicle is in: :class:`ResetNeededError` before the first
+        ``reset()``, as there is no vehicle yet (MaskablePPO asks after ``reset()``)."""
+        if self._mask is None:
+            raise ResetNeededError(
+                "action_masks: call reset() first: the mask depends on where the episode starts"
+            )
         return self._mask.copy()
 
     def _moved(self) -> None:

@@ -18,6 +18,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``sitl-mock`` subcommand."""
     parser = subparsers.add_parser(
         "sitl-mock",
+        allow_abbrev=False,
         help="run a MAVLink autopilot simulator (ArduPilot Copter or PX4 flavour)",
         description=(
             "Serve one simulated multicopter over MAVLink 2, behaving like ArduPilot Copter "

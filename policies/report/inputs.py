@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from policies.checkpoints import RUN_FILE, training_run
 from policies.report.checks import (
     check_scenario_ids,
     fail,
@@ -41,6 +42,7 @@ ORACLE_POLICY = "oracle"
 BASELINE_POLICIES = ("min-distance", "load-weighted")  # drawn dashed; the oracle dotted
 SETTINGS = ("seed", "queueing", "episode_steps", "mode", "environment")  # an evaluation's
 
+_NOT_EVAL_FILES = (LEARNING_CURVE_FILE, RUN_FILE)
 _SCENARIO_NUMBERS = ("utility", "heterogeneity", "throughput_bps", "delay_s", "plr")
 _H_TOLERANCE = 1e-9
 
@@ -239,14 +241,16 @@ def _display_order(results: Sequence[PolicyResult]) -> list[PolicyResult]:
 def load_eval_results(results_dir: Path, warn: Warn = stderr_warning) -> list[PolicyResult]:
     """Every policy's results from the eval files in ``results_dir``, checked (see the module
     doc), over the same scenarios in the same order, in display order (others, then the
-    baselines, then the oracle). Files are read in name order; ``learning_curve.json`` and
-    hidden files are not eval files; other non-eval JSON is skipped with ``warn``."""
+    baselines, then the oracle). Files are read in name order; ``learning_curve.json``,
+    ``run.json`` (a training run's state, in a ``tupa train`` directory) and hidden files are
+    not eval files; other non-eval JSON is skipped with ``warn``. A directory without eval
+    files is an ``InputError``; for a training run's, naming the ``tupa eval`` that makes one."""
     results_dir = Path(results_dir)
     if not results_dir.is_dir():
         raise InputError(f"--results: {results_dir}: not a directory")
     results: list[PolicyResult] = []
     for path in sorted(results_dir.glob("*.json")):
-        if path.name == LEARNING_CURVE_FILE or path.name.startswith(".") or not path.is_file():
+        if path.name in _NOT_EVAL_FILES or path.name.startswith(".") or not path.is_file():
             continue
         document = read_json(path)
         if not _is_eval_document(document):
@@ -254,7 +258,7 @@ def load_eval_results(results_dir: Path, warn: Warn = stderr_warning) -> list[Po
             continue
         results.extend(_parse_eval_document(document, path))
     if not results:
-        raise InputError(f"--results: {results_dir}: no tupa eval results (*.json) found")
+        raise InputError(_nothing_to_report(results_dir))
     _check_unique_policies(results)
     results = _check_same_scenarios(results)
     _warn_on_settings(results, warn)
@@ -277,6 +281,28 @@ def _warn_on_reference(
                     f"{learning.reference[r.policy]:.3f} differs from its median utility "
                     f"{median:.3f} in {r.source.name} (another test set or seed?)"
                 )
+
+
+def _nothing_to_report(results_dir: Path) -> str:
+    """The error for a results directory without eval files: for a training run's directory,
+    the ``tupa eval`` command that makes one (its latest checkpoint when it was interrupted)."""
+    run = training_run(results_dir)
+    if run is None:
+        return f"--results: {results_dir}: no tupa eval results (*.json) found"
+    if run.finished:
+        policy, state = results_dir, "a training run"
+    elif run.latest is not None:
+        policy, state = run.latest, f"a training run, interrupted after {run.progress()}"
+    else:
+        return (
+            f"--results: {results_dir} is a training run with no checkpoint yet: nothing to report"
+        )
+    test = run.test_scenarios or "TEST.json"
+    return (
+        f"--results: {results_dir} is {state}, not tupa eval results: evaluate it first, e.g. "
+        f"tupa eval --policy {policy} --scenarios {test} --json {results_dir / 'eval.json'} "
+        f"(then tupa report --results {results_dir} draws it with its learning curve)"
+    )
 
 
 def load_inputs(

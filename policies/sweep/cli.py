@@ -34,6 +34,7 @@ results. Exit status: 0 when every trial is done, 1 when some failed, 2 on bad i
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "sweep",
+        allow_abbrev=False,
         help="run a grid of training runs (locally or on Ray), resumable",
         description=_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -733,15 +733,21 @@ def run_open(seeds: list[int], niceness: int, deadline: float) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     sub = parser.add_subparsers(dest="command", required=True)
-    sub.add_parser("cases", help="write sim/calibration/cases.json")
-    sub.add_parser("few-stations-cases", help="write sim/calibration/cases_few_stations.json")
-    few = sub.add_parser("run-few-stations", help="simulate the few-station set in ns-3")
+    sub.add_parser("cases", help="write sim/calibration/cases.json", allow_abbrev=False)
+    sub.add_parser(
+        "few-stations-cases",
+        help="write sim/calibration/cases_few_stations.json",
+        allow_abbrev=False,
+    )
+    few = sub.add_parser(
+        "run-few-stations", help="simulate the few-station set in ns-3", allow_abbrev=False
+    )
     few.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     few.add_argument("--nice", type=int, default=10, help="worker niceness (default 10)")
     few.add_argument("--budget-s", type=float, default=20 * 60, help="stop after this long")
-    run = sub.add_parser("run", help="simulate the cases in ns-3 (resumable)")
+    run = sub.add_parser("run", help="simulate the cases in ns-3 (resumable)", allow_abbrev=False)
     run.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     run.add_argument("--nice", type=int, default=19, help="worker niceness (default 19)")
     run.add_argument("--budget-s", type=float, default=40 * 60, help="stop after this long")

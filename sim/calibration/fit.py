@@ -428,7 +428,7 @@ def _searches(doc: dict[str, Any]) -> list[dict[str, Any]]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     parser.add_argument("--out", type=Path, default=FITTED_PATH)
     parser.add_argument("--rounds", type=int, default=20, help="0: re-score only")
     parser.add_argument(

@@ -363,8 +363,9 @@ def test_checkpoint_files_get_the_usual_permissions(tmp_path, random_ddqn):
 def test_ctrl_c_saves_latest_with_its_replay_buffer_and_resume_continues_the_cycle(
     tmp_path, test_file, monkeypatch
 ):
-    """Ctrl-C (KeyboardInterrupt inside SB3's learn) after 4 episodes: latest.zip and the replay
-    buffer are saved, and --resume goes on with the 5th scenario of the cycle, its buffer full."""
+    """Ctrl-C (KeyboardInterrupt inside SB3's learn) after 4 episodes of a run asked to save its
+    replay buffer: latest.zip and the buffer are saved, and --resume goes on with the 5th
+    scenario of the cycle, its buffer full."""
     from policies import training
     from sim.envs import ScenarioCycle
 
@@ -378,8 +379,12 @@ def test_ctrl_c_saves_latest_with_its_replay_buffer_and_resume_continues_the_cyc
         return keep_going
 
     monkeypatch.setattr(training.TrainingCallback, "_on_step", interrupt_after_four)
-    with pytest.raises(KeyboardInterrupt):
-        train(small_config(test_file, out, "ddqn", 12))
+    config = replace(small_config(test_file, out, "ddqn", 12), save_replay_buffer=True)
+    with pytest.raises(training.TrainingInterrupted) as stopped:
+        train(config)
+    assert stopped.value.exit_code == 130
+    assert str(stopped.value).startswith("interrupted (Ctrl-C) after 4 of 12 episodes; saved ")
+    assert "and its replay buffer (latest_replay.pkl)" in str(stopped.value)
     assert (out / "checkpoints" / "latest.zip").is_file()
     assert (out / "checkpoints" / "latest_replay.pkl").is_file()
     assert json.loads((out / training.RUN_FILE).read_text())["episodes_done"] == 4

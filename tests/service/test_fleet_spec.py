@@ -140,7 +140,7 @@ def _serve(*args: str) -> subprocess.CompletedProcess[str]:
         (["--fleet-file", "{path}"], "vehicles[1].system_id: 1 is also vehicles[0]'s"),
         (
             ["--mavlink", "tcp:127.0.0.1:1", "--mavlink", "serial"],
-            "vehicles[1].mavlink: unknown connection",
+            "--mavlink: unknown connection 'serial'",
         ),
         (
             ["--mavlink", "tcp:127.0.0.1:1", "--mavlink", "tcp:127.0.0.1:2", "--separation-m", "0"],

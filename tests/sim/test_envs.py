@@ -103,6 +103,19 @@ def test_masks_never_allow_leaving_the_volume(seed, picks):
         np.testing.assert_array_equal(info["uav_xyz_m"], before)
 
 
+def test_action_masks_before_reset_say_reset_first():
+    """As Gymnasium's own order check does for ``step()``: the mask depends on where the
+    episode starts, so asking for it before ``reset()`` is a clear error (Gymnasium's
+    ``ResetNeeded``, also a ``RuntimeError``), not an ``AttributeError``."""
+    env = gym.make(DISCRETE_ENV_ID)
+    for error in (gym.error.ResetNeeded, RuntimeError):
+        with pytest.raises(error, match=r"call reset\(\) first"):
+            env.unwrapped.action_masks()
+    env.reset(seed=0)
+    mask = env.unwrapped.action_masks()
+    assert mask.shape == (len(MOVES),) and mask.dtype == bool and mask[0]
+
+
 def test_discrete_moves_go_where_they_say():
     env = FapDiscreteEnv(SCENARIOS, World(stochastic=False))
     _, info = env.reset(seed=0)
