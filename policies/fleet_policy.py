@@ -27,7 +27,7 @@ from policies.fleet_baselines import FLEET_BASELINES, KMeansPlacement
 from policies.fleet_oracle import FleetOracle, FleetOracleConfig
 from policies.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
 from policies.interface import ReportedUsers
-from policies.registry import close_names, unknown_name
+from policies.registry import PLACEMENTS, close_names, unknown_name
 from sim.association import associate_at
 from sim.errors import InputError
 from sim.fleet import MAX_UAVS, FleetConfig
@@ -192,6 +192,12 @@ def resolve_fleet_policy(
     if spec in FLEET_POLICIES:
         return FleetPlacementPolicy(spec, world, float(separation_m))
     close = close_names(spec, FLEET_POLICIES)
+    if spec in PLACEMENTS:  # a real name, of a single-vehicle policy: say that, not "misspelt"
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        raise InputError(
+            f"policy: a fleet is served by one of {', '.join(FLEET_POLICIES)} or a fleet "
+            f"checkpoint, got {spec!r} (a single-vehicle policy cannot drive a fleet{hint})"
+        )
     if close:
         raise InputError(unknown_name(spec, close, FLEET_POLICIES, "policy"))
     path = Path(spec)

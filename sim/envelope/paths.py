@@ -26,7 +26,7 @@ import shapely
 from shapely.geometry import LineString, Point
 from shapely.ops import nearest_points
 
-from sim.envelope.volume import Envelope, Vec3
+from sim.envelope.volume import EDGE_EPS_M, Envelope, Vec3
 
 CORNER_MARGIN_M = 0.5
 """How far outside the grown footprints the path's corners lie (so legs touch nothing)."""
@@ -88,14 +88,20 @@ def _push(envelope: Envelope, point: Vec3) -> Vec3:
         _, nearest = nearest_points(here, target)
         return (nearest.x, nearest.y, z_m)
     for grown, low, high in envelope.grown:
-        if not (low < z_m < high and grown.buffer(-1e-6).intersects(here)):
+        if not (low < z_m < high and grown.buffer(EDGE_EPS_M).intersects(here)):
             continue
         over_z = high + OVER_MARGIN_M
-        outside = grown.buffer(CORNER_MARGIN_M).exterior
-        _, nearest = nearest_points(here, outside)
-        sideways = math.hypot(nearest.x - x_m, nearest.y - y_m)
+        # Out to the side, but never out of the inclusion: the nearest allowed point at least
+        # CORNER_MARGIN_M off this footprint.
+        free = allowed.difference(grown.buffer(CORNER_MARGIN_M, join_style="mitre"))
+        sideways = math.inf
+        if not free.is_empty:
+            _, nearest = nearest_points(here, free)
+            sideways = math.hypot(nearest.x - x_m, nearest.y - y_m)
         if over_z <= envelope.ceiling_m and over_z - z_m <= sideways:
             return (x_m, y_m, over_z)
+        if math.isinf(sideways):
+            return point
         return (nearest.x, nearest.y, z_m)
     return point
 

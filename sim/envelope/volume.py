@@ -33,7 +33,9 @@ from sim.config import AreaConfig
 Vec3 = tuple[float, float, float]
 
 EDGE_EPS_M = 1e-6
-"""Tolerance of the legality tests: a point this close to a boundary is on the legal side."""
+"""Tolerance of the legality tests, always on the safe side of an exclusion: a point this close
+to a grown exclusion footprint (within its band) counts as inside it. The inclusion and the
+altitude band allow it (a target on the area's edge is legal)."""
 
 
 @dataclass(frozen=True)
@@ -108,8 +110,8 @@ class Envelope:
 
     @cached_property
     def _grown_prepared(self) -> tuple[PreparedGeometry, ...]:
-        # Shrunk by the tolerance: touching a grown footprint's boundary is legal.
-        return tuple(prep(g.buffer(-EDGE_EPS_M)) for g, _, _ in self.grown)
+        # Grown by the tolerance: a point on (or just off) a grown footprint is inside it.
+        return tuple(prep(g.buffer(EDGE_EPS_M, join_style="mitre")) for g, _, _ in self.grown)
 
     # ------------------------------------------------------------------ checks
 
@@ -188,9 +190,9 @@ class Envelope:
 
     def solid_tree(self, active: tuple[int, ...]) -> shapely.STRtree:
         """A spatial index of the ``active`` exclusions' grown footprints, by the tolerance
-        narrower (touching one is legal), kept per set of exclusions."""
+        wider (as the point test has them), kept per set of exclusions."""
         if active not in self._trees:
-            solids = [self.grown[i][0].buffer(-EDGE_EPS_M, join_style="mitre") for i in active]
+            solids = [self.grown[i][0].buffer(EDGE_EPS_M, join_style="mitre") for i in active]
             self._trees[active] = shapely.STRtree(solids)
         return self._trees[active]
 
