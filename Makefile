@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test lint format bench clean browser
+.PHONY: run test test-fast lint format bench clean browser
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -34,10 +34,27 @@ browser:
 	    echo "chromium is missing (apt-get install chromium): the browser test will skip"; \
 	  fi
 
+# The tests run in parallel (pytest-xdist): TEST_WORKERS processes (auto: one per core), and
+# --dist loadgroup keeps each xdist_group on one worker, one test after another (the timing
+# tests, the Ray tests, the tests of one ns-3 worker or one module-wide server: tests/tiers.py).
+# pytest-randomly shuffles the order and prints its seed: PYTEST_ADDOPTS=--randomly-seed=N
+# gives the same order again (which worker runs which test can still differ; TEST_WORKERS=0
+# runs them all in one process).
+TEST_WORKERS ?= auto
+PYTEST := $(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadgroup
+
+# Everything: every tier (tests/tiers.py), as CI runs it (.ci/run).
 test: $(STAMP) browser
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/python -m pytest
+	$(PYTEST)
+
+# The inner loop: lint, then the tests that need no process, flying mock, training, ns-3,
+# browser or Ray (pure logic, in process: pytest --fast, tests/conftest.py).
+test-fast: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(PYTEST) --fast
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

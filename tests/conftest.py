@@ -1,9 +1,12 @@
 """Fixtures shared by the test packages: sitl_mock autopilots on free loopback ports (port 0),
-each stopped at teardown, also on failure."""
+each stopped at teardown, also on failure; the ns-3 worker, started once per test run; and the
+hook that marks each test with the tiers it needs (:mod:`tests.tiers`: a test is marked by the
+fixtures it uses)."""
 
 from __future__ import annotations
 
 import os
+from collections import Counter
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -12,6 +15,7 @@ from hypothesis import settings
 
 from sitl_mock.config import VehicleConfig
 from sitl_mock.server import MockAutopilot
+from tests.tiers import GROUP_ATTRIBUTE, NEEDS_ATTRIBUTE, TIERS, needs
 
 # Property tests: a failure prints the blob that reproduces it (@reproduce_failure), and CI runs
 # them derandomised, so a red CI run replays exactly (profile "ci": `.ci/run` sets
@@ -24,7 +28,109 @@ settings.load_profile(
 )
 
 
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--fast",
+        action="store_true",
+        help="run only the in-process tier: deselect the tests marked "
+        + ", ".join(TIERS)
+        + " (tests/tiers.py; make test-fast)",
+    )
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist and pytest-randomly see the items
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark each test by the fixtures it uses, give it its xdist group, then (with ``--fast``)
+    deselect every test that has a tier marker.
+
+    * Tiers: the markers of each fixture decorated with :func:`tests.tiers.needs` that the test
+      uses, directly or through other fixtures (the definition in effect for that test).
+    * ``xdist_group``, unless the test has one of its own: the group of the first such fixture
+      that names one; else, for a test that uses a fixture of its module's scope (or its
+      class's), one group per module, so that a parallel run builds that fixture once, on one
+      worker, rather than once on each.
+    * Unique test ids: schemathesis gives every operation's case of a test the test's own id
+      (tests/fuzz/test_openapi.py), and a parallel run keeps one test per id (it would run one
+      operation of each). Such a test's id becomes its name, which names the operation
+      (``test_with_the_token[GET /v1/vehicle]``); any id still shared is an error.
+    * Under ``--dist loadgroup``, each grouped test's id ends in ``@GROUP``, which is how
+      pytest-xdist's scheduler finds the group. pytest-xdist 3.8 writes that suffix where pytest
+      8 kept the id (``_nodeid``); pytest 9 keeps it elsewhere, so without this, groups would be
+      silently ignored (:func:`_set_nodeid`).
+    """
+    counts = Counter(item.nodeid for item in items)
+    for item in items:
+        if counts[item.nodeid] > 1 and "::" in item.nodeid:
+            _set_nodeid(item, f"{item.nodeid.rsplit('::', 1)[0]}::{item.name}")
+    shared = sorted(nodeid for nodeid, n in Counter(i.nodeid for i in items).items() if n > 1)
+    if shared:
+        raise pytest.UsageError(f"tests share an id (a parallel run would drop some): {shared}")
+    for item in items:
+        info = getattr(item, "_fixtureinfo", None)
+        if info is None:
+            continue
+        named = module = None
+        for name in item.fixturenames:
+            definitions = info.name2fixturedefs.get(name)
+            if not definitions:
+                continue
+            definition = definitions[-1]
+            for marker in getattr(definition.func, NEEDS_ATTRIBUTE, ()):
+                if item.get_closest_marker(marker) is None:
+                    item.add_marker(marker)
+            named = named or getattr(definition.func, GROUP_ATTRIBUTE, None)
+            if definition.scope in ("module", "class"):
+                module = f"module:{item.nodeid.split('::', 1)[0]}"
+        group = named or module
+        if group is not None and item.get_closest_marker("xdist_group") is None:
+            item.add_marker(pytest.mark.xdist_group(group))
+    if getattr(config.option, "loadgroup", False):
+        for item in items:
+            mark = item.get_closest_marker("xdist_group")
+            if mark is not None:
+                group = mark.args[0] if mark.args else mark.kwargs.get("name", "default")
+                _set_nodeid(item, f"{item.nodeid}@{group}")
+    if config.getoption("fast"):
+        keep = [i for i in items if not any(i.get_closest_marker(t) for t in TIERS)]
+        dropped = [i for i in items if any(i.get_closest_marker(t) for t in TIERS)]
+        if dropped:
+            config.hook.pytest_deselected(items=dropped)
+            items[:] = keep
+
+
+def _set_nodeid(item: pytest.Item, nodeid: str) -> None:
+    """Give ``item`` the id ``nodeid``: pytest 9 keeps it as ``_id`` (a NodeId), pytest 8 as
+    ``_nodeid`` (a string)."""
+    if hasattr(item, "_id"):
+        from _pytest.nodeid import coerce_node_id
+
+        item._id = coerce_node_id(nodeid)
+    else:
+        item._nodeid = nodeid
+    assert item.nodeid == nodeid, (item.nodeid, nodeid)
+
+
+NO_NS3 = "ns-3 is not installed (pip install 'tupa[ns3]'): the ns-3 backend is optional"
+
+
+@pytest.fixture(scope="session")
+@needs("ns3", group="ns3")
+def ns3_runner() -> Iterator[Any]:
+    """One ns-3 worker (:class:`sim.ns3_backend.Ns3Runner`, niceness 10) for the whole test run:
+    it imports ns-3 and compiles the scenario once (~15 s), then simulates the cases of every
+    module one at a time; the tests that use it share the ``ns3`` xdist group, so that a
+    parallel run starts it on one worker only. Skipped when ns-3 is not installed (checked with
+    ``importorskip("ns3")``, the installed package's cheap namespace: ``import ns`` would load
+    all of ns-3 into the test process)."""
+    pytest.importorskip("ns3", reason=NO_NS3)
+    from sim.ns3_backend import Ns3Runner
+
+    with Ns3Runner(niceness=10) as runner:
+        yield runner
+
+
 @pytest.fixture
+@needs("flying")
 def start_mock() -> Iterator[Callable[..., MockAutopilot]]:
     """Factory: ``start_mock(flavour, listen=..., signing_key=..., **VehicleConfig fields)``."""
     mocks: list[MockAutopilot] = []

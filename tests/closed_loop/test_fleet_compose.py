@@ -69,6 +69,7 @@ def test_the_fleet_profile_agrees_with_itself(compose: dict[str, Any]) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.process
 def test_the_fleet_profiles_commands_run_together(compose: dict[str, Any], tmp_path: Path) -> None:
     services = compose["services"]
     processes: list[TupaProcess] = []

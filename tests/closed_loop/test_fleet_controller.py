@@ -265,6 +265,7 @@ def test_bad_fleet_demo_settings_name_the_field(field: str, value: Any) -> None:
         (["--uavs", "3", "--policy", "min-distance"], "--policy"),
     ],
 )
+@pytest.mark.process
 def test_tupa_demo_refuses_bad_fleet_input_in_one_line(args: list[str], named: str) -> None:
     result = subprocess.run(
         [sys.executable, "-m", "service.cli", "demo", *args],

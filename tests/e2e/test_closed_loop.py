@@ -24,6 +24,7 @@ from sim.network import NetworkModel
 from sim.scenarios import Scenario
 from sim.utility import network_utility
 from tests.helpers import wait_for
+from tests.tiers import needs
 
 pytestmark = pytest.mark.slow
 
@@ -47,6 +48,7 @@ def model_utility(position_m: np.ndarray) -> float:
 
 
 @pytest.fixture
+@needs("process")
 def loop() -> Iterator[tuple[str, str, int]]:
     processes: list[TupaProcess] = []
     token = secrets.token_urlsafe(16)

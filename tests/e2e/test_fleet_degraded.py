@@ -31,6 +31,7 @@ from policies.interface import ReportedUsers
 from service.frames import FrameConfig
 from sitl_mock.flavours import get_flavour
 from tests.helpers import wait_for
+from tests.tiers import needs
 
 pytestmark = pytest.mark.slow
 
@@ -53,6 +54,7 @@ def body() -> dict[str, Any]:
 
 
 @pytest.fixture
+@needs("process")
 def fleet(tmp_path: Path) -> Iterator[tuple[httpx.Client, list[TupaProcess]]]:
     processes: list[TupaProcess] = []
     token = secrets.token_urlsafe(16)

@@ -34,6 +34,7 @@ from closed_loop.controller import SimulatedNetwork, TruePosition
 from closed_loop.processes import TupaProcess, start_service, start_sitl_mock
 from service.frames import FrameConfig
 from sim.scenarios import Scenario
+from tests.tiers import needs
 
 pytestmark = pytest.mark.slow
 
@@ -117,11 +118,13 @@ class Controller:
 
 
 @pytest.fixture
+@needs("browser")
 def browser_path() -> str:
     return chromium()
 
 
 @pytest.fixture
+@needs("process")
 def loop(browser_path: str) -> Iterator[dict[str, Any]]:
     """The mock, the service (on a port chosen here, so a restart can take it again) and the
     controller; every process stopped at the end."""

@@ -11,6 +11,7 @@ from typing import Any
 import pytest
 
 from tests.faults.harness import Harness
+from tests.tiers import needs
 
 
 @pytest.hookimpl(wrapper=True)
@@ -21,6 +22,7 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) ->
 
 
 @pytest.fixture
+@needs("process", group="timing")
 def harness(request: pytest.FixtureRequest) -> Iterator[Harness]:
     h = Harness()
     try:

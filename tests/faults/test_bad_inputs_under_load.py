@@ -27,6 +27,7 @@ import pytest
 from service.policy_runtime import SHIPPED_DDQN
 from tests.faults.harness import PX4_FAST, USERS_EAST, USERS_NORTH, Api, Harness
 from tests.helpers import wait_for
+from tests.tiers import needs
 
 pytestmark = pytest.mark.slow
 
@@ -41,6 +42,7 @@ def checkpoint_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture(scope="module")
+@needs("process", group="timing")
 def api(checkpoint_dir: Path) -> Iterator[Api]:
     harness = Harness()
     try:

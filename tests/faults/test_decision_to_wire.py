@@ -33,6 +33,9 @@ AREA = AreaConfig(size_x_m=60.0, size_y_m=60.0, zone_m=5.0, z_min_m=5.0, z_max_m
 FRAMES = FrameConfig(area_origin_north_m=-20.0, area_origin_east_m=-10.0)
 PERIOD_S = 0.1
 
+# It measures milliseconds: never beside another timing test (tests/tiers.py).
+pytestmark = pytest.mark.xdist_group("timing")
+
 
 @pytest.fixture
 def tap(monkeypatch: pytest.MonkeyPatch) -> list[tuple[float, tuple[float, float, float]]]:

@@ -52,6 +52,7 @@ def test_the_bridge_hands_the_learner_each_agents_current_mask(tmp_path: Path) -
     vec.close()
 
 
+@pytest.mark.training
 def test_a_ddqn_fleet_trains_and_moves_each_uav_from_its_own_zone(tmp_path: Path) -> None:
     metadata = train_fleet(_config(tmp_path / "run"))
     on_disk = json.loads((tmp_path / "run" / "model.json").read_text())

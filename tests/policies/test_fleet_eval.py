@@ -33,6 +33,7 @@ from sim.geometry import assign_targets
 from sim.scenarios import generate_scenarios
 from sim.world import get_world
 from tests.helpers import tiny_preset
+from tests.tiers import needs
 
 AREA = AreaConfig()
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -43,6 +44,7 @@ SINGLE_UAV_CHECKPOINT = Path(__file__).parents[2] / "policies" / "checkpoints" /
 
 
 @pytest.fixture(scope="module")
+@needs("training")
 def checkpoint(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("fleet-eval") / "run"
     config = FleetTrainConfig(

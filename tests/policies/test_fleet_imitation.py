@@ -71,6 +71,7 @@ def _world() -> object:
     return replace(get_world("closed-loop"), episode_steps=4, home="random")
 
 
+@pytest.mark.process  # workers=2: a pool of spawned processes
 def test_teacher_data_are_the_same_for_any_number_of_workers() -> None:
     world = _world()
     sampler = ScenarioSampler(families=("hotspots",), users=(6, 8), total_load_bps=80e6)
@@ -95,6 +96,7 @@ def test_teacher_data_are_the_same_for_any_number_of_workers() -> None:
     np.testing.assert_array_equal(one.actions, two.actions)
 
 
+@pytest.mark.training
 def test_the_fit_learns_the_teachers_actions_and_keeps_the_best_epoch(tmp_path) -> None:
     config = FleetTrainConfig(
         n_uavs=2, episodes=1, out_dir=tmp_path, preset=TINY_PRESET, users=(6, 6),
@@ -120,6 +122,7 @@ def test_the_fit_learns_the_teachers_actions_and_keeps_the_best_epoch(tmp_path) 
     np.testing.assert_array_equal(got, target.cpu().numpy())
 
 
+@pytest.mark.training
 def test_an_imitation_run_writes_a_checkpoint_that_records_it(tmp_path) -> None:
     config = FleetTrainConfig(
         n_uavs=2, episodes=0, out_dir=tmp_path / "run", preset=TINY_PRESET, users=(6, 8),
@@ -225,6 +228,7 @@ def test_a_symmetry_turns_observations_and_actions_as_the_area_turns(element: in
     np.testing.assert_array_equal(got_a.numpy()[:, 2], actions[:, 2])
 
 
+@pytest.mark.training
 def test_the_fit_under_symmetries_learns_a_decision_that_turns_with_the_area(tmp_path) -> None:
     """A teacher that flies towards the users, seen from four sides: fitted under the eight
     symmetries (each mini-batch turned), the actor still learns it."""
@@ -314,6 +318,7 @@ def test_a_symmetry_turns_moves_and_their_masks_as_the_area_turns(element: int) 
     np.testing.assert_array_equal(MOVES[got_moves.numpy()], stepped)
 
 
+@pytest.mark.training
 def test_the_fit_learns_the_teachers_moves_within_their_masks(tmp_path) -> None:
     config = FleetTrainConfig(
         n_uavs=2, episodes=1, out_dir=tmp_path, preset=TINY_PRESET, users=(6, 6), algorithm="ddqn"

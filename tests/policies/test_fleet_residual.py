@@ -93,6 +93,7 @@ def test_the_residual_fleet_keeps_pettingzoos_parallel_api() -> None:
 TINY_PRESET = tiny_preset()
 
 
+@pytest.mark.training
 def test_a_residual_run_trains_and_untrained_it_flies_the_kmeans_baseline(tmp_path) -> None:
     config = FleetTrainConfig(
         n_uavs=2, episodes=6, out_dir=tmp_path / "run", preset=TINY_PRESET, seed=5,
@@ -159,6 +160,7 @@ def test_a_prior_that_is_not_known_or_lacks_its_world_is_refused() -> None:
         )  # fmt: skip
 
 
+@pytest.mark.training
 def test_a_run_on_the_scored_prior_records_it_and_untrained_flies_kmeans_scored(tmp_path) -> None:
     config = FleetTrainConfig(
         n_uavs=2, episodes=2, out_dir=tmp_path / "run", preset=TINY_PRESET, seed=5,

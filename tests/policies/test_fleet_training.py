@@ -28,6 +28,7 @@ from sim.fleet_env import FleetParallelEnv
 from sim.scenarios import generate_scenarios
 from sim.world import get_world
 from tests.helpers import tiny_preset
+from tests.tiers import needs
 
 AREA = AreaConfig()
 TINY_PRESET = tiny_preset()
@@ -35,6 +36,7 @@ SHORT_WORLD = replace(get_world("closed-loop"), episode_steps=8)
 
 
 @pytest.fixture(scope="module")
+@needs("training")
 def trained(tmp_path_factory) -> tuple[Path, dict]:
     out = tmp_path_factory.mktemp("fleet") / "run"
     config = FleetTrainConfig(
@@ -212,6 +214,7 @@ def test_cli_trains_a_fleet(tmp_path, capsys, monkeypatch):
     assert main(argv) == 2  # a second run into the same directory is refused
 
 
+@pytest.mark.training
 def test_cli_imitates_a_teacher_and_says_how_well_the_fit_went(tmp_path, capsys, monkeypatch):
     import policies.fleet_training as fleet_training
 
@@ -229,6 +232,7 @@ def test_cli_imitates_a_teacher_and_says_how_well_the_fit_went(tmp_path, capsys,
     assert f"zero action {record['zero_action_validation_mse']:.4f}" in said
 
 
+@pytest.mark.training
 def test_cli_imitates_the_teachers_moves_for_ddqn(tmp_path, capsys, monkeypatch):
     import policies.fleet_training as fleet_training
 
@@ -255,6 +259,7 @@ def test_cli_imitates_the_teachers_moves_for_ddqn(tmp_path, capsys, monkeypatch)
     assert f"validation accuracy {record['validation_accuracy']:.3f}" in said
 
 
+@pytest.mark.training
 def test_training_is_deterministic_given_the_seed(tmp_path):
     """Same seed, same network: the fleets' first reset and torch are both seeded."""
     decided = []

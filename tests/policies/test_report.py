@@ -355,6 +355,7 @@ def test_write_learning_curve_rejects_bad_curves(
     assert not path.exists()
 
 
+@pytest.mark.process
 def test_importing_the_module_does_not_load_matplotlib() -> None:
     code = "import sys, policies.report; assert 'matplotlib' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)

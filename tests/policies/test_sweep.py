@@ -221,6 +221,8 @@ def _interruptible_and_nice() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.process
+@pytest.mark.training
 def test_ctrl_c_leaves_a_resumable_sweep_and_the_rerun_skips_finished_trials(
     tmp_path: Path,
 ) -> None:
@@ -295,6 +297,7 @@ def test_ctrl_c_leaves_a_resumable_sweep_and_the_rerun_skips_finished_trials(
 
 
 @pytest.mark.slow
+@pytest.mark.process
 def test_a_trial_that_keeps_failing_is_retried_then_reported(tmp_path: Path, capsys) -> None:
     spec = tiny_spec(tmp_path, grid={"algorithm": ["ddqn"], "seed": [1]})
     out = tmp_path / "out"
@@ -313,6 +316,8 @@ def test_a_trial_that_keeps_failing_is_retried_then_reported(tmp_path: Path, cap
 
 
 @pytest.mark.slow
+@pytest.mark.process
+@pytest.mark.training
 def test_a_killed_local_worker_is_retried(tmp_path: Path) -> None:
     spec = load_spec(
         tiny_spec(tmp_path, grid={"algorithm": ["ddqn"], "seed": [1]}, train__episodes=30)

@@ -69,6 +69,7 @@ def test_a_slice_runs_on_one_torch_thread_and_gives_the_caller_s_count_back(
 
 
 @pytest.mark.slow
+@pytest.mark.process
 def test_tupa_eval_on_the_local_backend_writes_the_same_file(
     scenario_file: Path, tmp_path: Path
 ) -> None:

@@ -23,6 +23,9 @@ from policies.sweep.spec import load_spec  # noqa: E402
 from service.cli import main  # noqa: E402
 from tests.policies.test_sweep import kill_worker_once, read_state, tiny_spec  # noqa: E402
 
+# One private Ray instance at a time: the Ray tests run one after another, on one worker.
+pytestmark = [pytest.mark.ray, pytest.mark.xdist_group("ray")]
+
 
 @pytest.fixture
 def local_ray():
@@ -36,6 +39,8 @@ def local_ray():
 
 
 @pytest.mark.slow
+@pytest.mark.process
+@pytest.mark.training
 def test_ray_gives_the_local_results_retries_a_killed_trial_and_resumes(
     tmp_path: Path, local_ray
 ) -> None:

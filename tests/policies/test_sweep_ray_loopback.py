@@ -21,9 +21,14 @@ ray = pytest.importorskip("ray", reason="ray is not installed (pip install 'tupa
 
 from policies.sweep.ray_backend import SINGLE_MACHINE_ENV, RayBackend  # noqa: E402
 
-pytestmark = pytest.mark.skipif(
-    not sys.platform.startswith("linux"), reason="reads sockets from /proc (Linux only)"
-)
+pytestmark = [
+    pytest.mark.skipif(
+        not sys.platform.startswith("linux"), reason="reads sockets from /proc (Linux only)"
+    ),
+    # One private Ray instance at a time (test_sweep_ray.py).
+    pytest.mark.ray,
+    pytest.mark.xdist_group("ray"),
+]
 
 _TCP_LISTEN = "0A"
 _UDP_UNCONNECTED = "07"

@@ -130,6 +130,7 @@ def two_torch_threads():
 
 
 @pytest.mark.slow
+@pytest.mark.training
 @pytest.mark.usefixtures("two_torch_threads")
 def test_short_ddqn_training_beats_a_random_walk(tmp_path):
     """On one scenario whose single heavy user is far from the start, a few hundred training
@@ -176,6 +177,7 @@ def test_short_ddqn_training_beats_a_random_walk(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.training
 def test_checkpoint_round_trip_and_resume_continues_the_step_counter(tmp_path, test_file):
     out = tmp_path / "run"
     first = train(small_config(test_file, out, "ddqn", 10))
@@ -198,6 +200,7 @@ def test_checkpoint_round_trip_and_resume_continues_the_step_counter(tmp_path, t
 
 
 @pytest.mark.slow
+@pytest.mark.training
 def test_ddpg_trains_and_acts_inside_the_volume(tmp_path, test_file):
     out = tmp_path / "ddpg"
     meta = train(small_config(test_file, out, "ddpg", 6))
@@ -322,6 +325,7 @@ def test_a_serving_only_export_acts_as_the_source_and_is_smaller(tmp_path, test_
     assert any(t.any() for t in getattr(copy.policy, acting).state_dict().values())
 
 
+@pytest.mark.training
 def test_training_across_environments_draws_one_per_episode(tmp_path, test_file):
     out = tmp_path / "towns"
     config = replace(
@@ -360,6 +364,7 @@ def test_checkpoint_files_get_the_usual_permissions(tmp_path, random_ddqn):
         assert path.stat().st_mode & 0o777 == 0o644, path
 
 
+@pytest.mark.training
 def test_ctrl_c_saves_latest_with_its_replay_buffer_and_resume_continues_the_cycle(
     tmp_path, test_file, monkeypatch
 ):
@@ -415,6 +420,7 @@ def test_ctrl_c_saves_latest_with_its_replay_buffer_and_resume_continues_the_cyc
 
 
 @pytest.mark.slow
+@pytest.mark.training
 def test_vectorised_training_runs_and_counts_episodes(tmp_path, test_file):
     config = replace(small_config(test_file, tmp_path / "vec", "ddqn", 8), envs=4)
     meta = train(config)

@@ -22,6 +22,7 @@ from policies.checkpoints import CheckpointError, read_checkpoint
 from policies.progress import Progress, format_duration
 from service.cli import main
 from tests.policies.test_training import small_config
+from tests.tiers import needs
 
 EPISODES = 40
 STOP_AFTER = 7
@@ -108,6 +109,7 @@ def test_file(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
+@needs("training")
 def sigterm_run(tmp_path_factory, test_file) -> Iterator[Stopped]:
     """A tiny run told to stop by SIGTERM (as ``timeout``, systemd and ``docker stop`` send)
     after 7 of its 40 episodes, its progress on a non-terminal standard error."""
@@ -243,6 +245,7 @@ def test_the_command_says_interrupted_and_where_and_exits_as_signalled(monkeypat
     )
 
 
+@pytest.mark.training
 def test_an_interruption_in_the_final_evaluation_keeps_the_trained_policy(
     tmp_path, test_file, monkeypatch, capsys
 ):

@@ -63,6 +63,7 @@ def test_seed_attributes_and_methods():
     env.close()
 
 
+@pytest.mark.training
 @pytest.mark.parametrize("algorithm", ["ddqn", "ddpg"])
 def test_our_agents_learn_on_it(algorithm):
     env = make_vec_env(algorithm, SCENARIOS, WORLD, 4, seed=1)

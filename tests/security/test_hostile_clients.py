@@ -21,6 +21,7 @@ import pytest
 
 from closed_loop.processes import TupaProcess, start_service
 from tests.helpers import wait_for
+from tests.tiers import needs
 
 TOKEN = "hostile-clients-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -62,12 +63,14 @@ def _serve(*options: str) -> Iterator[Served]:
 
 
 @pytest.fixture(scope="module")
+@needs("process", group="timing")
 def served() -> Iterator[Served]:
     """No rate limit: what these tests see must not depend on what ran before them."""
     yield from _serve("--rate-limit-rps", "0")
 
 
 @pytest.fixture(scope="module")
+@needs("process", group="timing")
 def served_rate_limited() -> Iterator[Served]:
     """A small rate limit (1 request/s, burst 5), for the test of the limit itself."""
     yield from _serve("--rate-limit-rps", "1", "--rate-limit-burst", "5")

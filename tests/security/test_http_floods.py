@@ -33,6 +33,7 @@ from tests.security.floods import (
     percentile,
     scrape,
 )
+from tests.tiers import needs
 
 TOKEN = "http-floods-token-0123456789"
 MAX_CONNECTIONS = 48
@@ -46,6 +47,7 @@ PROBE_MAX_S = 1.0
 
 
 @pytest.fixture(scope="module")
+@needs("process", group="timing")
 def port() -> Iterator[int]:
     proc: TupaProcess
     proc, port = start_service(

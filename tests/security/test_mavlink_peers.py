@@ -386,6 +386,9 @@ def read_line(process: subprocess.Popen, timeout_s: float) -> list[str]:
     return process.stdout.readline().split()
 
 
+# A throughput bound under a spray from a helper process: beside the other timing tests only.
+@pytest.mark.process
+@pytest.mark.xdist_group("timing")
 def test_a_spray_from_thousands_of_ports_neither_slows_the_stream_nor_grows_memory(
     start_mock, closing, backend
 ):

@@ -148,6 +148,7 @@ def test_settings_errors_do_not_echo_a_bad_key() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.process
 def test_tupa_serve_logs_no_secret_at_debug_level() -> None:
     """``tupa serve --log-level debug`` with both secrets in its environment, against an
     in-process mock that signs with the same key: requests with the right token, wrong ones

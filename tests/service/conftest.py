@@ -13,6 +13,7 @@ from service.frames import FrameConfig
 from service.vehicle_link import LinkConfig, VehicleLink
 from sim.config import AreaConfig
 from sitl_mock.server import MockAutopilot
+from tests.tiers import needs
 
 AREA = AreaConfig(size_x_m=60.0, size_y_m=60.0, zone_m=5.0, z_min_m=5.0, z_max_m=20.0)
 FRAMES = FrameConfig(area_origin_north_m=-20.0, area_origin_east_m=-10.0)
@@ -29,6 +30,7 @@ def mock_in_area_m(mock: MockAutopilot) -> tuple[float, float, float]:
 
 
 @pytest.fixture
+@needs("flying")
 def open_link() -> Iterator[Callable[..., Any]]:
     """Factory: ``open_link(url, backend="pymavlink", **LinkConfig fields)``: a started link in
     :data:`AREA` and :data:`FRAMES` (unless given), closed at teardown."""

@@ -42,6 +42,7 @@ def test_the_expected_services_and_one_dockerfile(compose: dict[str, Any]) -> No
     assert {svc["image"] for svc in services.values()} == {"tupa"}
 
 
+@pytest.mark.process
 def test_every_command_is_a_real_tupa_command(compose: dict[str, Any]) -> None:
     parser = build_parser()
     for name, service in compose["services"].items():

@@ -233,6 +233,7 @@ def test_a_fleet_uses_its_own_default_policy_unless_one_is_named(tmp_path: Any) 
         )
 
 
+@pytest.mark.training
 @pytest.mark.parametrize("prior", ["kmeans-load-weighted", "kmeans-scored"])
 def test_a_fleet_checkpoint_is_served_from_the_allowed_dirs(
     make_fleet: Callable[..., Fleet], tmp_path: Path, prior: str

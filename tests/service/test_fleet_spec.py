@@ -160,6 +160,7 @@ def _serve(*args: str) -> subprocess.CompletedProcess[str]:
         ),
     ],
 )
+@pytest.mark.process
 def test_tupa_serve_refuses_a_bad_fleet_in_one_line(
     tmp_path: Path, args: list[str], message: str
 ) -> None:

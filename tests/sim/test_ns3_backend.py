@@ -1,7 +1,8 @@
 """The ns-3 backend: two short cases in ns-3 3.44, their agreement with the fast model, and how
 a crashing or hanging worker is reported.
 
-The tests that run ns-3 are skipped when it is not installed (the ``runner`` fixture); the check
+The tests that run ns-3 are skipped when it is not installed (the ``runner`` fixture: the test run's
+one worker, ``ns3_runner`` in tests/conftest.py); the check
 is ``importorskip("ns3")`` rather than ``"ns"``: ``import ns`` loads all of ns-3 into the test
 process (~15 s) although the backend only ever imports it in its worker process; ``ns3`` is the
 installed package's cheap top-level namespace. The tests of the missing-ns-3 error and of the
@@ -53,21 +54,20 @@ from sim.ns3_backend import (
     require_ns3,
 )
 from sim.scenarios import Case
-
-NO_NS3 = "ns-3 is not installed (pip install 'tupa[ns3]'): the ns-3 backend is optional"
+from tests.tiers import needs
 
 CLOSE = Case("close", [250.0, 250.0, 25.0], [[260.0, 250.0]], [10e6])
 FAR = Case("far", [0.0, 0.0, 25.0], [[460.0, 460.0]], [40e6])
 
 
-@pytest.fixture(scope="module")
-def runner():
-    pytest.importorskip("ns3", reason=NO_NS3)
-    with Ns3Runner(niceness=10) as r:
-        yield r
+@pytest.fixture
+def runner(ns3_runner: Ns3Runner) -> Ns3Runner:
+    """The run's one ns-3 worker (``ns3_runner`` in tests/conftest.py; skipped without ns-3)."""
+    return ns3_runner
 
 
 @pytest.fixture
+@needs("process")  # the stand-in workers are processes
 def without_ns3_import(monkeypatch):
     """The fake-worker tests supervise a stand-in process: no ns-3 needed in the runner."""
     import sim.ns3_backend as backend

@@ -2,7 +2,8 @@
 
 The tests that run ns-3 are skipped when it is not installed (as in test_ns3_backend.py:
 ``importorskip("ns3")``, the cheap namespace package) and marked ``slow`` (one worker start,
-~15 s, then a few short cases). The input checks and the request building need no ns-3.
+~15 s, shared with test_ns3_backend.py: ``ns3_runner`` in tests/conftest.py, then a few
+short cases). The input checks and the request building need no ns-3.
 """
 
 from __future__ import annotations
@@ -21,8 +22,6 @@ from sim.ns3_backend import (
 )
 from sim.scenarios import Case
 
-NO_NS3 = "ns-3 is not installed (pip install 'tupa[ns3]'): the ns-3 backend is optional"
-
 USERS = np.array([[250.0, 250.0], [270.0, 240.0], [230.0, 262.0]])
 LOADS = np.array([20e6, 15e6, 25e6])
 
@@ -36,11 +35,10 @@ TWO_CELLS_UAVS = np.array([[100.0, 100.0, 25.0], [400.0, 400.0, 25.0]])
 TWO_CELLS_ASSOC = np.array([0, 0, 0, 1, 1, 1])
 
 
-@pytest.fixture(scope="module")
-def runner():
-    pytest.importorskip("ns3", reason=NO_NS3)
-    with Ns3Runner(niceness=10) as r:
-        yield r
+@pytest.fixture
+def runner(ns3_runner: Ns3Runner) -> Ns3Runner:
+    """The run's one ns-3 worker (``ns3_runner`` in tests/conftest.py; skipped without ns-3)."""
+    return ns3_runner
 
 
 def _two_cells(mode: str) -> FleetCase:

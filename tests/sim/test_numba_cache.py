@@ -9,7 +9,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 import sim
+
+pytestmark = pytest.mark.process  # each test starts an interpreter
 
 SIM = Path(sim.__file__).resolve().parent
 PRINT_DIR = "import os, sim; print(os.environ['NUMBA_CACHE_DIR'])"

@@ -13,6 +13,7 @@ import pytest
 
 from sitl_mock.server import MockAutopilot
 from tests.sitl_mock.helpers import MavClient, stop_process
+from tests.tiers import needs
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -34,6 +35,7 @@ def connect() -> Iterator[Callable[..., MavClient]]:
 
 
 @pytest.fixture
+@needs("process")
 def spawn() -> Iterator[Callable[..., subprocess.Popen]]:
     """Factory: ``spawn(*args)``: ``tupa sitl-mock ARGS`` as a process (stdout and stderr
     piped, text); every process is stopped at teardown (SIGTERM, then SIGKILL)."""

@@ -88,6 +88,7 @@ def test_port_in_use_is_reported(start_mock, capsys):
     assert "--listen" in capsys.readouterr().err
 
 
+@pytest.mark.process
 def test_tupa_help_does_not_import_pymavlink():
     code = (
         "import sys; from service.cli import build_parser; build_parser(); "
