@@ -11,7 +11,9 @@ starts it fresh. SITLs bind every interface, so run this inside a private networ
     #             build/px4_sitl_default/bin/px4 -d -w RUN_DIR build/px4_sitl_default/etc
 
 Records (seconds from the autopilot's start): link up, each take-off phase, airborne, targets
-decided and reached while reports come in, then a fault: ArduPilot, the SITL frozen (SIGSTOP)
+decided and reached while reports come in (:func:`reached_targets`: a target is reached when the
+vehicle came within :data:`REACH_TOLERANCE_M` of it while it was the target, whether or not
+another target followed), then a fault: ArduPilot, the SITL frozen (SIGSTOP)
 for 6 s, link lost and back; PX4, the service killed, PX4's offboard-loss failsafe seen by a
 second MAVLink client on UDP 14550 (where PX4 SITL's ground-station link sends). Writes
 DIR/result.json and the logs; ``--json`` adds the run to a results file (a list of runs).
@@ -28,6 +30,8 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import httpx
@@ -41,6 +45,55 @@ USERS = [
     {"id": "ue-2", "x_m": 60.0, "y_m": 140.0, "offered_bps": 5e6},
     {"id": "ue-3", "x_m": 160.0, "y_m": 40.0, "offered_bps": 5e6},
 ]
+REACH_TOLERANCE_M = 3.0
+POSITION_POLL_S = 0.25
+"""How often the vehicle's position is sampled while it flies (reports go every second)."""
+
+Point = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class TargetOutcome:
+    """One target as flown: when it was decided (s), how long it stayed the target, the closest
+    the vehicle came to it meanwhile (m, None without a position sample) and, when that was
+    within the tolerance, how long after its decision (s; None: not reached)."""
+
+    t_s: float
+    xyz_m: Point
+    held_s: float
+    closest_m: float | None
+    reached_after_s: float | None
+
+    @property
+    def reached(self) -> bool:
+        return self.reached_after_s is not None
+
+
+def reached_targets(
+    targets: Sequence[tuple[float, Point]],
+    track: Sequence[tuple[float, Point]],
+    end_s: float,
+    tolerance_m: float = REACH_TOLERANCE_M,
+) -> list[TargetOutcome]:
+    """Each target ``(decided at s, xyz m)``, in order, against the vehicle's ``track`` of
+    ``(t s, xyz m)`` samples: it is the target from its decision until the next one's (or
+    ``end_s``, both ends included), and reached when a sample of that time lies within
+    ``tolerance_m`` of it (3-D distance), whether or not another target follows."""
+    outcomes = []
+    for i, (t_s, xyz) in enumerate(targets):
+        until_s = targets[i + 1][0] if i + 1 < len(targets) else end_s
+        near = [(t, math.dist(p, xyz)) for t, p in track if t_s <= t <= until_s]
+        reached = next((t - t_s for t, d in near if d <= tolerance_m), None)
+        outcomes.append(
+            TargetOutcome(
+                t_s=t_s,
+                xyz_m=tuple(xyz),
+                held_s=round(until_s - t_s, 2),
+                closest_m=round(min(d for _, d in near), 2) if near else None,
+                reached_after_s=None if reached is None else round(reached, 2),
+            )
+        )
+    return outcomes
 
 
 def main() -> int:
@@ -145,41 +198,39 @@ def main() -> int:
         if airborne is None:
             note("never airborne")
             return 1
-        # Fly: a report every second, the vehicle's telemetry position in it.
-        targets: list[dict] = []
+        # Fly: a report every second; the vehicle's position sampled in between.
+        targets: list[tuple[float, Point]] = []
+        track: list[tuple[float, Point]] = []
         current = None
         fly_until = time.monotonic() + args.fly_s
+        next_report = time.monotonic()
         while time.monotonic() < fly_until:
-            users = [
-                {**u, "throughput_bps": u["offered_bps"] * 0.8, "delay_s": 0.05, "plr": 0.01}
-                for u in USERS
-            ]
-            r = api.post("/v1/reports", json={"timestamp": time.time(), "users": users})
-            target = r.json().get("target") if r.status_code == 200 else None
-            v = api.get("/v1/vehicle").json()
-            if target and target != current:
-                if current and v["position"]:
-                    p = v["position"]
-                    gap = math.dist(
-                        (p["x_m"], p["y_m"], p["z_m"]),
-                        (current["x_m"], current["y_m"], current["z_m"]),
-                    )
-                    targets[-1]["vehicle_from_it_when_next_decided_m"] = round(gap, 2)
-                current = target
-                targets.append({"t": round(time.monotonic() - t0, 2), **target})
-                note(f"target {target}")
-            time.sleep(1.0)
-        result["targets"] = targets
-        # A target counts as reached when the vehicle was within 3 m of it as the next one came
-        # (policies decide every period while the vehicle flies, so a target can be replaced
-        # before it is reached).
-        gaps = [
-            t["vehicle_from_it_when_next_decided_m"]
-            for t in targets[:-1]
-            if "vehicle_from_it_when_next_decided_m" in t
-        ]
-        result["targets_reached"] = sum(gap <= 3.0 for gap in gaps)
-        result["targets_followed_by_another"] = len(targets) - 1
+            if time.monotonic() >= next_report:
+                next_report += 1.0
+                users = [
+                    {**u, "throughput_bps": u["offered_bps"] * 0.8, "delay_s": 0.05, "plr": 0.01}
+                    for u in USERS
+                ]
+                r = api.post("/v1/reports", json={"timestamp": time.time(), "users": users})
+                target = r.json().get("target") if r.status_code == 200 else None
+                if target and target != current:
+                    current = target
+                    xyz = (target["x_m"], target["y_m"], target["z_m"])
+                    targets.append((round(time.monotonic() - t0, 2), xyz))
+                    note(f"target {target}")
+            p = api.get("/v1/vehicle").json()["position"]
+            if p:
+                track.append((time.monotonic() - t0, (p["x_m"], p["y_m"], p["z_m"])))
+            time.sleep(POSITION_POLL_S)
+        outcomes = reached_targets(targets, track, end_s=time.monotonic() - t0)
+        result["reach_tolerance_m"] = REACH_TOLERANCE_M
+        result["targets"] = [{**asdict(o), "reached": o.reached} for o in outcomes]
+        result["targets_reached"] = sum(o.reached for o in outcomes)
+        result["targets_decided"] = len(outcomes)
+        note(
+            f"{result['targets_reached']} of {len(outcomes)} targets reached "
+            f"(within {REACH_TOLERANCE_M} m while each was the target)"
+        )
         # The fault.
         if args.autopilot == "ardupilot":
             note("SITL frozen (SIGSTOP) for 6 s")

@@ -352,8 +352,8 @@ def format_table(results: Sequence[dict[str, Any]], policy_name: str) -> str:
         "-" * len(header),
     ]
     for i, r in enumerate(results):
-        below = r["achieved"] < r["min-distance"] - TIE_TOLERANCE
-        verdict = "  (below min-distance)" if below else ""
+        gap = r["min-distance"] - r["achieved"]
+        verdict = f"  ({mine} {gap:.3f} below min-distance (loop))" if gap > TIE_TOLERANCE else ""
         cells = " ".join(f"{r[key]:>{max(len(title), 7)}.3f}" for key, title in columns)
         lines.append(
             f"{i + 1:>8} {r['world']:>18} {r['heterogeneity']:>5.2f} | {r['achieved']:>22.3f} "
@@ -363,7 +363,8 @@ def format_table(results: Sequence[dict[str, Any]], policy_name: str) -> str:
         "(loop): served by tupa serve and flown by an autopilot simulator of its own, side by "
         "side, from the same start, with the same users; (sim): flown by the embedded simulator "
         "(tupa eval --world closed-loop's protocol), with no decision latency or acceleration; "
-        f"'below min-distance': by more than {TIE_TOLERANCE}"
+        f"'{mine} ... below min-distance (loop)': its mean utility per step is below the "
+        f"min-distance (loop) column's by more than {TIE_TOLERANCE}"
     )
     return "\n".join(lines)
 

@@ -26,6 +26,13 @@ a resumed run starts from an empty buffer.
 """
 
 
+_USAGE = """\
+%(prog)s --algo {ddqn,ddpg} --strategy {spec,gen10k,gen500} --episodes N
+                  --test-scenarios FILE --out DIR [options]
+       %(prog)s --resume DIR [--episodes N] [options]
+       %(prog)s --uavs K --algo {ddqn,ddpg} --episodes N --out DIR [options]"""
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "train",
@@ -33,18 +40,36 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="train a DDQN or DDPG placement policy",
         description=_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
+        usage=_USAGE,
     )
-    parser.add_argument("--algo", choices=("ddqn", "ddpg"), help="algorithm")
-    parser.add_argument("--strategy", choices=("spec", "gen10k", "gen500"), help="training data")
-    parser.add_argument("--episodes", type=int, help="training episodes (the paper: 10000)")
-    parser.add_argument("--preset", choices=("paper", "fast"), default="fast")
+    # Required for a new run, but not with --resume DIR (nor all of them for a fleet): checked
+    # in _train, listed apart so that --help shows them as required.
+    required = parser.add_argument_group(
+        "required arguments",
+        "a new run needs all five; --resume DIR none of them;\n"
+        "a fleet (--uavs K > 1) only --algo, --episodes and --out",
+    )
+    required.add_argument("--algo", choices=("ddqn", "ddpg"), help="algorithm")
+    required.add_argument("--strategy", choices=("spec", "gen10k", "gen500"), help="training data")
+    required.add_argument(
+        "--episodes",
+        type=int,
+        help="training episodes (the paper: 10000); with --resume, a higher target",
+    )
     parser.add_argument(
+        "--preset", choices=("paper", "fast"), default="fast", help="hyper-parameters"
+    )
+    required.add_argument(
         "--test-scenarios", type=Path, metavar="FILE", help="test set (tupa-scenarios/1 JSON)"
     )
-    parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--out", type=Path, metavar="DIR", help="output directory")
+    parser.add_argument("--seed", type=int, default=1, help="random seed of the run")
+    required.add_argument("--out", type=Path, metavar="DIR", help="output directory")
     parser.add_argument(
-        "--queueing", choices=("fq-codel", "mac-only"), default="fq-codel", metavar="Q"
+        "--queueing",
+        choices=("fq-codel", "mac-only"),
+        default="fq-codel",
+        metavar="Q",
+        help="the access point's queueing: fq-codel or mac-only",
     )
     parser.add_argument(
         "--uavs",
@@ -163,7 +188,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="KEY=VALUE",
         help="change one setting of the world (repeatable), e.g. flight.horizontal_mps=5",
     )
-    parser.add_argument("--checkpoint-every", type=int, default=500, metavar="EPISODES")
+    parser.add_argument(
+        "--checkpoint-every",
+        type=int,
+        default=500,
+        metavar="EPISODES",
+        help="episodes between two saves of checkpoints/latest.zip",
+    )
     parser.add_argument(
         "--curve-scenarios",
         type=int,

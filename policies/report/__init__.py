@@ -69,7 +69,7 @@ def build_report(results_dir: Path, out_dir: Path, warn: Warn = stderr_warning) 
     profiles = load_altitude_profiles(results_dir)
     if profiles:
         styles = line_styles([r.policy for r in results])
-        figures[ALTITUDE_FIGURE] = altitude_figure(profiles, results, styles)
+        figures[ALTITUDE_FIGURE] = altitude_figure(profiles, results, styles, warn)
     markdown = render_markdown(results, learning, results_dir, altitude_lines(profiles))
     written = write_report_files(out_dir, {**figures, REPORT_FILE: markdown})
     lines = headlines(results, heterogeneity_bins(results))

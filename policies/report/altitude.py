@@ -3,9 +3,11 @@
 ``tupa eval --altitude-profiles N`` writes, beside its results, the first N scenarios' curves
 (:mod:`policies.altitude`: at each altitude, the best episode utility over the zone centres).
 :func:`load_altitude_profiles` reads them from every eval file of a results directory (the first
-file that has a scenario's curve gives it); :func:`altitude_figure` draws one panel per scenario
-(at most :data:`MAX_PANELS`) with each policy's end of episode in that scenario as a marker at
+file that has a scenario's curve gives it); :func:`altitude_figure` draws one panel per scenario,
+at most :data:`COLUMNS` to a row, with each policy's end of episode in that scenario as a marker at
 (its altitude, its episode utility); :func:`altitude_lines` is the report's paragraph and table.
+Every profile is drawn up to :data:`MAX_PANELS`; the ones beyond are named in the figure, in a
+warning and in the paragraph (the table lists every profile).
 """
 
 from __future__ import annotations
@@ -19,9 +21,11 @@ import numpy as np
 
 from policies.report.checks import fail, finite_number, non_empty_text, read_json
 from policies.report.curves import LEARNING_CURVE_FILE
-from policies.report.inputs import PolicyResult
+from policies.report.inputs import PolicyResult, Warn
 
-MAX_PANELS = 4
+MAX_PANELS = 12
+"""Panels in the figure at most (3 rows of :data:`COLUMNS`): more would be unreadable."""
+COLUMNS = 4
 FIGURE_FILE = "altitude.png"
 
 
@@ -89,18 +93,50 @@ def _ends(results: Sequence[PolicyResult], scenario_id: str) -> list[tuple[str, 
     return ends
 
 
+def left_out_note(profiles: Sequence[ProfileCurve]) -> str | None:
+    """What the figure leaves out of ``profiles`` and why, in one line (None: nothing)."""
+    left_out = [p.scenario_id for p in profiles[MAX_PANELS:]]
+    if not left_out:
+        return None
+    return (
+        f"{FIGURE_FILE}: {len(left_out)} of {len(profiles)} altitude profiles not drawn "
+        f"({', '.join(left_out)}): at most {MAX_PANELS} panels; results.md's table has them all"
+    )
+
+
 def altitude_figure(
     profiles: Sequence[ProfileCurve],
     results: Sequence[PolicyResult],
     styles: dict[str, dict[str, Any]],
+    warn: Warn | None = None,
 ) -> bytes:
-    """One panel per profile (the first :data:`MAX_PANELS`): the best utility at each altitude
-    (line), and each policy's end of episode (marker, in the policy's report colour)."""
-    from policies.report.figures import _new_figure, _png
+    """:func:`altitude_drawing` as PNG bytes."""
+    from policies.report.figures import _png
+
+    return _png(altitude_drawing(profiles, results, styles, warn))
+
+
+def altitude_drawing(
+    profiles: Sequence[ProfileCurve],
+    results: Sequence[PolicyResult],
+    styles: dict[str, dict[str, Any]],
+    warn: Warn | None = None,
+) -> Any:
+    """The figure: one panel per profile, at most :data:`COLUMNS` to a row, up to :data:`MAX_PANELS`
+    (the profiles beyond are named below the panels and, once, to ``warn``): the best utility
+    at each altitude (line), and each policy's end of episode (marker, in the policy's report
+    colour)."""
+    from policies.report.figures import _new_figure
 
     shown = list(profiles[:MAX_PANELS])
-    figure = _new_figure(3.4 * len(shown) + 0.6, 3.4)
-    axes = figure.subplots(1, len(shown), squeeze=False, sharey=True)[0]
+    rows = -(-len(shown) // COLUMNS)
+    columns = -(-len(shown) // rows)  # balanced: 5 panels are 3 + 2, not 4 + 1
+    figure = _new_figure(3.4 * columns + 0.6, 3.4 * rows + 0.3)
+    grid = figure.subplots(rows, columns, squeeze=False, sharey=True)
+    axes = [ax for row in grid for ax in row]
+    for ax in axes[len(shown) :]:
+        ax.set_axis_off()  # the last row's empty places
+    axes = axes[: len(shown)]
     markers = "osD^v<>p*h"
     for ax, curve in zip(axes, shown, strict=True):
         ax.plot(curve.altitudes_m, curve.best_utility, color="0.3", linewidth=1.6)
@@ -121,11 +157,17 @@ def altitude_figure(
         ax.set_title(f"{curve.scenario_id} ({curve.environment})", fontsize=9)
         ax.set_xlabel("altitude (m)")
         ax.grid(True, alpha=0.3)
-    axes[0].set_ylabel("episode utility (best (x, y) at each altitude)")
+    for row in grid:
+        row[0].set_ylabel("episode utility (best (x, y) at each altitude)")
     handles, labels = axes[0].get_legend_handles_labels()
     if handles:
         axes[-1].legend(handles, labels, loc="lower right", fontsize=7, framealpha=0.9)
-    return _png(figure)
+    note = left_out_note(profiles)
+    if note:
+        figure.supxlabel(note.removeprefix(f"{FIGURE_FILE}: "), fontsize=8, color="0.25")
+        if warn is not None:
+            warn(note)
+    return figure
 
 
 def altitude_lines(profiles: Sequence[ProfileCurve]) -> list[str]:
@@ -140,12 +182,14 @@ def altitude_lines(profiles: Sequence[ProfileCurve]) -> list[str]:
             f"| {c.scenario_id} | {c.environment} | {c.altitudes_m[best]:.0f} | "
             f"{c.best_utility[best]:.3f} | {c.best_utility[0]:.3f} | {c.best_utility[-1]:.3f} |"
         )
+    note = left_out_note(profiles)
     return [
         "Utility against altitude for the first scenarios: at each altitude, the mean episode "
         "utility at the best zone centre (the model's expected mode); markers are where each "
         "policy ended its episode in that scenario, at its episode's utility (that episode's "
         "own fading and line-of-sight draws, so a marker may sit above the curve).",
         "",
+        *([f"{note}.", ""] if note else []),
         f"![utility against altitude]({FIGURE_FILE})",
         "",
         "| scenario | environment | best altitude (m) | utility there | at the floor | "

@@ -4,9 +4,11 @@ Reads the sweep's state file (:mod:`policies.sweep.state`), every finished trial
 evaluation and ``learning_curve.json``, and writes to ``--out``:
 
 * ``sweep_learning_curve.png``: per trained version (algorithm-strategy, plus any other grid
-  axis that varies, such as the world), the median utility on the test set against training
-  episodes (log axis), a line through the median across seeds and a band from its 25th to its
-  75th percentile; min-distance and the oracle as horizontal lines.
+  axis that varies, such as the world), the mean utility over the test scenarios against
+  training episodes (log axis), a line through the median across seeds and a band from its
+  25th to its 75th percentile; min-distance and the oracle as horizontal lines. The mean, as
+  every table of ``results.md`` gives it, so that a trial shows one number everywhere (the
+  median over the scenarios only when a curve file holds no means, and then said).
 * ``results.md``: the trials (failed ones listed with their last error, never dropped), the
   paper's 4 versions (DDQN and DDPG, each with Spec and Gen10k) at their largest budget, every
   other version, Gen500 vs Gen10k per algorithm and budget, the learning-curve table
@@ -55,20 +57,26 @@ class Finished:
 
 @dataclass
 class Version:
-    """A trained version (``label``): its trials, and per seed ``{episodes: median}``."""
+    """A trained version (``label``): its trials, and per seed ``{episodes: (mean, median)}``
+    (the mean and the median utility over the test scenarios; the mean is ``None`` in curve
+    files that hold only medians). ``statistic`` is the one :meth:`band` spreads across seeds
+    (:func:`_versions` sets it, the same for every version of a report)."""
 
     label: str
     algorithm: str
     strategy: str
     others: str
     trials: list[Finished] = field(default_factory=list)
-    curves: dict[int, dict[int, float]] = field(default_factory=dict)
+    curves: dict[int, dict[int, tuple[float | None, float]]] = field(default_factory=dict)
+    statistic: str = "mean"
 
     def band(self) -> list[tuple[int, float, float, float, int]]:
-        """``(episodes, median, p25, p75, seeds)`` across seeds, by episodes."""
+        """``(episodes, median, p25, p75, seeds)`` of :attr:`statistic` across seeds, by
+        episodes."""
         by_episodes: dict[int, list[float]] = defaultdict(list)
         for points in self.curves.values():
-            for episodes, value in points.items():
+            for episodes, (mean, median) in points.items():
+                value = median if self.statistic == "median" or mean is None else mean
                 by_episodes[episodes].append(value)
         rows = []
         for episodes in sorted(by_episodes):
@@ -98,7 +106,7 @@ def build_sweep_report(sweep_dir: Path, out_dir: Path, warn: Warn = stderr_warni
         raise InputError(f"--out: {out_dir}: exists and is not a directory")
     finished, unfinished = _read_trials(state, sweep_dir, warn)
     versions = _versions(finished)
-    reference = _reference(finished)
+    reference = _reference(finished, _statistic(versions))
     figure = _figure(versions, reference)
     cells = _best_per_cell(versions)
     markdown = _markdown(state, versions, reference, unfinished, cells)
@@ -167,9 +175,21 @@ def _versions(finished: Sequence[Finished]) -> dict[str, Version]:
         curve_file = trial.dir / LEARNING_CURVE_FILE
         if curve_file.exists():
             for curve in load_learning_curve(curve_file).curves:
-                points.update({pt.episodes: pt.median_utility for pt in curve.points})
+                points.update(
+                    {pt.episodes: (pt.mean_utility, pt.median_utility) for pt in curve.points}
+                )
         if trial.evaluation:
-            points[p["episodes"]] = float(trial.evaluation["policy"]["median_utility"])
+            final = trial.evaluation["policy"]
+            points[p["episodes"]] = (float(final["mean_utility"]), float(final["median_utility"]))
+    # The tables of trials give the mean utility over the test scenarios: the curves too, so
+    # that one trial shows one number, unless a curve file holds only medians (then every
+    # curve, and the reference lines, show the median, and say so).
+    statistic = "mean"
+    for version in versions.values():
+        if any(m is None for points in version.curves.values() for m, _ in points.values()):
+            statistic = "median"
+    for version in versions.values():
+        version.statistic = statistic
     order = {v: i for i, v in enumerate(PAPER_VERSIONS)}
     return dict(
         sorted(
@@ -191,14 +211,20 @@ def _mean_utility(trial: Finished) -> float | None:
     return float(trial.evaluation["policy"]["mean_utility"]) if trial.evaluation else None
 
 
-def _reference(finished: Sequence[Finished]) -> dict[str, float]:
-    """min-distance's and the oracle's median utility on the test set (the median over trials;
-    they differ only between test sets and worlds)."""
+def _statistic(versions: dict[str, Version]) -> str:
+    """What the curves show over the test scenarios: ``"mean"`` or ``"median"``."""
+    return next(iter(versions.values())).statistic if versions else "mean"
+
+
+def _reference(finished: Sequence[Finished], statistic: str = "mean") -> dict[str, float]:
+    """min-distance's and the oracle's ``statistic`` (mean or median) utility over the test
+    scenarios, as the curves show it (the median over trials; they differ only between test
+    sets and worlds)."""
     values: dict[str, list[float]] = defaultdict(list)
     for trial in finished:
         for name in ("min-distance", "oracle"):
             if trial.evaluation and name in trial.evaluation:
-                values[name].append(float(trial.evaluation[name]["median_utility"]))
+                values[name].append(float(trial.evaluation[name][f"{statistic}_utility"]))
     return {name: float(np.median(v)) for name, v in values.items()}
 
 
@@ -242,7 +268,7 @@ def _figure(versions: dict[str, Version], reference: dict[str, float]) -> bytes:
     ax.set_xticks(ticks, [f"{t:g}" for t in ticks], minor=False)
     ax.set_xticks([], minor=True)
     ax.set_xlabel("training episodes (log scale)")
-    ax.set_ylabel("median network utility on the test set")
+    ax.set_ylabel(f"{_statistic(versions)} utility over the test set (median over seeds)")
     ax.set_title("Learning rate across seeds: median and inter-quartile range")
     ax.grid(True, which="both", alpha=0.3)
     # Outside the axes: a collapsed run lies anywhere from the bottom to the top.
@@ -342,7 +368,7 @@ _VERSION_HEADER = (
     "version",
     "episodes",
     "seeds",
-    "mean utility, median [p25, p75] over seeds",
+    "mean utility over the test scenarios, median [p25, p75] over seeds",
     "x oracle",
     "min-distance",
     "oracle",
@@ -446,13 +472,21 @@ def _markdown(
     else:
         lines += ["No algorithm has both gen10k and gen500 trials at the same budget.", ""]
 
+    statistic = _statistic(versions)
+    same = (
+        "the statistic of the tables above, so a trial's final point is the number they give"
+        if statistic == "mean"
+        else "not the tables' mean: a learning-curve file without means was read"
+    )
     lines += [
         "## Learning curves",
         "",
         f"![learning curves]({FIGURE_FILE})",
         "",
-        "Median utility on the test set after each number of training episodes, median "
-        "[p25, p75] over seeds (n: seeds with that point).",
+        f"The {statistic} utility over the test scenarios after each number of training "
+        f"episodes ({same}), median [p25, p75] over seeds (n: seeds with that point). A "
+        "budget's point is its trials' final evaluation on the whole test set, unless a longer "
+        "trial's curve has a point there (on its first curve scenarios).",
         "",
     ]
     episodes = sorted({b[0] for v in versions.values() for b in v.band()})
@@ -471,7 +505,7 @@ def _markdown(
     lines += [_table(header, rows), ""]
     if reference:
         shown = ", ".join(f"{k} {v:.3f}" for k, v in reference.items())
-        lines += [f"Reference medians on the test set: {shown}.", ""]
+        lines += [f"Reference, {statistic} utility over the test scenarios: {shown}.", ""]
 
     lines += [
         "## Best checkpoint per cell",

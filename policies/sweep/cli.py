@@ -91,7 +91,9 @@ def _sweep(args: argparse.Namespace) -> int:
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _interrupt) if main_thread else None
     try:
-        summary = run_sweep(spec, out, lambda: _backend(args), retries=args.retries)
+        summary = run_sweep(
+            spec, out, lambda: _backend(args), retries=args.retries, backend_name=args.backend
+        )
     finally:
         if main_thread:
             signal.signal(signal.SIGTERM, previous)

@@ -16,7 +16,9 @@ what runs and for how long), redrawn every second. At the end ``OUT/summary.json
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
+import json
 import os
 import sys
 import time
@@ -87,13 +89,18 @@ def run_sweep(
     make_backend: Callable[[], Backend],
     retries: int | None = None,
     stream: TextIO | None = None,
+    backend_name: str | None = None,
 ) -> SweepSummary:
     """Run the sweep's unfinished trials into ``out_dir`` (see the module doc).
 
     ``make_backend`` is called only when there is something to run, and before anything is
     written (a backend that cannot start, such as an unreachable Ray address, leaves nothing
-    behind). ``retries`` overrides the spec's."""
+    behind). ``retries`` overrides the spec's. An ``out_dir`` that already holds the sweep is
+    resumed, and the first line says so, naming ``--out`` and ``backend_name`` (the backend
+    asked for): how many trials are done and skipped and how many run, or, when every one is
+    done, that nothing runs and how to run the sweep again."""
     stream = stream or sys.stdout
+    shown = Path(out_dir)  # as the user gave it
     out_dir = Path(out_dir).resolve()
     check_out_dir(out_dir)
     retries = spec.retries if retries is None else retries
@@ -105,9 +112,21 @@ def run_sweep(
     todo = [i for i in ids if state.trials[i]["status"] != "done"]
     started = time.monotonic()
     progress = Progress(stream, spec.name, len(ids))
+    on = f" on {backend_name}" if backend_name else ""
     if not todo:
-        progress.line(f"all {len(ids)} trials of sweep {spec.name} are done: nothing to run")
+        on_backend = f" on the {backend_name} backend" if backend_name else ""
+        progress.line(
+            f"--out {shown} holds sweep {spec.name} with all {len(ids)} trials done: nothing "
+            f"to run{on_backend} (a rerun never repeats a finished trial); to run the sweep "
+            "again, give another --out or remove this one"
+        )
         return _finish(state, spec, ids, 0, started, progress, None)
+    done_before = len(ids) - len(todo)
+    if done_before:
+        progress.line(
+            f"resuming the sweep in --out {shown}: {done_before} of {len(ids)} trials already "
+            f"done (skipped), {len(todo)} to run{on}"
+        )
     backend = make_backend()
     lock = None
     try:
@@ -115,9 +134,6 @@ def run_sweep(
         state.save()
         write_test_sets(spec, out_dir)
         progress.backend = backend.describe()
-        done_before = len(ids) - len(todo)
-        if done_before:
-            progress.line(f"resuming: {done_before} of {len(ids)} trials already done, skipped")
         ran = _loop(spec, state, backend, deque(todo), retries, test_paths, progress)
     except KeyboardInterrupt:
         backend.cancel_all()
@@ -224,6 +240,9 @@ def _finish(
     best = best_trial(state.trials, ids)
     failed = tuple(i for i in ids if state.trials[i]["status"] == "failed")
     wall = time.monotonic() - started
+    if backend is None and ran == 0:  # nothing ran: the backend that ran the trials stays
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            backend = json.loads((state.out_dir / SUMMARY_FILE).read_text()).get("backend")
     rows = []
     for trial_id in ids:
         entry = state.trials[trial_id]

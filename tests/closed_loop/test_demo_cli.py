@@ -90,3 +90,17 @@ def test_the_demo_scenarios_of_a_count_are_the_generated_ones():
     area, played = demo_scenarios(DemoConfig(n_scenarios=2, seed=4))
     assert area == AreaConfig()
     assert [s.id for s in played] == [s.id for s in pick_scenarios(2, 4, AreaConfig())]
+
+
+def test_the_closing_table_names_the_column_that_is_below_min_distance():
+    """Issue 42: the tag "(below min-distance)" did not say which column was below."""
+    from closed_loop.demo import format_table
+
+    row = {"world": "closed-loop", "heterogeneity": 0.4, "achieved": 0.80, "min-distance": 0.85,
+           "load-weighted": 0.84, "oracle": 0.90}  # fmt: skip
+    lines = format_table([row, {**row, "achieved": 0.849}], "ddqn-dr").splitlines()
+    below, tie = lines[3], lines[4]
+    assert below.endswith("(ddqn-dr (loop) 0.050 below min-distance (loop))"), below
+    assert "below" not in tie, tie
+    assert "ddqn-dr (loop)" in lines[1] and "min-distance (loop)" in lines[1]
+    assert "mean utility per step" in lines[-1] and "by more than 0.005" in lines[-1]

@@ -11,6 +11,7 @@ import pytest
 
 from policies.altitude import altitude_profile
 from policies.report import build_report
+from policies.report.altitude import MAX_PANELS, ProfileCurve, altitude_drawing
 from service.cli import main
 from sim.config import AreaConfig
 from sim.errors import InputError
@@ -82,3 +83,32 @@ def test_a_bad_profile_is_refused_and_nothing_is_written(tmp_path: Path) -> None
     assert not (tmp_path / "report").exists()
     assert main([*common, "--json", str(tmp_path / "x.json"), "--altitude-profiles", "-1"]) == 2
     assert not (tmp_path / "x.json").exists()
+
+
+def _profiles(n: int) -> list[ProfileCurve]:
+    altitudes = np.linspace(25.0, 100.0, 4)
+    return [
+        ProfileCurve(f"s{i:04d}", "urban", altitudes, np.linspace(0.5, 0.6 + i / 100, 4))
+        for i in range(n)
+    ]
+
+
+def test_every_requested_profile_is_drawn(tmp_path: Path) -> None:
+    """Issue 42: five profiles asked for, four drawn, nothing said."""
+    said: list[str] = []
+    figure = altitude_drawing(_profiles(5), [], {}, warn=said.append)
+    titles = [ax.get_title() for ax in figure.axes if ax.get_title()]
+    assert titles == [f"s{i:04d} (urban)" for i in range(5)]
+    assert said == []
+
+
+def test_profiles_beyond_the_panels_are_named_in_the_figure_and_a_log_line() -> None:
+    said: list[str] = []
+    profiles = _profiles(MAX_PANELS + 2)
+    figure = altitude_drawing(profiles, [], {}, warn=said.append)
+    assert len([ax for ax in figure.axes if ax.get_title()]) == MAX_PANELS
+    left_out = [p.scenario_id for p in profiles[MAX_PANELS:]]
+    notes = " ".join(t.get_text() for t in figure.texts)
+    assert all(i in notes for i in left_out) and f"at most {MAX_PANELS}" in notes, notes
+    assert len(said) == 1 and all(i in said[0] for i in left_out), said
+    assert "altitude.png" in said[0] and f"at most {MAX_PANELS}" in said[0]

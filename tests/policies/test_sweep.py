@@ -389,3 +389,85 @@ def test_a_second_command_on_a_running_sweep_is_refused(tmp_path: Path, capsys) 
         assert main(["sweep", str(spec), "--out", str(out)]) == 2
     assert f"--out: another tupa sweep is running in {out}" in capsys.readouterr().err
     assert read_state(out)["trials"] == {}  # untouched
+
+
+def _finished_sweep(tmp_path: Path, done: int) -> tuple[Path, Path, list[str]]:
+    """A tiny sweep's file and an out dir whose state has its first ``done`` trials done (a
+    result written by hand: nothing trains)."""
+    from policies.sweep.state import SweepState
+
+    spec_file = tiny_spec(tmp_path)
+    spec = load_spec(spec_file)
+    out = tmp_path / "out"
+    out.mkdir()
+    test_paths = {name: ts.path(out) for name, ts in spec.test_sets.items()}
+    state = SweepState.open(out, spec, test_paths)
+    ids = [t.id for t in spec.trials]
+    for trial_id in ids[:done]:
+        state.trials[trial_id].update(status="done", attempts=1, result={"wall_time_s": 1.0})
+    state.save()
+    return spec_file, out, ids
+
+
+class _InstantBackend:
+    """Every trial done at once, with no result worth reading: the scheduler's view only."""
+
+    name = "instant"
+    slots = 4
+
+    def __init__(self) -> None:
+        self._running: list[str] = []
+
+    def describe(self) -> str:
+        return "instant"
+
+    def submit(self, trial_id: str, payload: dict[str, Any]) -> None:
+        self._running.append(trial_id)
+
+    def running(self) -> list[str]:
+        return list(self._running)
+
+    def wait(self, timeout_s: float) -> list:
+        from policies.sweep.backends import Outcome
+
+        done, self._running = self._running, []
+        return [(i, Outcome(result={"wall_time_s": 0.0})) for i in done]
+
+    def cancel_all(self) -> None:
+        self._running = []
+
+    def close(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("backend", ["local", "ray"])
+def test_a_finished_sweep_in_out_says_nothing_runs_and_how_to_run_it_again(
+    tmp_path: Path, capsys, backend: str
+) -> None:
+    """Issue 42: ``--backend ray`` on the --out of a finished sweep did nothing without saying
+    so. Both backends say that --out holds the finished sweep, that nothing ran on the backend
+    asked for, and how to run it again; the summary keeps the backend that ran the trials."""
+    import importlib.util
+
+    if backend == "ray" and importlib.util.find_spec("ray") is None:
+        pytest.skip("ray is not installed (pip install 'tupa[ray]')")
+    spec_file, out, ids = _finished_sweep(tmp_path, done=2)
+    (out / SUMMARY_FILE).write_text(json.dumps({"backend": "local, 2 worker processes"}))
+    assert main(["sweep", str(spec_file), "--out", str(out), "--backend", backend]) == 0
+    said = capsys.readouterr().out
+    line = next(x for x in said.splitlines() if "nothing to run" in x)
+    assert f"--out {out}" in line and f"all {len(ids)} trials" in line, line
+    assert f"nothing to run on the {backend} backend" in line, line
+    assert "another --out" in line, line
+    assert json.loads((out / SUMMARY_FILE).read_text())["backend"] == "local, 2 worker processes"
+
+
+def test_a_partly_finished_sweep_in_out_says_it_resumes(tmp_path: Path) -> None:
+    spec_file, out, ids = _finished_sweep(tmp_path, done=1)
+    stream = io.StringIO()
+    summary = run_sweep(load_spec(spec_file), out, _InstantBackend, stream=stream,
+                        backend_name="ray")  # fmt: skip
+    assert summary.ran == len(ids) - 1
+    line = next(x for x in stream.getvalue().splitlines() if "resuming" in x)
+    assert f"--out {out}" in line, line
+    assert f"1 of {len(ids)} trials already done (skipped), {len(ids) - 1} to run on ray" in line

@@ -110,3 +110,50 @@ def test_a_mavsdk_url_is_refused_by_the_pymavlink_backend_only(capsys):
     assert "only --mavlink-backend mavsdk opens" in _one_line_error(capsys)
     with pytest.raises(AssertionError, match="went on to build the service"):
         main(["serve", "--mavlink", url, "--mavlink-backend", "mavsdk", "--insecure"])
+
+
+def _help_of(parser: argparse.ArgumentParser, action: argparse.Action) -> str:
+    """What ``parser``'s help says of ``action`` (its help text with the defaults expanded)."""
+    formatter = parser._get_formatter()
+    return formatter._expand_help(action) if action.help else ""
+
+
+def _shows_default(action: argparse.Action) -> bool:
+    return (
+        bool(action.option_strings)
+        and action.default not in (None, False, argparse.SUPPRESS)
+        and action.default != []
+        and not isinstance(action, argparse._HelpAction | argparse._VersionAction)
+    )
+
+
+def test_train_help_groups_the_required_options_and_shows_the_defaults():
+    """Issue 42: ``tupa train --help`` showed the required options as optional and hid the
+    defaults."""
+    parser = dict(_parsers(build_parser()))["tupa train"]
+    text = parser.format_help()
+    usage = text.split("\n\n", 1)[0].split("--resume")[0]  # a new run's usage
+    for option in ("--algo", "--strategy", "--episodes", "--test-scenarios", "--out"):
+        assert f"[{option}" not in usage and option in usage, usage
+    required = text.split("required arguments", 1)[1].split("\n\n", 2)[1]
+    for option in ("--algo", "--strategy", "--episodes", "--test-scenarios", "--out"):
+        assert option in required, required
+    assert "--resume DIR" in text.split("required arguments", 1)[1].split("\n\n", 1)[0]
+    for option, default in (("--preset", "fast"), ("--seed", "1"), ("--queueing", "fq-codel"),
+                            ("--checkpoint-every", "500")):  # fmt: skip
+        action = next(a for a in parser._actions if option in a.option_strings)
+        assert f"default: {default}" in _help_of(parser, action), option
+
+
+def test_every_subcommand_shows_its_defaults_and_groups_its_required_options():
+    unshown, ungrouped = [], []
+    for prog, parser in _parsers(build_parser()):
+        for action in parser._actions:
+            if _shows_default(action) and "default" not in _help_of(parser, action).lower():
+                unshown.append(f"{prog} {action.option_strings[0]}")
+        for group in parser._action_groups:
+            for action in group._group_actions:
+                if action.required and action.option_strings and "required" not in group.title:
+                    ungrouped.append(f"{prog} {action.option_strings[0]} ({group.title})")
+    assert unshown == [], "defaults not in the help: " + ", ".join(unshown)
+    assert ungrouped == [], "required options outside a required group: " + ", ".join(ungrouped)
