@@ -13,7 +13,9 @@ Modules, one job each:
 * :mod:`sitl_mock.battery` — charge drain.
 * :mod:`sitl_mock.vehicle` — the state machine (modes, arming, failsafes), stepped with an
   explicit dt: no wall clock inside.
-* :mod:`sitl_mock.params` — the read-only parameter table clients may fetch.
+* :mod:`sitl_mock.params` — the parameter table clients may fetch (the fence's may be set).
+* :mod:`sitl_mock.fence` — the fence a ground station uploads: zones, ceiling, breach actions.
+* :mod:`sitl_mock.mission` — the MAVLink mission protocol for that fence (upload, download).
 * :mod:`sitl_mock.protocol` — MAVLink in and out: commands, ACKs, setpoints, streams, signing.
 * :mod:`sitl_mock.server` — TCP/UDP transport and :class:`MockAutopilot`, the entry point.
 * :mod:`sitl_mock.fleet` — :class:`MockFleet`: several vehicles in one process, one

@@ -241,6 +241,22 @@ class Flavour:
     text_gcs_back: str
     text_battery_failsafe: str
 
+    # The autopilot's own fence (sitl_mock.fence, sitl_mock.mission).
+    fence_style: str
+    """``ardupilot`` or ``px4``: whose fence parameters, checks and mission protocol habits."""
+    fence_max_items: int
+    """A fence upload of more items is refused (``MAV_MISSION_NO_SPACE``)."""
+    text_fence_breach: str
+    """A breach the vehicle acts on; formatted with ``fences=`` (ArduPilot's "Polygon fence")
+    and ``action=`` (PX4's "Hold", "Return", "Land", "Terminate")."""
+    text_fence_warning: str
+    """A breach reported only (ArduPilot FENCE_ACTION 0, PX4 GF_ACTION 1)."""
+    text_fence_cleared: str
+    fence_recovery_s: float | None
+    """ArduCopter: a mode change while a fence is breached (its own fence action's included)
+    starts a "manual recovery" during which new breaches are ignored, this long; None: none."""
+    text_fence_recovery: str
+
     def mode(self, name: str) -> ModeSpec:
         """The mode called ``name`` (KeyError for a name the flavour does not have)."""
         for spec in self.modes:
@@ -336,6 +352,13 @@ ARDUPILOT = Flavour(
     text_gcs_lost="GCS Failsafe On: {action}",
     text_gcs_back="GCS Failsafe Cleared",
     text_battery_failsafe="Battery failsafe: LAND",
+    fence_style="ardupilot",
+    fence_max_items=70,
+    text_fence_breach="{fences} breached",
+    text_fence_warning="{fences} breached",
+    text_fence_cleared="Fence breach cleared",
+    fence_recovery_s=10.0,
+    text_fence_recovery="Manual recovery started",
 )
 
 PX4 = Flavour(
@@ -404,6 +427,13 @@ PX4 = Flavour(
     text_gcs_lost="Connection to ground station lost: {action}",
     text_gcs_back="Connection to ground station regained",
     text_battery_failsafe="Failsafe activated: battery critical, landing",
+    fence_style="px4",
+    fence_max_items=256,
+    text_fence_breach="Failsafe activated due to geofence violation, triggering {action}",
+    text_fence_warning="Failsafe warning triggered due to geofence violation",
+    text_fence_cleared="",
+    fence_recovery_s=None,
+    text_fence_recovery="",
 )
 
 FLAVOURS: dict[str, Flavour] = {ARDUPILOT.name: ARDUPILOT, PX4.name: PX4}

@@ -1,25 +1,34 @@
-"""A small read-only parameter table, so that ground stations and MAVSDK can read the settings that
-matter to a client (speeds, return and takeoff altitudes, fence, failsafe timeouts).
+"""A small parameter table, so that ground stations and MAVSDK can read the settings that matter to
+a client (speeds, return and takeoff altitudes, fence, failsafe timeouts).
 
 Names and units are the real ones of each autopilot (ArduPilot speeds in cm/s, altitudes in cm;
 PX4 in m/s and m), so that a client reading them gets what it would from the real vehicle. Values
-come from the vehicle's configuration; PARAM_SET is answered with the unchanged value (the mock is
-configured from its command line, not through parameters).
+come from the vehicle's configuration, which the command line sets: PARAM_SET of those is answered
+with the unchanged value. The uploaded fence's parameters are the exception (ArduPilot
+``FENCE_ENABLE`` (0 at boot, as on ArduPilot), ``FENCE_TYPE``, ``FENCE_ACTION``,
+``FENCE_ALT_MAX``, ``FENCE_ALT_MIN``, ``FENCE_MARGIN``, ``AVOID_ENABLE``; PX4 ``GF_ACTION``,
+``GF_MAX_VER_DIST``): :func:`set_parameter` takes them (within their ranges) and PARAM_VALUE
+echoes the new value. ``FENCE_RADIUS`` / ``GF_MAX_HOR_DIST`` stay the mock's cylinder
+(``--fence-radius-m``), which holds the vehicle whatever the parameters say.
 """
 
 from __future__ import annotations
+
+import math
+import struct
 
 from sitl_mock.vehicle import Vehicle
 
 PARAM_TYPE_INT32 = 6
 PARAM_TYPE_REAL32 = 9
+INT_TYPES = frozenset({1, 2, 3, 4, 5, 6})
+"""MAV_PARAM_TYPE_UINT8 .. INT32."""
 
 
 def parameter_table(vehicle: Vehicle, system_id: int) -> list[tuple[str, float, int]]:
     """The parameters as (name, value, MAV_PARAM_TYPE), in a fixed order (the PARAM_VALUE index)."""
     cfg = vehicle.config
     fence_radius_m = cfg.fence_radius_m or 0.0
-    fence_alt_m = cfg.fence_alt_max_m or 0.0
     if vehicle.flavour.name == "ardupilot":
         fs_gcs = {"none": 0, "rtl": 1, "land": 5}[cfg.gcs_failsafe_action]
         table = [
@@ -33,9 +42,7 @@ def parameter_table(vehicle: Vehicle, system_id: int) -> list[tuple[str, float, 
             ("DISARM_DELAY", cfg.auto_disarm_s, PARAM_TYPE_INT32),
             ("FS_GCS_ENABLE", fs_gcs, PARAM_TYPE_INT32),
             ("FS_GCS_TIMEOUT", cfg.gcs_failsafe_s, PARAM_TYPE_REAL32),
-            ("FENCE_ENABLE", 1 if fence_radius_m or fence_alt_m else 0, PARAM_TYPE_INT32),
             ("FENCE_RADIUS", fence_radius_m, PARAM_TYPE_REAL32),
-            ("FENCE_ALT_MAX", fence_alt_m, PARAM_TYPE_REAL32),
             ("BATT_CAPACITY", cfg.battery_capacity_mah, PARAM_TYPE_INT32),
         ]
     else:
@@ -54,7 +61,21 @@ def parameter_table(vehicle: Vehicle, system_id: int) -> list[tuple[str, float, 
             ("NAV_DLL_ACT", nav_dll, PARAM_TYPE_INT32),
             ("COM_DL_LOSS_T", cfg.gcs_failsafe_s, PARAM_TYPE_INT32),
             ("GF_MAX_HOR_DIST", fence_radius_m, PARAM_TYPE_REAL32),
-            ("GF_MAX_VER_DIST", fence_alt_m, PARAM_TYPE_REAL32),
             ("BAT1_CAPACITY", cfg.battery_capacity_mah, PARAM_TYPE_REAL32),
         ]
+    fence = vehicle.autopilot_fence
+    for name, value in fence.params.items():
+        kind = PARAM_TYPE_INT32 if name in fence.INTEGER_PARAMS else PARAM_TYPE_REAL32
+        table.append((name, value, kind))
     return [(name, float(value), kind) for name, value, kind in table]
+
+
+def set_parameter(vehicle: Vehicle, name: str, value: float, param_type: int) -> bool:
+    """PARAM_SET of ``name``: True when the vehicle took ``value`` (one of the fence's
+    parameters, within its range); False when it keeps its own (read-only, unknown, out of
+    range). PX4 (``params_bytewise``) sends integers bit for bit in the float: decoded here."""
+    if vehicle.flavour.params_bytewise and param_type in INT_TYPES:
+        value = float(struct.unpack("<i", struct.pack("<f", value))[0])
+    if not math.isfinite(value):
+        return False
+    return vehicle.autopilot_fence.set_param(name, value)

@@ -30,7 +30,8 @@ from sitl_mock.flavours import (
     Severity,
 )
 from sitl_mock.geo import ned_to_global
-from sitl_mock.params import PARAM_TYPE_INT32, parameter_table
+from sitl_mock.mission import MISSION_MESSAGES, FenceMissionServer
+from sitl_mock.params import PARAM_TYPE_INT32, parameter_table, set_parameter
 from sitl_mock.vehicle import FORCE_MAGIC, Vehicle
 
 log = logging.getLogger(__name__)
@@ -207,6 +208,16 @@ class MavlinkProtocol:
             MAV.MAVLINK_MSG_ID_TIMESYNC: self._on_timesync,
             MAV.MAVLINK_MSG_ID_PING: self._on_ping,
         }
+        self.missions = FenceMissionServer(
+            vehicle.autopilot_fence,
+            self.flavour.fence_style == "ardupilot",
+            self.flavour.fence_max_items,
+            self._encoder,
+            vehicle.say,
+            self.stats,
+        )
+        for name in MISSION_MESSAGES:
+            self._handlers[msg_id(name)] = self._on_mission
 
     # ------------------------------------------------------------------ links
 
@@ -281,6 +292,7 @@ class MavlinkProtocol:
 
     def tick(self, links: Iterable[Link]) -> None:
         """After a physics step: STATUSTEXTs to everyone, then each link's due telemetry."""
+        self.missions.tick(self.vehicle.time_s)
         self._flush_statustexts(links)
         if self.vehicle.ready and not self._home_announced:
             # Both autopilots tell every ground station when home gets set.
@@ -580,10 +592,23 @@ class MavlinkProtocol:
             self._send_param(link, message.param_id, message.param_index)
 
     def _on_param_set(self, link: Link, message: mavlink.MAVLink_message) -> None:
-        # Read-only table: answer with the value we keep, as an autopilot does for a refused set.
-        if self._addressed_to_us(message.target_system, message.target_component):
-            self.stats["param_sets_ignored"] += 1
-            self._send_param(link, message.param_id, -1)
+        # The fence's parameters are taken; the rest is the command line's: answered with the
+        # value we keep, as an autopilot does for a refused set.
+        m = message
+        if self._addressed_to_us(m.target_system, m.target_component):
+            if set_parameter(self.vehicle, m.param_id, m.param_value, m.param_type):
+                self.stats["param_sets"] += 1
+                log.info("%s: PARAM_SET %s", link.name, m.param_id)
+            else:
+                self.stats["param_sets_ignored"] += 1
+            self._send_param(link, m.param_id, -1)
+
+    def _on_mission(self, link: Link, message: mavlink.MAVLink_message) -> None:
+        target = (message.target_system, message.target_component)
+        if not self._addressed_to_us(*target):
+            self.stats["not_for_us"] += 1
+            return
+        self.missions.handle(link, message, self.vehicle.time_s)
 
     def _send_param(self, link: Link, name: str, index: int) -> None:
         table = parameter_table(self.vehicle, self.system_id)

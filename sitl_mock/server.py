@@ -67,6 +67,10 @@ KEY_COUNTERS = (
     "failsafe_offboard",
     "failsafe_gcs",
     "failsafe_battery",
+    "failsafe_fence",
+    "fence_uploads",
+    "fence_uploads_refused",
+    "fence_breaches",
 )
 """Counters :attr:`MockAutopilot.stats` always has (0 until something happens)."""
 MAX_OUTBUF_BYTES = 1 << 20

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 from sitl_mock.battery import Battery
 from sitl_mock.config import VehicleConfig
+from sitl_mock.fence import ALT_MAX, GIVE_UP_DISTANCE_M, POLYGON, AutopilotFence, Breach
 from sitl_mock.flavours import Behaviour, Flavour, MavResult, ModeSpec, Severity
 from sitl_mock.geo import GeoPoint, global_to_ned, ned_to_global
 from sitl_mock.kinematics import (
@@ -200,6 +201,13 @@ class Vehicle:
         self._last_gcs_heartbeat_s: float | None = None
         self._battery = Battery(cfg.battery_capacity_mah)
         self._fence = Fence(cfg.fence_radius_m, cfg.fence_alt_max_m)
+        self.autopilot_fence = AutopilotFence(
+            flavour.fence_style == "ardupilot", self.home, cfg.fence_alt_max_m
+        )
+        """The fence a ground station uploads and sets (zones, ceiling, action): breaches are
+        acted on as the flavour's autopilot does (:meth:`_update_autopilot_fence`)."""
+        self._fence_breaches = 0
+        self._fence_recovery_until_s: float | None = None
         self._battery_failsafe_done = False
         self._at_fence = False
         self._events: list[StatusText] = []
@@ -544,6 +552,7 @@ class Vehicle:
         self._update_readiness()
         self._update_failsafes()
         self._fly(dt_s)
+        self._update_autopilot_fence()
         self._update_battery(dt_s)
         self._update_ground_disarm()
 
@@ -578,6 +587,11 @@ class Vehicle:
         failsafe_pct = self.config.battery_failsafe_pct
         if failsafe_pct and self.battery_remaining_pct <= failsafe_pct:
             return "Arming denied: battery below failsafe level"
+        fence = self.autopilot_fence
+        if fence.ardupilot and fence.enabled:
+            breach = fence.breach(self.position)
+            if breach.fences:
+                return f"PreArm: Vehicle breaching {breach.names}"
         return ""
 
     def _setpoint_stream_ok(self) -> bool:
@@ -624,6 +638,9 @@ class Vehicle:
                 target = Target(
                     checked, target.velocity, target.yaw_rad, target.type_mask, target.received_s
                 )
+            if not self.autopilot_fence.destination_ok(target.position):
+                log.debug("setpoint outside the uploaded fence refused: %s", target.position)
+                return self._count("rejected_fence")
         flavour = self.flavour
         if self.mode.behaviour is not Behaviour.GUIDED:
             if flavour.setpoints_buffered_outside_guided:
@@ -662,6 +679,12 @@ class Vehicle:
             self._rtl_phase = "climb"
             self._rtl_alt_m = max(self.alt_m, self.rtl_alt_m)
         log.info("mode %s -> %s (%s)", old.name, spec.name, reason)
+        recovery_s = self.flavour.fence_recovery_s
+        fence = self.autopilot_fence
+        if recovery_s is not None and self._fence_breaches and fence.enabled and fence.action:
+            # ArduCopter: any mode change while breached, its own fence action's included.
+            self._fence_recovery_until_s = self.time_s + recovery_s
+            self._emit(Severity.INFO, self.flavour.text_fence_recovery)
 
     def _stopping_point(self) -> Vec3:
         """Where the vehicle comes to rest if it brakes now (what a new hold mode holds)."""
@@ -759,10 +782,71 @@ class Vehicle:
             self._emit(Severity.CRITICAL, flavour.text_battery_failsafe)
             self._failsafe_mode(flavour.land_mode)
 
-    def _failsafe_mode(self, name: str) -> None:
+    def _failsafe_mode(self, name: str, reason: str = "failsafe") -> None:
         spec = self.flavour.mode(name)
         if self.mode != spec:
-            self._enter_mode(spec, "failsafe")
+            self._enter_mode(spec, reason)
+
+    def _update_autopilot_fence(self) -> None:
+        """Act on a new breach of the uploaded fence (zones, ceiling) by the vehicle itself, as
+        the flavour's autopilot does: ArduCopter says "Polygon fence breached" (NOTICE) and
+        switches by FENCE_ACTION (RTL, LAND, BRAKE; LAND when more than 100 m outside; disarms
+        when armed on the ground), and "Fence breach cleared" once back inside; PX4 acts by
+        GF_ACTION (hold, return, land, terminate) in the air. Armed only."""
+        fence = self.autopilot_fence
+        if not (fence.enabled and self.armed):
+            self._fence_breaches = 0
+            return
+        breach = fence.breach(self.position)
+        new = breach.fences & ~self._fence_breaches
+        if self._fence_breaches and not breach.fences and not self.landed:
+            self._emit(Severity.NOTICE, self.flavour.text_fence_cleared)
+        self._fence_breaches = breach.fences
+        recovery_until = self._fence_recovery_until_s
+        if recovery_until is not None and self.time_s < recovery_until:
+            new = 0  # a manual recovery: new breaches are ignored for a while
+        if new:
+            self.counters["fence_breaches"] += 1
+            log.info("fence breached (%s, %.1f m outside)", breach.names, breach.distance_m)
+            self._fence_action(Breach(new, breach.distance_m))
+
+    def _fence_action(self, breach: Breach) -> None:
+        flavour, action = self.flavour, self.autopilot_fence.action
+        if self.autopilot_fence.ardupilot:
+            if self.landed:
+                self._disarm("fence breach on the ground")
+                return
+            names = breach.names
+            if action == 0:
+                self._emit(Severity.NOTICE, flavour.text_fence_warning.format(fences=names))
+                return
+            self._emit(Severity.NOTICE, flavour.text_fence_breach.format(fences=names, action=""))
+            if breach.distance_m > GIVE_UP_DISTANCE_M or action in (2, 5):
+                mode = flavour.land_mode  # SmartRTL (5) is not modelled: its fallback, LAND
+            elif action == 4:
+                mode = "BRAKE"
+            else:
+                mode = flavour.rtl_mode  # 1, and 3 (SmartRTL, not modelled: its fallback, RTL)
+            self.counters["failsafe_fence"] += 1
+            self._failsafe_mode(mode, "fence breach")
+            return
+        if self.landed or action == 0:
+            return
+        if action == 1:
+            self._emit(Severity.WARNING, flavour.text_fence_warning)
+            return
+        name, mode = {
+            2: ("Hold", flavour.hold_mode),
+            3: ("Return", flavour.rtl_mode),
+            4: ("Terminate", None),
+            5: ("Land", flavour.land_mode),
+        }[action]
+        self._emit(Severity.CRITICAL, flavour.text_fence_breach.format(fences="", action=name))
+        self.counters["failsafe_fence"] += 1
+        if mode is None:
+            self._disarm("flight termination (geofence)")
+        else:
+            self._failsafe_mode(mode, "geofence breach")
 
     def _update_ground_disarm(self) -> None:
         if not (self.armed and self.landed):
@@ -864,12 +948,22 @@ class Vehicle:
             self.counters["liftoffs"] += 1
             log.info("lift-off in %s", self.mode.name)
         desired = self._desired_velocity()
-        self._integrate(accelerate(self.velocity, desired, self._limits(), dt_s), dt_s)
+        target = self._target
+        avoid = (
+            self.autopilot_fence.avoidance
+            and self.mode.behaviour is Behaviour.GUIDED
+            and target is not None
+            and target.position is None
+        )
+        self._integrate(accelerate(self.velocity, desired, self._limits(), dt_s), dt_s, avoid)
         self._update_yaw(dt_s)
         if self.position.d >= -TOUCHDOWN_ALT_M and desired.d >= 0.0 and self.velocity.d >= -0.05:
             self._touch_down()
 
-    def _integrate(self, new_velocity: Vec3, dt_s: float) -> None:
+    def _integrate(self, new_velocity: Vec3, dt_s: float, avoid: bool = False) -> None:
+        """Move by ``dt_s`` towards ``new_velocity``, held at the cylinder fence; with ``avoid``
+        (ArduPilot's AC_Avoid under GUIDED velocity control) also stopped FENCE_MARGIN short of
+        the uploaded fence (its zones and ceiling) rather than crossing it."""
         v = self.velocity
         p = self.position
         position = Vec3(
@@ -877,6 +971,21 @@ class Vehicle:
             p.e + 0.5 * (v.e + new_velocity.e) * dt_s,
             min(0.0, p.d + 0.5 * (v.d + new_velocity.d) * dt_s),
         )
+        if avoid:
+            crossing = self.autopilot_fence.near(position) & ~self.autopilot_fence.near(p)
+            if crossing:
+                stop_h, stop_v = crossing & POLYGON, crossing & ALT_MAX
+                position = Vec3(
+                    p.n if stop_h else position.n,
+                    p.e if stop_h else position.e,
+                    p.d if stop_v else position.d,
+                )
+                new_velocity = Vec3(
+                    0.0 if stop_h else new_velocity.n,
+                    0.0 if stop_h else new_velocity.e,
+                    max(0.0, new_velocity.d) if stop_v else new_velocity.d,
+                )
+                self.counters["fence_avoid_stops"] += 1
         held = self._fence.clamp(position)
         at_fence = held != position
         if at_fence:
