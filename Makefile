@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test test-fast lint format bench clean browser
+.PHONY: run test test-fast lint format bench clean browser test-containers
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -55,6 +55,15 @@ test-fast: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(PYTEST) --fast
+
+# The containers, built and run for real (not part of make test; .ci/run runs it after): the
+# image from the offline base (scripts/build_image.sh's steps, layers cached between runs), the
+# compose stack up, healthy and flying, a restart without re-arming, the teardown, the fleet and
+# trainer profiles (tests_containers/, in file order). Needs a Docker daemon with the Compose v2
+# plugin: scripts/install_docker.sh installs them (root, Debian), scripts/with_dockerd.sh starts
+# a daemon for the command when none runs. Writes benchmarks/results/containers.json.
+test-containers: $(STAMP)
+	$(BIN)/python -m pytest tests_containers -p no:randomly -o timeout=1800 -v
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -1,7 +1,7 @@
-"""docker-compose.yml's ``fleet`` profile: Docker cannot run here, so its three services are
-checked for agreement (hosts, ports, system ids, area origins, the token, the mounted fleet
-file) and then run as they are written, as real processes, with loopback addresses in place of
-the compose network's host names."""
+"""docker-compose.yml's ``fleet`` profile without Docker (make test needs none): its three
+services are checked for agreement (hosts, ports, system ids, area origins, the token, the
+mounted fleet file) and then run as they are written, as real processes, with loopback addresses
+in place of the compose network's host names. ``make test-containers`` runs them in containers."""
 
 from __future__ import annotations
 

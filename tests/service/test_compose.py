@@ -1,11 +1,14 @@
-"""docker-compose.yml: Docker cannot run here, so check what can be checked without it.
+"""docker-compose.yml and the Dockerfile, checked without Docker (make test needs none).
 
 Every service's command is a real ``tupa`` command (its ``--help`` works, and its arguments
-parse), and the services agree on ports, hosts, the token and the area frame.
+parse), and the services agree on ports, hosts, the token and the area frame; the image and the
+container test's override keep to their rules. ``make test-containers``
+(``tests_containers/``) builds the image and runs the stack for real.
 """
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -89,3 +92,36 @@ def test_trainer_reads_the_scenarios_its_companion_writes(compose: dict[str, Any
     trainer = services["trainer"]
     assert _option(trainer["command"], "--test-scenarios") == written
     assert trainer["depends_on"]["test-scenarios"]["condition"] == "service_completed_successfully"
+
+
+def test_the_image_and_the_test_override_keep_to_their_rules(compose: dict[str, Any]) -> None:
+    """The base is a build argument (python:3.11-slim by default), the image runs as tupa, the
+    daemon is sent only what the image is built from (an allow-list), every service runs under
+    an init that passes SIGTERM on, and the container test's override keeps every service on
+    loopback (the host's network, 127.0.0.1, no published port) or on no network at all."""
+    dockerfile = (ROOT / "Dockerfile").read_text()
+    assert "ARG BASE=python:3.11-slim" in dockerfile
+    assert dockerfile.count("FROM ${BASE}") >= 2
+    assert "\nUSER tupa\n" in dockerfile
+    ignore = [line for line in (ROOT / ".dockerignore").read_text().splitlines() if line]
+    rules = [line for line in ignore if not line.startswith("#")]
+    assert rules[0] == "*"
+    allowed = {line[1:].strip("/") for line in rules if line.startswith("!")}
+    assert allowed.isdisjoint({".venv", "runs", ".git", "benchmarks", "build"})
+    for name, service in compose["services"].items():
+        assert service.get("init") is True, name
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    Loader.add_constructor("!reset", lambda loader, node: loader.construct_sequence(node))
+    override = yaml.load((ROOT / "docker-compose.test.yml").read_text(), Loader=Loader)
+    assert set(override["services"]) == set(compose["services"])
+    for name, service in override["services"].items():
+        assert service["network_mode"] in ("host", "none"), name
+        command = " ".join(str(part) for part in service.get("command", []))
+        assert "0.0.0.0" not in command, name
+        if service["network_mode"] == "host":
+            assert compose["services"][name].get("ports") is None or service["ports"] == [], name
+            for word in re.findall(r"(?:tcp:|http://)([^:/]+)", command):
+                assert word == "127.0.0.1", (name, word)
