@@ -47,6 +47,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "one: kmeans-scored (default), kmeans-load-weighted, kmeans-min-distance, fleet-oracle",
     )
     parser.add_argument(
+        "--envelope",
+        type=Path,
+        metavar="FILE",
+        dest="envelope_file",
+        help="the flight-safety envelope (tupa-envelope/1 JSON, sim/envelope/files.py): "
+        "inclusion polygon, no-fly volumes, altitude band, clearance; targets are moved into it "
+        "and flown to along legal routes (default: the area's box; a fleet file's vehicles may "
+        "have their own)",
+    )
+    parser.add_argument(
         "--separation-m",
         type=float,
         metavar="M",
@@ -71,6 +81,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="S",
         help="how long the take-off sequence keeps trying, refusals retried with backoff "
         "(default 300: a real vehicle needs its GPS lock and pre-arm checks first)",
+    )
+    parser.add_argument(
+        "--battery-reserve-pct",
+        type=_reserve,
+        metavar="PCT|off",
+        help="charge to be left on landing: at what flying home takes plus this, the service "
+        "ends the placement and commands the return (RTL) before the autopilot's own failsafe "
+        "(default 20; off: never, the autopilot's failsafe still acts)",
     )
     parser.add_argument("--host", help="address to listen on (default 127.0.0.1)")
     parser.add_argument("--port", type=int, help="port to listen on (default 8080; 0: any free)")
@@ -119,10 +137,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 _SETTING_ARGS = (
     "mavlink_backend",
     "fleet_file",
+    "envelope_file",
     "separation_m",
     "policy",
     "arm_and_takeoff",
     "takeoff_timeout_s",
+    "battery_reserve_pct",
     "host",
     "port",
     "insecure",
@@ -137,6 +157,16 @@ _SETTING_ARGS = (
 )
 
 
+def _reserve(text: str) -> float | str:
+    """``--battery-reserve-pct``: a number, or ``off``."""
+    if text.strip().lower() == "off":
+        return "off"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a percentage or 'off', got {text!r}") from None
+
+
 def settings_from_args(args: argparse.Namespace):  # -> ServiceSettings (lazy import)
     """Options given on the command line over ``TUPA_*`` variables; ``InputError`` naming the
     field for a bad value."""
@@ -147,6 +177,8 @@ def settings_from_args(args: argparse.Namespace):  # -> ServiceSettings (lazy im
 
     overrides = {name: getattr(args, name) for name in _SETTING_ARGS}
     overrides = {k: v for k, v in overrides.items() if v is not None}
+    if overrides.get("battery_reserve_pct") == "off":
+        overrides["battery_reserve_pct"] = None
     if args.mavlink and args.fleet_file is not None:
         raise InputError("fleet_file: give a fleet file or --mavlink, not both")
     if args.mavlink:  # one vehicle, or a fleet from repeated --mavlink

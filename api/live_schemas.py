@@ -52,6 +52,39 @@ class LiveControl(_Frame):
     reason: str
 
 
+class LiveExclusion(_Frame):
+    name: str
+    polygon: list[list[float]] = Field(description="Footprint corners [x, y], metres")
+    floor_m: float
+    ceiling_m: float
+
+
+class LiveEnvelope(_Frame):
+    """Where a vehicle may fly (``sim/envelope``): it never leaves the inclusion, never enters
+    an exclusion volume, keeps within the altitude band and the clearance."""
+
+    inclusion: list[list[float]] = Field(description="Polygon corners [x, y], metres")
+    exclusions: list[LiveExclusion]
+    floor_m: float
+    ceiling_m: float
+    clearance_m: float
+
+
+class LiveRoute(_Frame):
+    """The way to the target, or where the vehicle holds and why."""
+
+    kind: Literal["direct", "over", "around", "recover", "hold"]
+    waypoints_m: list[list[float]] = Field(description="The setpoint streamed now first")
+    hold_reason: str | None
+
+
+class LiveBattery(_Frame):
+    remaining_pct: float | None
+    return_at_pct: float | None = Field(
+        description="The charge at which the service sends the vehicle home from here"
+    )
+
+
 class LiveVehicle(_Frame):
     id: str
     link: Literal["connecting", "up", "link_lost"]
@@ -68,6 +101,9 @@ class LiveVehicle(_Frame):
     target_m: Point | None
     track_m: list[list[float]] = Field(description="Recent positions, oldest first")
     decision: LiveDecision | None
+    envelope: int = Field(description="Its envelope: an index into the frame's `envelopes`")
+    route: LiveRoute | None
+    battery: LiveBattery
 
 
 class LiveUser(_Frame):
@@ -107,6 +143,9 @@ class LiveFrameOut(_Frame):
     decision_period_s: float
     area: LiveArea
     geofence: LiveGeofence
+    envelopes: list[LiveEnvelope] = Field(
+        description="The vehicles' envelopes, each once (vehicles share one unless given their own)"
+    )
     policy: LivePolicy
     vehicles: list[LiveVehicle] = Field(
         description="The vehicle (id uav1), or a fleet's vehicles in the fleet's order"

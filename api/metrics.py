@@ -136,7 +136,8 @@ class ServiceCollector(Collector):
 
 def _vehicle_families(views: list[Any]) -> Iterator[Any]:
     """Per-vehicle families, labelled ``vehicle`` (one vehicle: ``uav1``): link state,
-    commanded, armed, setpoints sent, reconnects, who has it, foreign MAVLink ignored."""
+    commanded, armed, setpoints sent, reconnects, who has it, the battery and the returns it
+    caused, route holds, foreign MAVLink ignored."""
     link = GaugeMetricFamily(
         "tupa_vehicle_link_state",
         "Each vehicle's MAVLink link state (1 = current)",
@@ -169,6 +170,21 @@ def _vehicle_families(views: list[Any]) -> Iterator[Any]:
         "Requests for the guided mode (GUIDED / OFFBOARD) sent to each vehicle",
         labels=["vehicle"],
     )
+    battery = GaugeMetricFamily(
+        "tupa_vehicle_battery_remaining_percent",
+        "Each vehicle's remaining charge, % (only vehicles that report one)",
+        labels=["vehicle"],
+    )
+    returns = CounterMetricFamily(
+        "tupa_vehicle_battery_returns",
+        "Times the service sent a vehicle home at its battery reserve",
+        labels=["vehicle"],
+    )
+    route_holds = CounterMetricFamily(
+        "tupa_vehicle_route_holds",
+        "Times a vehicle held because its envelope left no legal route to the target",
+        labels=["vehicle"],
+    )
     foreign = CounterMetricFamily(
         "tupa_vehicle_foreign_mavlink",
         "MAVLink messages and datagrams from systems other than the vehicle's, ignored",
@@ -186,6 +202,10 @@ def _vehicle_families(views: list[Any]) -> Iterator[Any]:
             control.add_metric([view.id, holder], 1.0 if state.control == holder else 0.0)
         released.add_metric([view.id], state.counters.get("control_released", 0))
         mode_requests.add_metric([view.id], state.counters.get("mode_requests", 0))
+        if state.battery_pct is not None:
+            battery.add_metric([view.id], state.battery_pct)
+        returns.add_metric([view.id], state.counters.get("battery_returns", 0))
+        route_holds.add_metric([view.id], state.counters.get("route_holds", 0))
         foreign.add_metric(
             [view.id],
             state.counters.get("foreign_messages", 0) + state.counters.get("foreign_datagrams", 0),
@@ -199,6 +219,9 @@ def _vehicle_families(views: list[Any]) -> Iterator[Any]:
         control,
         released,
         mode_requests,
+        battery,
+        returns,
+        route_holds,
         foreign,
     )
 

@@ -21,10 +21,12 @@ from prometheus_client import CONTENT_TYPE_LATEST
 from api.auth import require_token
 from api.metrics import render_metrics
 from api.schemas import (
+    BatteryOut,
     ControlIn,
     ControlOut,
     DecisionOut,
     DecisionTimingOut,
+    EnvelopeIn,
     ErrorOut,
     FleetOut,
     FleetVehicleOut,
@@ -34,12 +36,14 @@ from api.schemas import (
     Readiness,
     ReportIn,
     ReportOut,
+    RouteOut,
     TakeoffOut,
     Target,
     ValidationErrorOut,
     VehicleOut,
 )
 from service.errors import InputError
+from service.fleet_spec import envelope_for
 from service.placement import (
     Decision,
     FutureReportError,
@@ -137,6 +141,21 @@ def _vehicle_out(state: LinkState) -> VehicleOut:
         status_texts=list(state.status_texts),
         control=ControlOut(
             holder=state.control, reason=state.control_reason, age_s=state.control_age_s
+        ),
+        route=None
+        if state.route is None
+        else RouteOut(
+            kind=state.route.kind,  # type: ignore[arg-type]
+            waypoints=[_target(w) for w in state.route.waypoints_m],
+            hold_reason=state.route.hold_reason,
+        ),
+        battery=BatteryOut(
+            remaining_pct=state.battery_pct,
+            voltage_v=state.battery_voltage_v,
+            drain_pct_per_min=None
+            if state.battery_drain_pct_per_s is None
+            else state.battery_drain_pct_per_s * 60.0,
+            return_at_pct=state.battery_return_at_pct,
         ),
     )
 
@@ -307,9 +326,12 @@ _CONTROL_RESPONSES: dict[int | str, dict[str, Any]] = {
 }
 
 
-def _change_control(link: VehicleLink, body: ControlIn) -> None:
+def _change_control(service: PlacementService, link: VehicleLink, body: ControlIn) -> None:
     """Hand ``link``'s vehicle back to the service or take it from it; 409 naming the reason
-    when the vehicle cannot be handed back now."""
+    when the vehicle cannot be handed back now. A vehicle handed back on the ground (returned
+    home, recharged) takes off only when the operator asks for it (``takeoff``)."""
+    if body.takeoff and body.holder != "service":
+        raise _unprocessable(["takeoff"], "takeoff: only with holder service (a hand-back)")
     try:
         if body.holder == "service":
             link.hand_back(body.reason or "handed back by an operator")
@@ -318,6 +340,9 @@ def _change_control(link: VehicleLink, body: ControlIn) -> None:
     except ControlRefused as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, detail=f"control: {exc}") from None
     log.warning("an operator set the vehicle's control to %s", body.holder)
+    if body.holder == "service" and body.takeoff and not link.state().armed:
+        log.warning("an operator asked the vehicle handed back to arm and take off")
+        link.arm_and_takeoff(timeout_s=service.settings.takeoff_timeout_s)
 
 
 @v1.put(
@@ -338,7 +363,7 @@ async def put_vehicle_control(body: ControlIn, request: Request) -> VehicleOut:
             detail=f"this service drives {len(service.links)} vehicles: "
             "PUT /v1/vehicles/{vehicle_id}/control",
         )
-    _change_control(service.link, body)
+    _change_control(service, service.link, body)
     return _vehicle_out(service.vehicle())
 
 
@@ -355,7 +380,72 @@ async def put_fleet_vehicle_control(
     names its vehicle ``uav1``); the fleet re-places the others while one is not commanded."""
     service = _service(request)
     _one_vehicle(service, vehicle_id)  # 404 for an unknown id
-    _change_control(service.links[vehicle_id], body)
+    _change_control(service, service.links[vehicle_id], body)
+    return _fleet_vehicle_out(_one_vehicle(service, vehicle_id))
+
+
+_ENVELOPE_RESPONSES: dict[int | str, dict[str, Any]] = {
+    **_AUTH_RESPONSES,
+    **_BODY_RESPONSES,
+    422: {
+        "model": ValidationErrorOut,
+        "description": "The envelope cannot be flown, or puts the vehicle's home inside a no-fly "
+        "volume (the field is named)",
+    },
+}
+
+
+def _change_envelope(service: PlacementService, link: VehicleLink, body: EnvelopeIn) -> None:
+    """Give ``link``'s vehicle the envelope ``body`` describes (422 naming the field)."""
+    document = body.model_dump(mode="json", exclude_none=True)
+    try:
+        envelope = envelope_for(document, service.world.area, link.config.frames)
+    except InputError as exc:
+        field = str(exc).split(":", 1)[0].removeprefix("envelope").strip(".")
+        raise _unprocessable(field.split(".") if field else [], str(exc)) from None
+    link.set_envelope(envelope)
+    log.warning(
+        "an operator gave the vehicle a new envelope: %d no-fly volumes, %g-%g m",
+        len(envelope.exclusions),
+        envelope.floor_m,
+        envelope.ceiling_m,
+    )
+
+
+@v1.put(
+    "/vehicle/envelope",
+    response_model=VehicleOut,
+    summary="Give the vehicle a new flight envelope",
+    responses={**_ENVELOPE_RESPONSES, **_FLEET_CONFLICT},
+)
+async def put_vehicle_envelope(body: EnvelopeIn, request: Request) -> VehicleOut:
+    """From now on the vehicle flies inside this envelope: its route is planned again from where
+    it is; a vehicle the new envelope finds outside holds where it is and says why (``route``),
+    it never jumps. The answer is the vehicle's state."""
+    service = _service(request)
+    if service.is_fleet:
+        raise HTTPException(
+            status.HTTP_409_CONFLICT,
+            detail=f"this service drives {len(service.links)} vehicles: "
+            "PUT /v1/vehicles/{vehicle_id}/envelope",
+        )
+    _change_envelope(service, service.link, body)
+    return _vehicle_out(service.vehicle())
+
+
+@v1.put(
+    "/vehicles/{vehicle_id}/envelope",
+    response_model=FleetVehicleOut,
+    summary="Give one vehicle a new flight envelope",
+    responses={**_ENVELOPE_RESPONSES, **_NO_SUCH_VEHICLE},
+)
+async def put_fleet_vehicle_envelope(
+    vehicle_id: str, body: EnvelopeIn, request: Request
+) -> FleetVehicleOut:
+    """As ``PUT /v1/vehicle/envelope``, for one vehicle of the fleet."""
+    service = _service(request)
+    _one_vehicle(service, vehicle_id)  # 404 for an unknown id
+    _change_envelope(service, service.links[vehicle_id], body)
     return _fleet_vehicle_out(_one_vehicle(service, vehicle_id))
 
 

@@ -10,7 +10,7 @@ the service, with the same 422 error shape.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -197,6 +197,96 @@ class ControlIn(_Strict):
     reason: str | None = Field(
         default=None, max_length=200, description="Noted in the vehicle's control reason"
     )
+    takeoff: bool = Field(
+        default=False,
+        description="With holder service: a vehicle handed back on the ground (returned home, "
+        "recharged) is armed and takes off, as with --arm-and-takeoff. Never without it.",
+    )
+
+
+class RouteOut(BaseModel):
+    """The way to the target inside the vehicle's envelope, or where it holds and why."""
+
+    kind: Literal["direct", "over", "around", "recover", "hold"] = Field(
+        description="direct; over (climbs over no-fly volumes); around (a detour at one height); "
+        "recover (back into the envelope first); hold (no legal way: it keeps still)"
+    )
+    waypoints: list[Target] = Field(
+        description="The remaining waypoints, the setpoint streamed now first (the hold point "
+        "while holding); the last is the target"
+    )
+    hold_reason: str | None = Field(description="Why it holds (None while it flies)")
+
+
+Corner = Annotated[list[float], Field(min_length=2, max_length=2, description="[x, y], metres")]
+
+
+class ExclusionIn(_Strict):
+    """A no-fly volume: a footprint between two heights (area frame)."""
+
+    name: str = Field(default="", max_length=100)
+    polygon: list[Corner] = Field(min_length=3, max_length=200)
+    floor_m: float = 0.0
+    ceiling_m: float
+
+
+class EnvelopeIn(_Strict):
+    """A ``tupa-envelope/1`` document (sim/envelope/files.py): where the vehicle may fly. The
+    geometry is checked beyond this schema (a simple polygon, a ceiling above the floor, room
+    left to fly, the vehicle's home outside every no-fly volume): 422 naming the field."""
+
+    model_config = ConfigDict(
+        allow_inf_nan=False,
+        extra="forbid",
+        strict=True,
+        json_schema_extra={
+            "examples": [
+                {
+                    "format": "tupa-envelope/1",
+                    "ceiling_m": 90,
+                    "clearance_m": 5,
+                    "exclusions": [
+                        {
+                            "name": "helipad",
+                            "polygon": [[100, 100], [160, 100], [160, 150], [100, 150]],
+                            "floor_m": 0,
+                            "ceiling_m": 60,
+                        }
+                    ],
+                }
+            ]
+        },
+    )
+
+    format: Literal["tupa-envelope/1"]
+    inclusion: list[Corner] | None = Field(
+        default=None, min_length=3, max_length=1000, description="Default: the area"
+    )
+    floor_m: float | None = Field(default=None, description="Default: the area's lowest altitude")
+    ceiling_m: float | None = Field(default=None, description="Default: the area's highest")
+    clearance_m: float | None = Field(default=None, ge=0, description="Default: 0")
+    max_speed_mps: float | None = Field(default=None, gt=0, description="Default: 10")
+    exclusions: list[ExclusionIn] = Field(
+        default_factory=list,
+        max_length=200,
+        description="At most 200 of at most 200 corners each: the request stays under the body "
+        "size limit (a district's buildings come from a file, --envelope)",
+    )
+
+
+class BatteryOut(BaseModel):
+    """The vehicle's battery, and when the service sends it home (service/battery.py)."""
+
+    remaining_pct: float | None = Field(description="Remaining charge, % (None: not reported)")
+    voltage_v: float | None = Field(description="Pack voltage (None: not reported)")
+    drain_pct_per_min: float | None = Field(
+        description="The drain measured while flying (None before 20 s of it)"
+    )
+    return_at_pct: float | None = Field(
+        description="The charge at which the service ends the placement and commands the return "
+        "home from where the vehicle is now: the reserve plus what flying home takes (None while "
+        "it does not fly in the service's hands, or without a reserve)"
+    )
 
 
 class VehicleOut(BaseModel):
@@ -242,6 +332,10 @@ class VehicleOut(BaseModel):
         description="The vehicle's latest STATUSTEXT messages, oldest first ('SEVERITY: text')"
     )
     control: ControlOut
+    route: RouteOut | None = Field(
+        default=None, description="The route flown to the target (None before the first one)"
+    )
+    battery: BatteryOut | None = Field(default=None, description="The vehicle's battery")
 
 
 class DecisionTimingOut(BaseModel):

@@ -108,13 +108,19 @@ class FleetPlacementService(PlacementService):
             spec, world, fleet.separation_m, max_bytes=settings.checkpoint_max_bytes
         )
         links: dict[str, VehicleLink] = {}
+        envelopes = {
+            v.id: v.envelope(world.area, f"vehicles[{i}].envelope")
+            for i, v in enumerate(fleet.vehicles)
+        }
         for vehicle in fleet.vehicles:
             config = LinkConfig(
                 url=vehicle.mavlink,
                 area=world.area,
+                envelope=envelopes[vehicle.id],
                 frames=vehicle.frames,
                 setpoint_rate_hz=settings.setpoint_rate_hz,
                 signing_key=settings.signing_key_bytes(),
+                battery=settings.battery(),
             )
             try:
                 links[vehicle.id] = open_link(settings.mavlink_backend, config)

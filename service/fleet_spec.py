@@ -4,6 +4,8 @@
 A fleet file is YAML (JSON is YAML too)::
 
     separation_m: 10            # optional (default 10): the minimum 3-D distance between targets
+    envelope: site.json         # optional: every vehicle's flight envelope (tupa-envelope/1,
+                                #   sim/envelope/files.py; a path relative to this file)
     vehicles:                   # 1..8, in priority order (the first keeps its target in a conflict)
       - id: uav1                # letters, digits, '-' and '_'; unique
         mavlink: tcp:127.0.0.1:5760
@@ -11,11 +13,13 @@ A fleet file is YAML (JSON is YAML too)::
         area_origin_north_m: 0  # optional: where the area's south-west corner at z = 0 lies
         area_origin_east_m: 0   #   from THIS vehicle's home, local NED (homes differ)
         area_origin_down_m: 0
+        envelope: north.json    # optional: this vehicle's own envelope (else the fleet's)
 
 Every problem is one :class:`~service.errors.InputError` naming the field
 (``vehicles[1].mavlink: ...``): a fleet outside 1–8 vehicles, two vehicles with the same id,
 connection or system id, a connection string pymavlink would not know, a separation that is not
-a positive number, an unknown key.
+a positive number, an unknown key, an envelope file that cannot be flown (or that puts a
+vehicle's home inside a no-fly volume: :meth:`VehicleSpec.envelope`).
 """
 
 from __future__ import annotations
@@ -30,7 +34,9 @@ from typing import Any
 import yaml
 
 from service.errors import InputError
-from service.frames import FrameConfig
+from service.frames import FrameConfig, ned_to_area
+from sim.config import AreaConfig
+from sim.envelope import Envelope, envelope_from_document, home_violation, load_envelope
 from sim.fleet import MAX_UAVS
 
 DEFAULT_SEPARATION_M = 10.0
@@ -56,9 +62,10 @@ _VEHICLE_KEYS = frozenset(
         "area_origin_north_m",
         "area_origin_east_m",
         "area_origin_down_m",
+        "envelope",
     }
 )
-_FLEET_KEYS = frozenset({"separation_m", "vehicles"})
+_FLEET_KEYS = frozenset({"separation_m", "vehicles", "envelope"})
 
 
 @dataclass(frozen=True)
@@ -69,6 +76,38 @@ class VehicleSpec:
     mavlink: str
     system_id: int | None = None
     frames: FrameConfig = FrameConfig()  # noqa: RUF009 (frozen, so sharing it is safe)
+    envelope_file: Path | None = None
+    """Its flight envelope (``tupa-envelope/1``); None: the area's box."""
+
+    def envelope(self, area: AreaConfig, field: str = "envelope") -> Envelope:
+        """The vehicle's envelope over ``area`` (the area's box without a file); InputError
+        naming ``field`` for a file that cannot be flown or that puts the vehicle's home (its
+        take-off column) inside a no-fly volume."""
+        if self.envelope_file is None:
+            return Envelope.for_area(area)
+        envelope = load_envelope(self.envelope_file, area)
+        check_home(envelope, self.frames, f"{field}: {self.envelope_file}")
+        return envelope
+
+
+def check_home(envelope: Envelope, frames: FrameConfig, field: str = "envelope") -> Envelope:
+    """``envelope`` when a vehicle whose home the ``frames`` place can take off in it; else
+    InputError naming ``field`` (its take-off would climb through a no-fly volume)."""
+    home_x_m, home_y_m, _ = ned_to_area(0.0, 0.0, 0.0, frames)
+    why = home_violation(envelope, (home_x_m, home_y_m))
+    if why is not None:
+        raise InputError(f"{field}: {why}")
+    return envelope
+
+
+def envelope_for(document: Any, area: AreaConfig, frames: FrameConfig) -> Envelope:
+    """The envelope a ``tupa-envelope/1`` document (parsed JSON) describes, for a vehicle whose
+    home the ``frames`` place; InputError naming the field (``envelope.<field>``)."""
+    try:
+        envelope = envelope_from_document(document, area)
+    except InputError as exc:
+        raise InputError(f"envelope.{exc}") from None
+    return check_home(envelope, frames)
 
 
 @dataclass(frozen=True)
@@ -158,27 +197,43 @@ def check_fleet(fleet: FleetSpec) -> None:
             seen[key][value] = i
 
 
-def single_vehicle(mavlink: str, frames: FrameConfig) -> FleetSpec:
+def single_vehicle(
+    mavlink: str, frames: FrameConfig, envelope_file: Path | None = None
+) -> FleetSpec:
     """The one-vehicle fleet of a plain ``tupa serve --mavlink URL`` (id ``uav1``)."""
-    return FleetSpec((VehicleSpec("uav1", mavlink, None, frames),))
+    return FleetSpec((VehicleSpec("uav1", mavlink, None, frames, envelope_file),))
 
 
 def fleet_from_urls(
-    urls: list[str] | tuple[str, ...], frames: FrameConfig, separation_m: float
+    urls: list[str] | tuple[str, ...],
+    frames: FrameConfig,
+    separation_m: float,
+    envelope_file: Path | None = None,
 ) -> FleetSpec:
     """A fleet from repeated ``--mavlink`` options: ids ``uav1``, ``uav2``, ..., all in the same
-    frame (vehicles that share a home or an EKF origin; otherwise use a fleet file)."""
-    vehicles = tuple(VehicleSpec(f"uav{i + 1}", url, None, frames) for i, url in enumerate(urls))
+    frame (vehicles that share a home or an EKF origin; otherwise use a fleet file) and the same
+    envelope."""
+    vehicles = tuple(
+        VehicleSpec(f"uav{i + 1}", url, None, frames, envelope_file) for i, url in enumerate(urls)
+    )
     return FleetSpec(vehicles, separation_m)
 
 
-def parse_fleet(data: Any, default_separation_m: float = DEFAULT_SEPARATION_M) -> FleetSpec:
-    """A :class:`FleetSpec` from a fleet file's parsed content (module doc)."""
+def parse_fleet(
+    data: Any,
+    default_separation_m: float = DEFAULT_SEPARATION_M,
+    base_dir: Path | None = None,
+    default_envelope: Path | None = None,
+) -> FleetSpec:
+    """A :class:`FleetSpec` from a fleet file's parsed content (module doc); envelope paths are
+    relative to ``base_dir`` (the fleet file's folder); a vehicle with none gets the fleet's,
+    else ``default_envelope``."""
     if not isinstance(data, dict):
         raise InputError("fleet file: must be a mapping with a 'vehicles' list")
     unknown = sorted(set(map(str, data)) - _FLEET_KEYS)
     if unknown:
         raise InputError(f"{unknown[0]}: unknown key (expected {', '.join(sorted(_FLEET_KEYS))})")
+    fleet_envelope = _envelope_path(data, "envelope", base_dir) or default_envelope
     items = data.get("vehicles")
     if not isinstance(items, list):
         raise InputError("vehicles: must be a list of vehicles")
@@ -201,14 +256,23 @@ def parse_fleet(data: Any, default_separation_m: float = DEFAULT_SEPARATION_M) -
             if not math.isfinite(value):
                 raise InputError(f"vehicles[{i}].{key}: must be finite, got {value!r}")
             origin.append(float(value))
+        envelope = _envelope_path(item, "envelope", base_dir, f"vehicles[{i}].")
         vehicles.append(
-            VehicleSpec(item["id"], item["mavlink"], item.get("system_id"), FrameConfig(*origin))
+            VehicleSpec(
+                item["id"],
+                item["mavlink"],
+                item.get("system_id"),
+                FrameConfig(*origin),
+                envelope or fleet_envelope,
+            )
         )
     return FleetSpec(tuple(vehicles), data.get("separation_m", default_separation_m))
 
 
 def load_fleet_file(
-    path: Path | str, default_separation_m: float = DEFAULT_SEPARATION_M
+    path: Path | str,
+    default_separation_m: float = DEFAULT_SEPARATION_M,
+    default_envelope: Path | None = None,
 ) -> FleetSpec:
     """Read and check a fleet file (InputError naming the file or the field)."""
     try:
@@ -221,4 +285,16 @@ def load_fleet_file(
         mark = getattr(exc, "problem_mark", None)
         where = f" (line {mark.line + 1})" if mark is not None else ""
         raise InputError(f"fleet_file: {path} is not valid YAML{where}") from None
-    return parse_fleet(data, default_separation_m)
+    return parse_fleet(data, default_separation_m, Path(path).parent, default_envelope)
+
+
+def _envelope_path(
+    data: dict[str, Any], key: str, base_dir: Path | None, prefix: str = ""
+) -> Path | None:
+    value = data.get(key)
+    if value is None:
+        return None
+    if not isinstance(value, str) or not value.strip():
+        raise InputError(f"{prefix}{key}: must be the path of an envelope file, got {value!r}")
+    path = Path(value)
+    return path if path.is_absolute() or base_dir is None else base_dir / path

@@ -12,10 +12,15 @@ A frame (``format: tupa-live/1``, JSON; metres in the area frame: x east, y nort
     {"format", "seq", "time_s", "decision_period_s",
      "area": {size_x_m, size_y_m, zone_m, z_min_m, z_max_m},
      "geofence": {"x_m": [lo, hi], "y_m": [..], "z_m": [..]},
+     "envelopes": [{"inclusion": [[x, y], ...], "floor_m", "ceiling_m", "clearance_m",
+                    "exclusions": [{"name", "polygon": [[x, y], ...], "floor_m", "ceiling_m"}]}],
      "policy": {"name", "spec"},
      "vehicles": [{"id", "link", "mode", "armed", "flavour", "streaming", "heartbeat_age_s",
                    "position_m", "heading_deg", "target_m", "track_m": [[x, y, z], ...],
-                   "decision": {"source", "policy", "decided_at", "age_s"} | null}],
+                   "decision": {"source", "policy", "decided_at", "age_s"} | null,
+                   "envelope": index into "envelopes",
+                   "route": {"kind", "waypoints_m": [[x, y, z], ...], "hold_reason"} | null,
+                   "battery": {"remaining_pct", "return_at_pct"}}],
      "users": [{"id", "x_m", "y_m", "offered_bps", "throughput_bps", "delay_s", "plr",
                 "served"}],                       # served: throughput / offered, in [0, 1]
      "report": {"timestamp", "age_s", "stale"} | null,
@@ -36,6 +41,7 @@ import json
 import math
 import threading
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
@@ -44,6 +50,7 @@ import numpy as np
 from service.pubsub import Hub
 from service.vehicle_link import LinkState
 from sim.config import AreaConfig, UtilityConfig
+from sim.envelope import Envelope
 from sim.utility import network_utility
 
 if TYPE_CHECKING:
@@ -118,6 +125,9 @@ class LiveView:
         self._utility: dict[str, float] | None = None
         self._report_seen: Report | None = None
         self._seq = 0
+        self.envelope_of: Callable[[str], Envelope | None] = lambda _vehicle_id: None
+        """Each vehicle's envelope by id (the service sets it; None: the area's box)."""
+        self._envelope_docs: dict[int, tuple[Envelope, dict[str, Any]]] = {}
 
     def record(self, moment: Moment) -> None:
         """Once per decision period: extend the track and the history, and publish a frame
@@ -171,6 +181,13 @@ class LiveView:
             parts = self.utility_parts(moment.report)
             utility = None if parts is None else {"t_s": round(moment.time_s, 3), **parts}
         area = self.area
+        envelopes: list[dict[str, Any]] = []
+        envelope_index: dict[str, int] = {}
+        for vid, _, _ in moment.vehicles():
+            document = self._envelope_document(vid)
+            if document not in envelopes:
+                envelopes.append(document)
+            envelope_index[vid] = envelopes.index(document)
         body: dict[str, Any] = {
             "format": FORMAT,
             "seq": seq,
@@ -188,9 +205,13 @@ class LiveView:
                 "y_m": [0.0, area.size_y_m],
                 "z_m": [area.z_min_m, area.z_max_m],
             },
+            "envelopes": envelopes,
             "policy": {"name": moment.policy_name, "spec": moment.policy_spec},
             "vehicles": [
-                _vehicle(vid, link, decision, moment.time_s, tracks.get(vid, []))
+                {
+                    **_vehicle(vid, link, decision, moment.time_s, tracks.get(vid, [])),
+                    "envelope": envelope_index[vid],
+                }
                 for vid, link, decision in moment.vehicles()
             ],
             "users": _users(moment.report),
@@ -202,6 +223,38 @@ class LiveView:
         }
         data = json.dumps(body, separators=(",", ":"), allow_nan=False).encode()
         return LiveFrame(seq, data)
+
+    def _envelope_document(self, vehicle_id: str) -> dict[str, Any]:
+        """The vehicle's envelope as the frame carries it, built once per envelope."""
+        envelope = self.envelope_of(vehicle_id) or Envelope.for_area(self.area)
+        kept = self._envelope_docs.get(id(envelope))
+        if kept is None or kept[0] is not envelope:
+            kept = (envelope, envelope_document(envelope))
+            self._envelope_docs[id(envelope)] = kept
+        return kept[1]
+
+
+def envelope_document(envelope: Envelope) -> dict[str, Any]:
+    """An envelope as the live frame carries it (polygons as corner lists, metres)."""
+
+    def ring(polygon: Any) -> list[list[float]]:
+        return [[round(x, 2), round(y, 2)] for x, y in polygon.exterior.coords[:-1]]
+
+    return {
+        "inclusion": ring(envelope.inclusion),
+        "exclusions": [
+            {
+                "name": e.name,
+                "polygon": ring(e.footprint),
+                "floor_m": e.floor_m,
+                "ceiling_m": e.ceiling_m,
+            }
+            for e in envelope.exclusions
+        ],
+        "floor_m": envelope.floor_m,
+        "ceiling_m": envelope.ceiling_m,
+        "clearance_m": envelope.clearance_m,
+    }
 
 
 def _number(value: float | None, digits: int | None = 3) -> float | int | None:
@@ -236,6 +289,17 @@ def _vehicle(
         "heading_deg": _number(state.heading_deg, 1),
         "target_m": _point(decision.target_m if decision else state.target_m),
         "track_m": track,
+        "route": None
+        if state.route is None
+        else {
+            "kind": state.route.kind,
+            "waypoints_m": [_point(w) for w in state.route.waypoints_m],
+            "hold_reason": state.route.hold_reason,
+        },
+        "battery": {
+            "remaining_pct": _number(state.battery_pct, 1),
+            "return_at_pct": _number(state.battery_return_at_pct, 1),
+        },
         "decision": None
         if decision is None
         else {

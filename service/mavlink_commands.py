@@ -54,6 +54,11 @@ def set_mode(custom_mode: int, custom_sub_mode: int = 0) -> Params:
     )
 
 
+def return_to_launch() -> Params:
+    """MAV_CMD_NAV_RETURN_TO_LAUNCH: the autopilot's own return (its RTL mode and altitude)."""
+    return (0.0,) * 7  # type: ignore[return-value]
+
+
 def set_message_interval(message_id: int, rate_hz: float) -> Params:
     """MAV_CMD_SET_MESSAGE_INTERVAL: ``message_id`` every 1 / ``rate_hz`` s, to the requester's
     stream as the flight stack sends it by default (param7 = 0)."""

@@ -87,6 +87,7 @@ VEHICLE_MESSAGES = frozenset(
         "GLOBAL_POSITION_INT",
         "EXTENDED_SYS_STATE",
         "EKF_STATUS_REPORT",
+        "SYS_STATUS",
         "COMMAND_ACK",
         "STATUSTEXT",
     }
@@ -415,6 +416,13 @@ class MavlinkLink(VehicleLinkBase):
                 self._landed_state = message.landed_state
             elif kind == "EKF_STATUS_REPORT":
                 self._ekf_flags = message.flags
+            elif kind == "SYS_STATUS":
+                # battery_remaining: % (-1: unknown); voltage_battery: mV (UINT16_MAX: unknown).
+                self._note_battery(
+                    now,
+                    message.battery_remaining if message.battery_remaining >= 0 else None,
+                    None if message.voltage_battery == 65535 else message.voltage_battery / 1000.0,
+                )
             elif kind == "COMMAND_ACK":
                 if message.result == mavlink.MAV_RESULT_IN_PROGRESS:
                     return  # not the final answer
@@ -482,6 +490,7 @@ class MavlinkLink(VehicleLinkBase):
             (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, rate_hz),
             (mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, rate_hz),
             (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 2.0),
+            (mavlink.MAVLINK_MSG_ID_SYS_STATUS, 1.0),  # the battery (service.battery)
         ]
         if flavour == "ardupilot":
             wanted.append((mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT, 2.0))

@@ -206,6 +206,7 @@ class MavsdkLink(VehicleLinkBase):
             session.telemetry.subscribe_position_velocity_ned(self._on_position_ned)
             session.telemetry.subscribe_position(self._on_position)
             session.telemetry.subscribe_heading(self._on_heading)
+            session.telemetry.subscribe_battery(self._on_battery)
             session.telemetry.subscribe_status_text(self._on_status_text)
             rate_hz, telemetry = self.config.telemetry_rate_hz, session.telemetry
             for name in ("set_rate_position_velocity_ned_async", "set_rate_position_async"):
@@ -291,6 +292,17 @@ class MavsdkLink(VehicleLinkBase):
         if math.isfinite(heading.heading_deg):
             with self._cond:
                 self._heading_deg = heading.heading_deg
+
+    def _on_battery(self, battery: Any, _user_data: Any) -> None:
+        # MAVSDK's remaining_percent is 0-100 (NaN: unknown); voltage NaN: unknown.
+        remaining = battery.remaining_percent
+        voltage = battery.voltage_v
+        with self._cond:
+            self._note_battery(
+                time.monotonic(),
+                remaining if math.isfinite(remaining) else None,
+                voltage if math.isfinite(voltage) else None,
+            )
 
     # ------------------------------------------------------------------ setpoints and mode
 

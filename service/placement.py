@@ -279,6 +279,7 @@ class PlacementService:
         self.counters: Counter[str] = Counter()
         self._takeoff_deferred = False
         self.live = LiveView(self.world.area, self.world.utility, settings.live_max_streams)
+        self.live.envelope_of = lambda vid: self.links[vid].envelope
         """The operator view's track, utility history and frames (published each period)."""
 
     @property
@@ -314,12 +315,15 @@ class PlacementService:
         world = settings.policy_world()
         # The operator's own choice: from any directory, within the size limit.
         policy = load_policy(settings.policy, world, max_bytes=settings.checkpoint_max_bytes)
+        (vehicle,) = settings.fleet_spec().vehicles
         link_config = LinkConfig(
             url=settings.mavlink,
             area=world.area,
+            envelope=vehicle.envelope(world.area),
             frames=settings.frames(),
             setpoint_rate_hz=settings.setpoint_rate_hz,
             signing_key=settings.signing_key_bytes(),
+            battery=settings.battery(),
         )
         link = open_link(settings.mavlink_backend, link_config)
         return cls(settings, link, policy, world)

@@ -18,6 +18,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from service.policy_runtime import SHIPPED_CHECKPOINTS, default_policy_spec
 
 if TYPE_CHECKING:
+    from service.battery import BatteryConfig
     from service.fleet_spec import FleetSpec
     from service.frames import FrameConfig
     from sim.world import World
@@ -39,6 +40,10 @@ class ServiceSettings(BaseSettings):
     fleet_file: Path | None = None
     """A fleet of 1–8 vehicles (:mod:`service.fleet_spec` has the format): one MAVLink link
     each, with its own frame; the policy is a fleet policy (``kmeans-load-weighted``, ...)."""
+    envelope_file: Path | None = None
+    """The flight-safety envelope (``tupa-envelope/1`` JSON, :mod:`sim.envelope.files`): where
+    the vehicle may fly, and every vehicle of a fleet without its own (the fleet file's
+    ``envelope``). None: the area's box."""
     separation_m: float = Field(default=10.0, gt=0, le=1000, allow_inf_nan=False)
     """A fleet's minimum 3-D distance between any two targets (a fleet file may set its own)."""
     mavlink_backend: MavlinkBackend = "pymavlink"
@@ -48,6 +53,10 @@ class ServiceSettings(BaseSettings):
     """A checkpoint path, or ``min-distance``, ``load-weighted``, ``oracle``."""
     arm_and_takeoff: bool = False
     """Arm and take off to the minimum altitude before the first placement (never by default)."""
+    battery_reserve_pct: float | None = Field(default=20.0, ge=0, lt=100, allow_inf_nan=False)
+    """Charge to be left on landing, %: at what flying home from where the vehicle is takes plus
+    this, the service ends the placement and commands the return (:mod:`service.battery`);
+    None: never (the autopilot's own failsafe still acts)."""
     takeoff_timeout_s: float = Field(default=300.0, gt=0, le=86400, allow_inf_nan=False)
     """How long the take-off sequence keeps trying (a real vehicle needs its GPS lock first)."""
     host: str = "127.0.0.1"
@@ -198,10 +207,12 @@ class ServiceSettings(BaseSettings):
         from service.fleet_spec import fleet_from_urls, load_fleet_file, single_vehicle
 
         if self.fleet_file is not None:
-            return load_fleet_file(self.fleet_file, self.separation_m)
+            return load_fleet_file(self.fleet_file, self.separation_m, self.envelope_file)
         if len(self.fleet_mavlink) > 1:
-            return fleet_from_urls(self.fleet_mavlink, self.frames(), self.separation_m)
-        return single_vehicle(self.mavlink, self.frames())
+            return fleet_from_urls(
+                self.fleet_mavlink, self.frames(), self.separation_m, self.envelope_file
+            )
+        return single_vehicle(self.mavlink, self.frames(), self.envelope_file)
 
     def frames(self) -> FrameConfig:
         """Where the area lies from the (single) vehicle's home."""
@@ -210,6 +221,12 @@ class ServiceSettings(BaseSettings):
         return FrameConfig(
             self.area_origin_north_m, self.area_origin_east_m, self.area_origin_down_m
         )
+
+    def battery(self) -> BatteryConfig:
+        """The battery reserve each vehicle link keeps (:mod:`service.battery`)."""
+        from service.battery import BatteryConfig
+
+        return BatteryConfig(reserve_pct=self.battery_reserve_pct)
 
     def signing_key_bytes(self) -> bytes | None:
         key = self.mavlink_signing_key

@@ -16,8 +16,9 @@ What this module owns:
   ``setpoint_min_gap_s`` to the previous setpoint), the guided-mode requests (GUIDED at once on
   ArduPilot, OFFBOARD on PX4 once the stream has run ``px4_stream_lead_s``, during
   ``mode_request_window_s`` after a new target only, so that a pilot who took over keeps the
-  vehicle), the geofence, the vehicle's STATUSTEXTs, and the arm-and-takeoff sequence the real
-  autopilots need (:meth:`VehicleLinkBase.arm_and_takeoff` has its steps).
+  vehicle), the envelope (:mod:`service.routing`: legal targets and the routes to them), the
+  vehicle's STATUSTEXTs, and the arm-and-takeoff sequence the real autopilots need
+  (:meth:`VehicleLinkBase.arm_and_takeoff` has its steps).
 
 A backend (:mod:`service.mavlink_link` on pymavlink, :mod:`service.mavsdk_link` on MAVSDK)
 implements the hooks listed on :class:`VehicleLinkBase`: open, poll and close its transport,
@@ -43,11 +44,13 @@ from typing import Literal, Self
 
 from service import control as vehicle_control
 from service import mavlink_commands
+from service.battery import BatteryConfig, DrainEstimate, reserve_reached, return_needs_pct
 from service.control import Control, ControlHolder
 from service.frames import FrameConfig, area_to_ned, ned_to_area
 from service.modes import GUIDED_MODE_NAME, Flavour, flavour_of, mode_name, set_mode_numbers
+from service.routing import LinkRoute, RouteView
 from sim.config import AreaConfig
-from sim.geometry import clamp_point
+from sim.envelope import Envelope
 
 # MAVLink 2 is needed for signing; pymavlink picks the wire version from this variable when its
 # dialect module is first loaded (it would also switch on the first MAVLink 2 packet it sees).
@@ -91,6 +94,10 @@ HEARTBEAT_PERIOD_S = 1.0
 """Our own HEARTBEAT's period (where the backend sends it)."""
 TELEMETRY_REQUEST_PERIOD_S = 2.0
 """How often ``_request_telemetry`` is called while the vehicle is up."""
+BATTERY_CHECK_PERIOD_S = 1.0
+"""How often the battery reserve is checked (:mod:`service.battery`)."""
+RETURN_ATTEMPTS = 3
+"""How many times the return home is asked for before the link gives up (and says so)."""
 
 EKF_POSITION_FLAGS = mavlink.EKF_POS_HORIZ_ABS | mavlink.EKF_PRED_POS_HORIZ_ABS
 
@@ -130,7 +137,11 @@ class LinkConfig:
     url: str
     """A pymavlink connection string: ``tcp:HOST:PORT``, ``udpin:HOST:PORT``, ``udpout:...``."""
     area: AreaConfig = AreaConfig()
-    """The area volume: targets are clamped into it (the geofence)."""
+    """The area volume (the envelope's default)."""
+    envelope: Envelope | None = None
+    """Where the vehicle may fly and how it gets there (:mod:`sim.envelope`); None: the area's
+    box. Targets are moved to the nearest legal point and flown to along a legal route
+    (:mod:`service.routing`)."""
     frames: FrameConfig = FrameConfig()  # noqa: RUF009 (frozen, so sharing it is safe)
     """Where the area frame sits in the vehicle's local NED frame."""
     setpoint_rate_hz: float = 10.0
@@ -149,6 +160,8 @@ class LinkConfig:
     mode_retry_s: float = 0.5
     mode_request_window_s: float = 15.0
     """After a target is set, the guided mode is asked for (every ``mode_retry_s``) this long."""
+    battery: BatteryConfig = BatteryConfig()  # noqa: RUF009 (frozen, so sharing it is safe)
+    """The battery reserve at which the service sends the vehicle home (:mod:`service.battery`)."""
     signing_key: bytes | None = None
     """Optional 32-byte MAVLink 2 signing key, the same as the vehicle's."""
     source_system: int = 255
@@ -189,7 +202,7 @@ class LinkState:
     heartbeat_age_s: float | None
     """Seconds since the vehicle's last HEARTBEAT; None before the first one."""
     target_m: tuple[float, float, float] | None
-    """The (geofenced) target being streamed, area frame."""
+    """The target flown to (legal in the envelope), area frame; the route's setpoint streams."""
     streaming: bool
     takeoff: str
     """``idle``, ``running``, ``airborne`` or ``failed: <reason>``."""
@@ -217,6 +230,17 @@ class LinkState:
     """Why: what the vehicle did when it left the service's hands, or how the service got it."""
     control_age_s: float | None = None
     """Seconds since the control last changed hands."""
+    route: RouteView | None = None
+    """The way to the target inside the envelope (the current setpoint first), or the hold
+    point and why; None before the first target is planned."""
+    battery_pct: float | None = None
+    """Remaining charge, % (SYS_STATUS); None while the vehicle reports none."""
+    battery_voltage_v: float | None = None
+    battery_drain_pct_per_s: float | None = None
+    """The drain measured while flying (None before ``min_window_s`` of it)."""
+    battery_return_at_pct: float | None = None
+    """The charge at which the service sends the vehicle home from where it is now (the reserve
+    plus the return's cost); None while the vehicle is not flying in the service's hands."""
 
 
 class VehicleLink(ABC):
@@ -239,8 +263,19 @@ class VehicleLink(ABC):
 
     @abstractmethod
     def set_target(self, target_m: Sequence[float]) -> tuple[float, float, float]:
-        """Stream ``target_m`` (area frame, metres) from now on; returns it clamped to the
-        geofence. NaN or infinite coordinates raise ValueError and change nothing."""
+        """Fly to ``target_m`` (area frame, metres) from now on; returns the target streamed at
+        the end: the legal point nearest it in the envelope (:mod:`service.routing`). NaN or
+        infinite coordinates, or no legal point near it, raise ValueError and change nothing."""
+
+    @property
+    @abstractmethod
+    def envelope(self) -> Envelope:
+        """The envelope the vehicle flies in now."""
+
+    @abstractmethod
+    def set_envelope(self, envelope: Envelope) -> None:
+        """Fly inside ``envelope`` from now on: the route is planned again from where the vehicle
+        is (a vehicle the new envelope finds outside holds there and says why)."""
 
     @abstractmethod
     def clear_target(self) -> None:
@@ -345,8 +380,14 @@ class VehicleLinkBase(VehicleLink):
         self._home_amsl_m: float | None = None
         self._ekf_flags: int | None = None  # ArduPilot's EKF_STATUS_REPORT.flags, when it sends it
         self._status_texts: deque[tuple[float, str]] = deque(maxlen=STATUS_TEXTS_KEPT)
+        self._battery_pct: float | None = None  # SYS_STATUS.battery_remaining (None: unknown)
+        self._battery_voltage_v: float | None = None
+        self._drain = DrainEstimate(config.battery)
+        self._battery_checked_at = -math.inf
+        self._return_pending: str | None = None  # why the vehicle is being sent home
         # Streaming state.
         self._target_m: tuple[float, float, float] | None = None
+        self._routing = LinkRoute(config.envelope or Envelope.for_area(config.area))
         self._target_dirty = False  # a new target not sent yet: send it at once
         self._hold_setpoints = False
         self._stream_since: float | None = None
@@ -452,7 +493,7 @@ class VehicleLinkBase(VehicleLink):
                 target_m=self._target_m,
                 streaming=self._streaming_now(),
                 takeoff=self._takeoff,
-                counters=dict(self.counters),
+                counters={**self.counters, **self._routing.counters},
                 takeoff_phase=self._takeoff_phase,
                 takeoff_attempts=self._takeoff_attempts,
                 takeoff_last_refusal=self._takeoff_last_refusal,
@@ -463,39 +504,63 @@ class VehicleLinkBase(VehicleLink):
                 control=self._control.holder,
                 control_reason=self._control.reason,
                 control_age_s=now - self._control.since_s,
+                route=self._routing.view(),
+                battery_pct=self._battery_pct,
+                battery_voltage_v=self._battery_voltage_v,
+                battery_drain_pct_per_s=self._drain.measured_pct_per_s,
+                battery_return_at_pct=self._return_at_pct(),
             )
 
     def set_target(self, target_m: Sequence[float]) -> tuple[float, float, float]:
-        """Stream ``target_m`` (area frame, metres) from now on; returns the geofenced target.
+        """Fly to ``target_m`` (area frame, metres) from now on; returns the target streamed.
 
-        A target outside the area volume is clamped to it (logged and counted); NaN or infinite
-        coordinates raise ValueError and change nothing. A new target goes out at the I/O loop's
-        next iteration and opens a window of ``mode_request_window_s`` in which the guided mode
-        is asked for; the same target set again opens none (the paced loop sets it every period).
-        Nothing streams while the service does not hold the vehicle (:mod:`service.control`).
+        A target outside the envelope is moved to the nearest legal point (logged and counted
+        in ``geofence_clamps``); the vehicle flies there along a legal route, or holds and says
+        why (:mod:`service.routing`; :attr:`LinkState.route`). NaN or infinite coordinates, or a
+        target with no legal point near it, raise ValueError and change nothing. A new target
+        goes out at the I/O loop's next iteration and opens a window of
+        ``mode_request_window_s`` in which the guided mode is asked for; the same target set
+        again opens none (the paced loop sets it every period). Nothing streams while the
+        service does not hold the vehicle (:mod:`service.control`).
         """
-        try:
-            clamped, was_clamped = clamp_point(target_m, self.config.area)
-        except ValueError:
-            with self._cond:
-                self.counters["targets_rejected"] += 1
-            raise
         with self._cond:
-            if was_clamped:
+            try:
+                legal, changed = self._routing.set_target(target_m)
+            except ValueError:
+                self.counters["targets_rejected"] += 1
+                raise
+            if legal is None:
+                self.counters["targets_rejected"] += 1
+                raise ValueError(f"target {tuple(target_m)}: no legal point near it")
+            if legal != tuple(float(v) for v in target_m):
                 self.counters["geofence_clamps"] += 1
-                log.warning("target %s outside the geofence: clamped to %s", target_m, clamped)
-            if clamped != self._target_m:
+            if changed:
                 self._target_dirty = True
                 self._cond.notify_all()  # wakes an I/O loop waiting on it: out at once
                 # A new target (only): the guided mode may be asked for during the window.
                 self._mode_wanted_until = time.monotonic() + self.config.mode_request_window_s
-            self._target_m = clamped
-        return clamped
+            self._target_m = legal
+        return legal
+
+    def set_envelope(self, envelope: Envelope) -> None:
+        """Fly inside ``envelope`` from now on (see :meth:`VehicleLink.set_envelope`)."""
+        with self._cond:
+            self._routing.set_envelope(envelope)
+            if self._target_m is not None:
+                self._target_dirty = True
+                self._cond.notify_all()
+
+    @property
+    def envelope(self) -> Envelope:
+        """The envelope the vehicle flies in now."""
+        with self._cond:
+            return self._routing.envelope
 
     def clear_target(self) -> None:
         """Stop streaming setpoints (the vehicle keeps its own behaviour for a lost stream)."""
         with self._cond:
             self._target_m = None
+            self._routing.clear()
             self._stream_since = None
 
     def hand_back(self, reason: str = "handed back by an operator") -> None:
@@ -509,6 +574,7 @@ class VehicleLinkBase(VehicleLink):
             self._set_control(Control("service", reason, time.monotonic()))
             # The target from before the vehicle left is stale: the next decision streams.
             self._target_m = None
+            self._routing.clear()
             self._stream_since = None
             # A mode change made before the hand-back but heard after it is not a new takeover.
             self._control_fresh = True
@@ -665,6 +731,9 @@ class VehicleLinkBase(VehicleLink):
         if now >= times.next_telemetry_request:
             times.next_telemetry_request = now + TELEMETRY_REQUEST_PERIOD_S
             self._request_telemetry(now)
+        if now - self._battery_checked_at >= BATTERY_CHECK_PERIOD_S:
+            self._battery_checked_at = now
+            self._check_battery_reserve(now)
         period_s = 1.0 / config.setpoint_rate_hz
         with self._cond:
             dirty = self._target_dirty
@@ -687,6 +756,110 @@ class VehicleLinkBase(VehicleLink):
             if self._target_dirty:  # set_target notifies self._cond: a new target wakes a poll
                 wake_at = min(wake_at, times.last_setpoint + config.setpoint_min_gap_s)
         times.wait_s = min(max(wake_at - time.monotonic(), 0.001), IDLE_WAIT_S)
+
+    # ------------------------------------------------------------------ the battery reserve
+
+    def _note_battery(
+        self, now: float, remaining_pct: float | None, voltage_v: float | None
+    ) -> None:
+        """A battery reading (call under ``self._cond``): ``remaining_pct`` None or negative when
+        the vehicle does not know it. Readings while flying feed the drain estimate."""
+        known = remaining_pct is not None and 0 <= remaining_pct <= 100
+        self._battery_pct = float(remaining_pct) if known else None  # type: ignore[arg-type]
+        self._battery_voltage_v = voltage_v
+        if known and self._in_air():
+            self._drain.add(now, float(remaining_pct))  # type: ignore[arg-type]
+
+    def _home_leg_m(self) -> tuple[float, float] | None:
+        """(horizontal distance, height) from home, metres (call under ``self._cond``)."""
+        if self._ned is None:
+            return None
+        north_m, east_m, down_m = self._ned
+        return math.hypot(north_m, east_m), max(0.0, -down_m)
+
+    def _return_at_pct(self) -> float | None:
+        """The charge at which the vehicle is sent home from here (under ``self._cond``)."""
+        cfg = self.config.battery
+        leg = self._home_leg_m()
+        if cfg.reserve_pct is None or leg is None or not self._control.service_has_it:
+            return None
+        return cfg.reserve_pct + return_needs_pct(self._drain.pct_per_s, *leg, cfg)
+
+    def _check_battery_reserve(self, now: float) -> None:
+        """Send the vehicle home at its reserve (:mod:`service.battery`), in a worker
+        (:meth:`_return_worker`)."""
+        with self._cond:
+            pct, leg = self._battery_pct, self._home_leg_m()
+            if (
+                pct is None
+                or leg is None
+                or self._return_pending is not None
+                or not self._control.service_has_it
+                or self._takeoff == "running"
+                or not self._in_air()
+            ):
+                return
+            why = reserve_reached(pct, self._drain.pct_per_s, *leg, self.config.battery)
+            if why is None:
+                return
+            self._return_pending = why
+            self.counters["battery_returns"] += 1
+        log.warning("%s: sending the vehicle home", why)
+        worker = threading.Thread(
+            target=self._return_worker, args=(why,), name=f"{self._thread_name}-return", daemon=True
+        )
+        self._workers.append(worker)
+        worker.start()
+
+    def _return_worker(self, why: str) -> None:
+        """Let go of the vehicle and command MAV_CMD_NAV_RETURN_TO_LAUNCH, unless the autopilot
+        acts already. It first waits for a HEARTBEAT heard after the reserve was reached (the
+        stream goes on meanwhile, so that PX4's offboard-loss hold does not start): if that
+        shows a return or landing mode, or a failsafe (flagged, or announced in the last few
+        seconds), the service only lets go, so that it never overrides the autopilot's own
+        failsafe (its LAND, say, with an RTL). Otherwise it lets go (nothing streams) and asks
+        for the return until accepted, :data:`RETURN_ATTEMPTS` times at most."""
+        try:
+            began = time.monotonic()
+            with self._cond:
+                heard = self._cond.wait_for(
+                    lambda: self._stop.is_set() or (self._last_hb or -math.inf) > began,
+                    timeout=STEP_TIMEOUT_S / 2,
+                )
+                if self._stop.is_set():
+                    return
+                texts = self._failsafe_text
+                acting = heard and (
+                    vehicle_control.is_return_or_land(self._flavour, self._mode_locked())
+                    or self._failsafe_flagged()
+                    or (
+                        texts is not None and began - texts[0] < vehicle_control.FAILSAFE_EVIDENCE_S
+                    )
+                )
+                if self._control.service_has_it:
+                    action = "the autopilot acts already" if acting else "returning home (RTL)"
+                    self._set_control(Control("autopilot", f"{why}: {action}", time.monotonic()))
+            if acting:
+                log.info("the autopilot returns or lands on its own: no return command sent")
+                return
+            for _ in range(RETURN_ATTEMPTS):
+                result = self._ask(
+                    mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH,
+                    mavlink_commands.return_to_launch(),
+                    STEP_TIMEOUT_S / 2,
+                )
+                if result == mavlink.MAV_RESULT_ACCEPTED:
+                    log.info("the vehicle accepted the return home")
+                    return
+                if self._stop.is_set():
+                    return
+                log.warning("return home not accepted (%s): asking again", result_name(result))
+            with self._cond:
+                self.counters["battery_return_failures"] += 1
+            log.error("the vehicle did not accept the return home: its own failsafe must act")
+        finally:
+            with self._cond:
+                self._return_pending = None
 
     def _check_heartbeat(self, now: float) -> LinkHealth:
         """Declare the link lost after ``heartbeat_timeout_s`` without a vehicle HEARTBEAT."""
@@ -835,25 +1008,38 @@ class VehicleLinkBase(VehicleLink):
             self._takeoff = "idle"
 
     def _stream_setpoint(self, now: float) -> None:
-        """The current target as one setpoint, if one streams; counted when it went out."""
+        """The current setpoint of the route, if one streams; counted when it went out. A stream
+        that starts (again) plans the route from where the vehicle is now."""
         with self._cond:
             self._target_dirty = False
-            streaming = self._streaming_now()
+            setpoint = None
             new = False
-            if not streaming:
-                self._stream_since = None
-            else:
-                assert self._target_m is not None
-                ned_m = area_to_ned(*self._target_m, self.config.frames)
+            if self._streaming_now():
                 new = self._stream_since is None
                 if new:
+                    self._routing.replan()
+                setpoint = self._routing.setpoint(self._position_locked(now))
+            if setpoint is None:
+                self._stream_since = None
+            else:
+                ned_m = area_to_ned(*setpoint, self.config.frames)
+                if new:
                     self._stream_since = now
-        if not streaming:
+        if setpoint is None:
             self._stop_stream()
             return
         if self._send_setpoint(ned_m, now, new):
             with self._cond:
                 self.counters["setpoints_sent"] += 1
+
+    def _position_locked(self, now: float) -> tuple[float, float, float] | None:
+        """Where the vehicle is (area frame) from a fresh LOCAL_POSITION_NED, or None (call
+        under ``self._cond``)."""
+        if self._ned is None or self._position_at is None:
+            return None
+        if now - self._position_at > POSITION_FRESH_S:
+            return None
+        return ned_to_area(*self._ned, self.config.frames)
 
     def _streaming_now(self) -> bool:
         return (

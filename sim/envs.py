@@ -24,6 +24,11 @@ a :class:`sim.scenarios.ScenarioSampler` (a fresh generated scenario per episode
 user count drawn too: generalization and domain randomisation). ``world`` may also be
 a sequence of worlds with one area, one drawn per episode.
 
+A world with an envelope (:attr:`sim.world.World.envelope`) flies the vehicle along the route
+the service's link would stream (:meth:`sim.world.World.fly_route`, kept across steps and planned
+again when the legal target changes): a target inside an exclusion or outside the inclusion is
+moved to the nearest legal point (``info["target_xyz_m"]`` is that point), the start too.
+
 ``reset`` places the vehicle at home (or ``options["uav_xyz_m"]``) and simulates one step there,
 so the first observation carries real network metrics, as the service's first report would.
 The users' motion and demand draw from their own generator, seeded from the reset's seed (or
@@ -36,7 +41,7 @@ from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import replace
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import gymnasium as gym
 import numpy as np
@@ -59,6 +64,9 @@ from sim.scenarios import Scenario, ScenarioSampler
 from sim.users import UserDynamics, episode_users
 from sim.utility import network_utility
 from sim.world import PAPER, World
+
+if TYPE_CHECKING:
+    from sim.envelope.route import Route
 
 __all__ = [
     "CONTINUOUS_ENV_ID",
@@ -143,6 +151,7 @@ class _FapEnv(gym.Env, ABC):
         self.users: UserDynamics | None = None
         self.uav_xyz_m = np.zeros(3)
         self.target_xyz_m = np.zeros(3)
+        self._route: Route | None = None  # with an envelope: the route flown (kept across steps)
         self._queues: QueueState | None = None
         self._reports: deque[UserReports] = deque(maxlen=1)
         self._users_rng = np.random.default_rng(0)
@@ -178,12 +187,13 @@ class _FapEnv(gym.Env, ABC):
         self._refused = False
         self._reports = deque(maxlen=world.reports.age_steps + 1)
         start = options.get("uav_xyz_m")
-        self.uav_xyz_m = (
+        self.uav_xyz_m = world.legal_start(
             self._place_start(np.asarray(start, dtype=float))
             if start is not None
             else self._place_start(world.home_position(rng))
         )
         self.target_xyz_m = self.uav_xyz_m.copy()
+        self._route = None
         self._moved()
         result = self._simulate()
         return self._observe(result), self._info(result, self._utility(result))
@@ -208,8 +218,15 @@ class _FapEnv(gym.Env, ABC):
     def _step_toward(
         self, target_m: np.ndarray
     ) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        self.target_xyz_m = target_m
-        self.uav_xyz_m = self.world.fly(self.uav_xyz_m, self.target_xyz_m)
+        if self.world.envelope is None:
+            self.target_xyz_m = target_m
+            self.uav_xyz_m = self.world.fly(self.uav_xyz_m, self.target_xyz_m)
+        else:  # the route the vehicle link would stream, to the legal target
+            self.uav_xyz_m, self._route = self.world.fly_route(
+                self.uav_xyz_m, target_m, self._route
+            )
+            legal = self._route.target_m
+            self.target_xyz_m = target_m if legal is None else np.array(legal)
         self._moved()
         self.users.advance(self.world.step_s, self._users_rng)
         result = self._simulate()

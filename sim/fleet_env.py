@@ -15,7 +15,11 @@ hysteresis, handovers, distinct or shared channels). One step:
 2. the set of targets is separated (:func:`sim.geometry.enforce_separation`, the fleet's
    ``separation_m``, lower agent index first) — the hard constraint — and the vehicles fly
    toward them; a vehicle that would end the period too close to another goes round it, or
-   holds where it was when no detour is clear (:func:`sim.geometry.hold_separation`);
+   holds where it was when no detour is clear (:func:`sim.geometry.hold_separation`). In a
+   world with an envelope the targets are also made legal, each vehicle flies the route the
+   service's link would stream, and a vehicle whose *path* would pass closer than the
+   separation to another's holds for the period, lower indices flying first
+   (:func:`sim.envelope.flight.fly_fleet`; ``held`` says which);
 3. users move; the fleet model simulates the period (queues and associations carried over);
 4. every agent gets the same reward, the network utility over all users (cooperative).
 
@@ -40,7 +44,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 import numpy as np
@@ -68,6 +72,9 @@ from sim.observation import N_MAPS, UserReports, build_observations
 from sim.scenarios import Scenario, ScenarioSampler
 from sim.users import UserDynamics, episode_users
 from sim.world import PAPER, World, fly_many
+
+if TYPE_CHECKING:
+    from sim.envelope.route import Route
 
 __all__ = [
     "ACTION_KINDS",
@@ -239,6 +246,9 @@ class FleetParallelEnv(ParallelEnv):
         self.users: UserDynamics | None = None
         self.uav_xyz_m = np.zeros((fleet.n_uavs, 3))
         self.target_xyz_m = np.zeros((fleet.n_uavs, 3))
+        self._routes: list[Route | None] = [None] * fleet.n_uavs  # with an envelope
+        self.held = np.zeros(fleet.n_uavs, dtype=bool)
+        """With an envelope: which vehicles held in the last step for the separation."""
         self._state: FleetState | None = None
         self._reports: deque[tuple[UserReports, np.ndarray]] = deque(maxlen=1)
         self._users_rng = np.random.default_rng(0)
@@ -294,7 +304,15 @@ class FleetParallelEnv(ParallelEnv):
             start = enforce_separation(start, self.fleet.separation_m, self.area)
         else:
             start = fleet_homes(world, self.n_uavs, self.fleet.separation_m, rng)
+        if world.envelope is not None:
+            from sim.envelope.flight import separated_legal_targets
+
+            start = separated_legal_targets(
+                world.flight_envelope, start, self.fleet.separation_m, self.area, search=True
+            )
         self.uav_xyz_m = start
+        self._routes = [None] * self.n_uavs
+        self.held = np.zeros(self.n_uavs, dtype=bool)
         self.target_xyz_m = start.copy()
         self._moved()
         self.agents = list(self.possible_agents)
@@ -381,10 +399,14 @@ class FleetParallelEnv(ParallelEnv):
     def _step_toward(self, targets: np.ndarray) -> tuple[dict, dict, dict, dict, dict]:
         world = self.world
         sep = self.fleet.separation_m
-        self.target_xyz_m = enforce_separation(targets, sep, self.area)
-        # The single environment's flight, every vehicle at once (the same floats as world.fly).
-        flown = fly_many(self.uav_xyz_m, self.target_xyz_m, world.flight, world.step_s)
-        self.uav_xyz_m = hold_separation(self.uav_xyz_m, flown, sep, self.area)
+        if world.envelope is None:
+            self.target_xyz_m = enforce_separation(targets, sep, self.area)
+            # The single environment's flight, every vehicle at once (the same floats as
+            # world.fly).
+            flown = fly_many(self.uav_xyz_m, self.target_xyz_m, world.flight, world.step_s)
+            self.uav_xyz_m = hold_separation(self.uav_xyz_m, flown, sep, self.area)
+        else:
+            self._fly_routes(targets)
         self._moved()
         assert self.users is not None
         self.users.advance(world.step_s, self._users_rng)
@@ -401,6 +423,24 @@ class FleetParallelEnv(ParallelEnv):
         if truncated:
             self.agents = []
         return observations, rewards, terminations, truncations, infos
+
+    def _fly_routes(self, targets: np.ndarray) -> None:
+        """With an envelope: legal, separated targets, each vehicle along the route the link
+        would stream, a vehicle whose path would pass too close to another's held for the
+        period (:func:`sim.envelope.flight.fly_fleet`)."""
+        from sim.envelope.flight import fly_fleet, separated_legal_targets
+
+        world = self.world
+        envelope = world.flight_envelope
+        sep = self.fleet.separation_m
+        self.target_xyz_m = separated_legal_targets(envelope, targets, sep, self.area)
+        flight = fly_fleet(
+            envelope, self.uav_xyz_m, self.target_xyz_m, world.flight, world.step_s, sep,
+            self._routes,
+        )  # fmt: skip
+        self.uav_xyz_m = flight.positions_m
+        self._routes = list(flight.routes)
+        self.held = np.array(flight.held, dtype=bool)
 
     def _simulate(self) -> FleetStepResult:
         users = self.users

@@ -10,6 +10,8 @@ of :class:`sim.envs.FapDiscreteEnv` (``kind="discrete"``) or :class:`sim.envs.Fa
   own :class:`sim.users.UserDynamics` and generator, as the single environment's), simulates
   the cells with their queues carried over, and returns the utilities as rewards and the
   observations built from the report the world shows (report age) at each vehicle's position.
+- With an envelope (:attr:`sim.world.World.envelope`), each vehicle flies its own route
+  (:meth:`sim.world.World.fly_routes`: row e is the single environment's flight exactly).
 - Flight, targets and masks are numpy over (E, 3) arrays (:func:`sim.world.fly_many`,
   :func:`sim.geometry.move_targets`, :func:`sim.geometry.unit_to_m_many`,
   :func:`sim.geometry.valid_moves_many`): row e equals the scalar function exactly. The cells
@@ -46,7 +48,7 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from gymnasium import spaces
@@ -69,6 +71,9 @@ from sim.scenarios import Scenario, ScenarioSampler
 from sim.users import UserDynamics
 from sim.utility import network_utility
 from sim.world import PAPER, World, fly_many
+
+if TYPE_CHECKING:
+    from sim.envelope.route import Route
 
 __all__ = [
     "KINDS",
@@ -149,6 +154,7 @@ class FapVectorEnv(VectorEnv):
         self.users: list[UserDynamics] = []
         self.uav_xyz_m = np.zeros((n, 3))
         self.target_xyz_m = np.zeros((n, 3))
+        self._routes: list[Route | None] = [None] * n  # with an envelope: each one's route
         self._rngs: list[np.random.Generator] = []
         self._users_rngs: list[np.random.Generator] = []
         self._scenario_ids = np.full(n, None, dtype=object)
@@ -188,7 +194,15 @@ class FapVectorEnv(VectorEnv):
             )
         else:
             self.target_xyz_m = unit_to_m_many(self._check_coordinates(actions), self.area)
-        if world.flight.teleports:
+        if world.envelope is not None:  # the routes the vehicle link would stream
+            self.uav_xyz_m, self._routes = world.fly_routes(
+                self.uav_xyz_m, self.target_xyz_m, self._routes
+            )
+            self.target_xyz_m = np.array(
+                [t if r.target_m is None else r.target_m for t, r in
+                 zip(self.target_xyz_m, self._routes, strict=True)]
+            )  # fmt: skip
+        elif world.flight.teleports:
             self.uav_xyz_m = self.target_xyz_m.copy()
         else:
             self.uav_xyz_m = fly_many(self.uav_xyz_m, self.target_xyz_m, world.flight, world.step_s)
@@ -253,7 +267,10 @@ class FapVectorEnv(VectorEnv):
         )
         if self.kind == "discrete":  # starts are zone points, as the discrete env's
             starts = zone_positions(zone_indices(starts, area), area)
+        if world.envelope is not None:  # legal starts, as the single environment's
+            starts = np.array([world.legal_start(start) for start in starts])
         self.uav_xyz_m = starts
+        self._routes = [None] * n
         self.target_xyz_m = starts.copy()
         self._refused = np.zeros(n, dtype=bool)
         self._steps = 0

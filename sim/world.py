@@ -18,7 +18,10 @@ take a :class:`World`, so a policy is trained in the world it serves in. Two pre
 
 Every knob can be changed from the command line with ``--world-set key=value`` (dotted keys,
 e.g. ``flight.horizontal_mps=5`` or ``mobility.model=group``): :func:`world_with` parses and
-checks them, one-line errors naming the field.
+checks them, one-line errors naming the field. ``envelope=FILE`` gives the vehicles a flight-safety
+envelope (a ``tupa-envelope/1`` file, :mod:`sim.envelope`): every flight then follows the routes
+the service's vehicle link streams (:mod:`sim.envelope.flight`), targets are moved to legal
+points, and starts too.
 
 Actions become targets in :mod:`sim.geometry` (:func:`~sim.geometry.move_target`,
 :func:`~sim.geometry.unit_to_m`): one code path for the environments and the service. The
@@ -28,16 +31,22 @@ vehicle flies toward its target through :func:`fly`.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
-from typing import Any, Literal
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
 from sim.errors import InputError
 from sim.geometry import SCALAR_ROWS, zone_position
+
+if TYPE_CHECKING:
+    from sim.envelope.route import Route
+    from sim.envelope.volume import Envelope
 
 __all__ = [
     "WORLDS",
@@ -175,6 +184,11 @@ class World:
     area: AreaConfig = field(default_factory=AreaConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
     utility: UtilityConfig = field(default_factory=UtilityConfig)
+    envelope: str | None = None
+    """The vehicles' flight-safety envelope, a ``tupa-envelope/1`` document (given as a dict or
+    its JSON text, kept as canonical JSON text: the world stays a frozen, hashable value), or
+    None: the area's box, flown straight as :func:`fly` flies. With one, every flight follows
+    the routes the service's link streams (:mod:`sim.envelope.flight`)."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.step_s) and self.step_s > 0):
@@ -202,6 +216,14 @@ class World:
             raise InputError(
                 f"static_start: must be 'placement' or 'home', got {self.static_start!r}"
             )
+        if self.envelope is not None:
+            from sim.envelope.flight import canonical_document
+
+            try:
+                document = canonical_document(self.envelope, self.area)
+            except InputError as exc:
+                raise InputError(f"envelope: {exc}") from None
+            object.__setattr__(self, "envelope", document)
 
     @property
     def users_change(self) -> bool:
@@ -226,12 +248,70 @@ class World:
         """What stands on the ground (the area's channel environment, :mod:`sim.channel`)."""
         return self.area.environment
 
+    @property
+    def flight_envelope(self) -> Envelope | None:
+        """The parsed envelope (built once per document and area), or None without one."""
+        if self.envelope is None:
+            return None
+        from sim.envelope.flight import envelope_for
+
+        return envelope_for(self.envelope, self.area)
+
     def fly(self, position_m: np.ndarray, target_m: np.ndarray) -> np.ndarray:
-        """Where the vehicle is one decision period after heading for ``target_m``."""
-        return fly(position_m, target_m, self.flight, self.step_s)
+        """Where the vehicle is one decision period after heading for ``target_m`` (along a
+        route planned from ``position_m`` when the world has an envelope: :meth:`fly_route`)."""
+        if self.envelope is None:
+            return fly(position_m, target_m, self.flight, self.step_s)
+        return self.fly_route(position_m, target_m)[0]
+
+    def fly_route(
+        self, position_m: np.ndarray, target_m: np.ndarray, route: Route | None = None
+    ) -> tuple[np.ndarray, Route]:
+        """:meth:`fly` keeping the route across periods, as the vehicle link does: pass back the
+        route returned (planned again only when the legal target changes, or it holds). See
+        :func:`sim.envelope.flight.fly_route`; with no envelope, :func:`fly`'s flight."""
+        from sim.envelope.flight import fly_route
+
+        return fly_route(
+            self.flight_envelope, position_m, target_m, self.flight, self.step_s, route
+        )
+
+    def fly_routes(
+        self,
+        positions_m: np.ndarray,
+        targets_m: np.ndarray,
+        routes: Sequence[Route | None] | None = None,
+    ) -> tuple[np.ndarray, list[Route]]:
+        """:meth:`fly_route` of each row (E, 3), independent vehicles (one per environment of a
+        batch): row e is exactly :meth:`fly_route` of row e with ``routes[e]``."""
+        from sim.envelope.flight import fly_route
+
+        envelope = self.flight_envelope
+        positions = np.asarray(positions_m, dtype=float)
+        kept = [None] * len(positions) if routes is None else list(routes)
+        out = np.empty((len(positions), 3))
+        flown: list[Route] = []
+        for e, (p, t, r) in enumerate(zip(positions, np.asarray(targets_m), kept, strict=True)):
+            out[e], route = fly_route(envelope, p, t, self.flight, self.step_s, r)
+            flown.append(route)
+        return out, flown
+
+    def legal_start(self, xyz_m: np.ndarray) -> np.ndarray:
+        """Where a vehicle asked to start at ``xyz_m`` starts: there, or with an envelope the
+        nearest legal point (:func:`sim.envelope.flight.legal_position`, searching further when
+        none is near)."""
+        if self.envelope is None:
+            return np.asarray(xyz_m, dtype=float)
+        from sim.envelope.flight import legal_position
+
+        return legal_position(self.flight_envelope, xyz_m, search=True)
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """The world as JSON-able values (the envelope as its document)."""
+        out = dataclasses.asdict(self)
+        if self.envelope is not None:
+            out["envelope"] = json.loads(self.envelope)
+        return out
 
 
 def _check_range(name: str, value: tuple[float, float], positive: bool) -> None:
@@ -364,7 +444,15 @@ def _split(setting: str) -> tuple[str, str]:
 
 
 _NESTED = ("flight", "mobility", "demand", "reports")
-_SETTABLE_TOP = ("step_s", "episode_steps", "home", "static_start", "stochastic", "environment")
+_SETTABLE_TOP = (
+    "step_s",
+    "episode_steps",
+    "home",
+    "static_start",
+    "stochastic",
+    "environment",
+    "envelope",
+)
 
 
 def _set(world: World, key: str, raw: Any) -> World:
@@ -383,6 +471,8 @@ def _set(world: World, key: str, raw: Any) -> World:
             return replace(world, area=replace(world.area, environment=str(raw).strip()))
         except InputError as exc:
             raise InputError(f"world.{exc}") from None
+    if key == "envelope" and not rest:
+        return _with_envelope(world, raw)
     if key in _SETTABLE_TOP and not rest:
         value = raw
         if key == "home" and isinstance(raw, str) and raw not in HOMES:
@@ -392,6 +482,26 @@ def _set(world: World, key: str, raw: Any) -> World:
         return replace(world, **{key: value})
     choices = [*_SETTABLE_TOP] + [f"{n}.*" for n in _NESTED]
     raise InputError(f"world.{key}: unknown setting (choices: {', '.join(choices)})")
+
+
+def _with_envelope(world: World, raw: Any) -> World:
+    """``envelope=FILE`` (a ``tupa-envelope/1`` file), a document (dict), or ``none``."""
+    document, where = raw, ""
+    if raw is None or (isinstance(raw, str) and raw.strip().lower() == "none"):
+        document = None
+    elif isinstance(raw, str | Path):
+        from sim.envelope.flight import read_document
+
+        where = f"{str(raw).strip()}: "
+        try:
+            document = read_document(str(raw).strip())
+        except InputError as exc:
+            raise InputError(f"world.envelope: {exc}") from None
+    try:
+        return replace(world, envelope=document)
+    except InputError as exc:
+        detail = str(exc).removeprefix("envelope: ")
+        raise InputError(f"world.envelope: {where}{detail}") from None
 
 
 def _replace(part: Any, key: str, name: str, value: Any) -> Any:

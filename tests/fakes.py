@@ -2,11 +2,12 @@
 
 :class:`FakeLink` is a real :class:`~service.vehicle_link.VehicleLink` whose vehicle lives in
 memory: no autopilot process, no sockets, no MAVLink. It keeps the contract the real links keep
-(``tests/service/test_link_contract.py`` runs its no-vehicle part on it): targets are geofenced
-the same way (:func:`sim.geometry.clamp_point`), NaN targets are refused, a target streams
+(``tests/service/test_link_contract.py`` runs its no-vehicle part on it): targets are moved into
+the envelope and flown to along its routes the same way (:class:`service.routing.LinkRoute`),
+NaN targets are refused, a target streams
 only while the link is up and no take-off is running, ``arm_and_takeoff`` returns a Future that
-completes once airborne. The vehicle flies in a straight line towards the streamed target at
-``speed_mps`` and climbs at ``climb_mps``, as time passes: simulated time through
+completes once airborne. The vehicle flies in a straight line towards the route's current
+setpoint at ``speed_mps`` and climbs at ``climb_mps``, as time passes: simulated time through
 :meth:`FakeLink.advance` (deterministic; the default), or wall-clock time on a thread of its own
 with ``realtime=True``. :meth:`FakeLink.set_link` makes the link drop and come back.
 
@@ -27,6 +28,7 @@ from concurrent.futures import Future
 from typing import Self
 
 from service.control import Control, ControlHolder
+from service.routing import LinkRoute
 from service.vehicle_link import (
     TAKEOFF_TIMEOUT_S,
     ControlRefused,
@@ -35,7 +37,7 @@ from service.vehicle_link import (
     LinkState,
     VehicleLink,
 )
-from sim.geometry import clamp_point
+from sim.envelope import Envelope
 
 Vec3 = tuple[float, float, float]
 
@@ -86,6 +88,7 @@ class FakeLink(VehicleLink):
         self._health: LinkHealth = "up" if up else "connecting"
         self._heard_at: float | None = time.monotonic() if up else None
         self._target: Vec3 | None = None
+        self._routing = LinkRoute(self.config.envelope or Envelope.for_area(self.config.area))
         self._takeoff = "airborne" if self._airborne else "idle"
         self._takeoff_z_m = 0.0
         self._takeoff_deadline_s = math.inf
@@ -133,32 +136,45 @@ class FakeLink(VehicleLink):
                 target_m=self._target,
                 streaming=streaming,
                 takeoff=self._takeoff,
-                counters=dict(self.counters),
+                counters={**self.counters, **self._routing.counters},
                 takeoff_phase="climbing" if self._takeoff == "running" else None,
                 takeoff_attempts=self._takeoff_attempts,
                 system_id=self.system_id if heard else None,
                 control=self._control.holder,
                 control_reason=self._control.reason,
                 control_age_s=time.monotonic() - self._control.since_s,
+                route=self._routing.view(),
             )
 
     def set_target(self, target_m: Sequence[float]) -> tuple[float, float, float]:
-        try:
-            clamped, was_clamped = clamp_point(target_m, self.config.area)
-        except ValueError:
-            with self._cond:
-                self.counters["targets_rejected"] += 1
-            raise
         with self._cond:
-            if was_clamped:
+            try:
+                legal, _ = self._routing.set_target(target_m)
+            except ValueError:
+                self.counters["targets_rejected"] += 1
+                raise
+            if legal is None:
+                self.counters["targets_rejected"] += 1
+                raise ValueError(f"target {tuple(target_m)}: no legal point near it")
+            if legal != tuple(float(v) for v in target_m):
                 self.counters["geofence_clamps"] += 1
-            self._target = clamped
-            self.targets.append(clamped)
-        return clamped
+            self._target = legal
+            self.targets.append(legal)
+        return legal
+
+    @property
+    def envelope(self) -> Envelope:
+        with self._cond:
+            return self._routing.envelope
+
+    def set_envelope(self, envelope: Envelope) -> None:
+        with self._cond:
+            self._routing.set_envelope(envelope)
 
     def clear_target(self) -> None:
         with self._cond:
             self._target = None
+            self._routing.clear()
 
     def hand_back(self, reason: str = "handed back by an operator") -> None:
         with self._cond:
@@ -213,16 +229,28 @@ class FakeLink(VehicleLink):
             if self._takeoff == "running" and self._takeoff_armed:
                 self._position = (x_m, y_m, min(z_m + self.climb_mps * dt_s, self._takeoff_z_m))
             elif self._streaming() and self._airborne:
-                assert self._target is not None
-                distance_m = math.dist(self._position, self._target)
-                step_m = min(distance_m, self.speed_mps * dt_s)
-                if distance_m > 0:
-                    self._position = tuple(  # type: ignore[assignment]
-                        p + (t - p) * step_m / distance_m
-                        for p, t in zip(self._position, self._target, strict=True)
-                    )
+                reach_m = self.speed_mps * dt_s
+                for _ in range(16):  # along the route's legs, as far as dt_s reaches
+                    setpoint = self._routing.setpoint(self._position)
+                    if setpoint is None or reach_m <= 0:
+                        break
+                    reach_m -= self._fly_towards(setpoint, reach_m)
+                    if self._routing.setpoint(self._position) == setpoint:
+                        break
                 self.counters["setpoints_sent"] += 1
         self._advance_takeoff()
+
+    def _fly_towards(self, setpoint: Vec3, reach_m: float) -> float:
+        """Move straight towards ``setpoint`` by at most ``reach_m`` (under ``self._cond``);
+        returns the distance flown."""
+        distance_m = math.dist(self._position, setpoint)
+        step_m = min(distance_m, reach_m)
+        if distance_m > 0:
+            self._position = tuple(  # type: ignore[assignment]
+                p + (t - p) * step_m / distance_m
+                for p, t in zip(self._position, setpoint, strict=True)
+            )
+        return step_m
 
     def set_link(self, up: bool) -> None:
         """The link comes up (again) or is lost (no HEARTBEAT: ``link_lost``)."""

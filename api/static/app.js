@@ -19,6 +19,10 @@
   const MAX_BUFFER_CHARS = 8 * 1024 * 1024;
   const MARGIN_M = 26;
   const CHART_SPAN_S = 300;
+  // The chart's plot in its 300 x 150 viewBox: room on the left for the y-axis values.
+  const CHART = { left: 26, right: 296, top: 6, bottom: 144 };
+  const CHART_TICKS = [0, 0.25, 0.5, 0.75, 1];
+  const GAP_PERIODS = 3; // no report for more than 3 report periods: the line breaks there
   const TABLE_ROWS = 12;
   const SVG_NS = "http://www.w3.org/2000/svg";
   const LINK_WORDS = { up: "up", connecting: "connecting", link_lost: "lost" };
@@ -184,6 +188,7 @@
   }
 
   let areaKey = null;
+  let envelopesKey = null;
   let H = 500;
   const Y = (y) => H - y; // north up
   const users = new Map(); // id -> {circle, title, label}
@@ -194,6 +199,12 @@
     if (key !== areaKey) {
       areaKey = key;
       drawArea(frame.area, frame.geofence);
+      clipUsers(frame.area);
+    }
+    const envelopeKey = JSON.stringify(frame.envelopes || []);
+    if (envelopeKey !== envelopesKey) {
+      envelopesKey = envelopeKey;
+      drawEnvelopes(frame.envelopes || []);
     }
     const delayRef = frame.utility ? frame.utility.delay_ref_s : 1;
     $("delay-ref").textContent = fmt(delayRef, 1);
@@ -201,7 +212,7 @@
     drawVehicles(frame.vehicles);
     $("policy").textContent = frame.policy.name;
     renderVehicleCards(frame.vehicles);
-    renderUtility(frame.utility, frame.utility_history);
+    renderUtility(frame.utility, frame.utility_history, frame.time_s);
     renderUsersTable(frame.users, delayRef);
     tick();
   }
@@ -241,6 +252,48 @@
       `zones ${area.zone_m} m · north ↑`;
   }
 
+  // The envelopes (sim/envelope): each inclusion's outline, and the no-fly volumes, hatched,
+  // named with their heights; the legend line says the altitude band and the clearance.
+  function drawEnvelopes(envelopes) {
+    const layer = $("layer-envelope");
+    layer.replaceChildren();
+    const ring = (corners) => corners.map(([x, y]) => `${x},${Y(y)}`).join(" ");
+    envelopes.forEach((envelope, index) => {
+      const group = el("g", { class: "envelope" }, layer);
+      group.dataset.envelope = index;
+      el("polygon", { points: ring(envelope.inclusion), class: "inclusion" }, group);
+      for (const zone of envelope.exclusions) {
+        const shape = el("polygon", { points: ring(zone.polygon), class: "exclusion" }, group);
+        shape.dataset.name = zone.name;
+        const name = zone.name || "no-fly";
+        const heights = `${fmt(zone.floor_m, 0)}–${fmt(zone.ceiling_m, 0)} m`;
+        el("title", {}, shape).textContent = `${name}: no flight ${heights}`;
+        const [cx, cy] = centroid(zone.polygon);
+        const label = el("text", { x: cx, y: Y(cy), class: "exclusion-label" }, group);
+        label.textContent = `${name} ≤${fmt(zone.ceiling_m, 0)} m`;
+      }
+    });
+    const legend = $("envelope-legend");
+    if (legend) {
+      legend.textContent = envelopes
+        .map(
+          (e, i) =>
+            `${envelopes.length > 1 ? `envelope ${i + 1}: ` : "envelope: "}altitude ` +
+            `${fmt(e.floor_m, 0)}–${fmt(e.ceiling_m, 0)} m, clearance ${fmt(e.clearance_m, 0)} m, ` +
+            `${e.exclusions.length} no-fly volume${e.exclusions.length === 1 ? "" : "s"}`,
+        )
+        .join(" · ");
+    }
+  }
+
+  const centroid = (corners) => {
+    const n = corners.length || 1;
+    return [
+      corners.reduce((a, c) => a + c[0], 0) / n,
+      corners.reduce((a, c) => a + c[1], 0) / n,
+    ];
+  };
+
   // Circle area proportional to the offered load: 4 m plus 4 m per sqrt(Mbit/s).
   const userRadius = (bps) => clamp(4 + 4 * Math.sqrt(Math.max(bps, 0) / 1e6), 4, 40);
 
@@ -249,6 +302,29 @@
   const quality = (user, delayRef) =>
     clamp(Math.min(user.served, 1 - user.delay_s / delayRef), 0, 1);
   const qualityColour = (q) => `hsl(${Math.round(120 * q)} 70% 48%)`;
+
+  // User circles are clipped to the area (a heavy user's circle, up to 40 m, would spill past
+  // it); their labels go in a layer of their own above them, unclipped, placed inside the area.
+  let areaW = 500;
+
+  function clipUsers(area) {
+    areaW = area.size_x_m;
+    const map = $("map");
+    let clip = $("users-clip");
+    if (!clip) {
+      const defs = el("defs", {});
+      map.prepend(defs);
+      clip = el("clipPath", { id: "users-clip" }, defs);
+      el("rect", {}, clip);
+      $("layer-users").setAttribute("clip-path", "url(#users-clip)");
+      const labels = el("g", { id: "layer-user-labels" });
+      $("layer-users").after(labels);
+    }
+    const rect = clip.firstChild;
+    for (const [k, v] of Object.entries({ x: 0, y: 0, width: area.size_x_m, height: area.size_y_m })) {
+      rect.setAttribute(k, v);
+    }
+  }
 
   function drawUsers(list, delayRef) {
     const layer = $("layer-users");
@@ -261,7 +337,7 @@
         const circle = el("circle", { class: "user" }, layer);
         circle.dataset.userId = user.id;
         const title = el("title", {}, circle);
-        const label = el("text", { class: "user-label" }, layer);
+        const label = el("text", { class: "user-label" }, $("layer-user-labels") || layer);
         marker = { circle, title, label };
         users.set(user.id, marker);
       }
@@ -276,8 +352,6 @@
         `${user.id}: offered ${mbps(user.offered_bps)}, throughput ${mbps(user.throughput_bps)}` +
         ` (${Math.round(100 * user.served)} %), delay ${fmt(user.delay_s * 1000, 0)} ms,` +
         ` loss ${fmt(100 * user.plr, 1)} %`;
-      marker.label.setAttribute("x", user.x_m + r + 2);
-      marker.label.setAttribute("y", Y(user.y_m) + 3);
       marker.label.textContent = labelled ? user.id : "";
     }
     for (const [id, marker] of users) {
@@ -286,6 +360,47 @@
         marker.label.remove();
         users.delete(id);
       }
+    }
+    if (labelled) placeLabels(list);
+  }
+
+  // Each label beside its circle (right, left, above or below; moved inside the area where it
+  // would leave it) where it overlaps no label placed before it, the heaviest users first. A
+  // label with no such place is not shown (the circle's tooltip still names the user).
+  function placeLabels(list) {
+    const placed = [];
+    const free = (b) =>
+      placed.every((p) => b.x1 <= p.x0 || p.x1 <= b.x0 || b.y1 <= p.y0 || p.y1 <= b.y0);
+    for (const user of [...list].sort((a, b) => b.offered_bps - a.offered_bps)) {
+      const label = users.get(user.id).label;
+      label.style.display = "";
+      label.setAttribute("x", 0);
+      label.setAttribute("y", 0);
+      const box = label.getBBox(); // at (0, 0): the text's extent around its baseline start
+      const r = userRadius(user.offered_bps);
+      const cx = user.x_m;
+      const cy = Y(user.y_m);
+      const candidates = [
+        [cx + r + 2, cy + 3], // right
+        [cx - r - 2 - box.width, cy + 3], // left
+        [cx - box.width / 2, cy - r - 2], // above
+        [cx - box.width / 2, cy + r + 2 + box.height], // below
+      ];
+      const spot = candidates
+        .map(([x, y]) => {
+          const sx = clamp(x, 1 - box.x, areaW - 1 - box.x - box.width); // 1 m inside
+          const sy = clamp(y, 1 - box.y, H - 1 - box.y - box.height);
+          return { x: sx, y: sy, x0: sx + box.x, x1: sx + box.x + box.width,
+            y0: sy + box.y, y1: sy + box.y + box.height };
+        })
+        .find(free);
+      if (!spot) {
+        label.style.display = "none";
+        continue;
+      }
+      label.setAttribute("x", spot.x.toFixed(1));
+      label.setAttribute("y", spot.y.toFixed(1));
+      placed.push(spot);
     }
   }
 
@@ -314,6 +429,7 @@
         const track = el("polyline", { class: "track", stroke: colour }, $("layer-tracks"));
         const targets = $("layer-targets");
         const line = el("line", { class: "target-line" }, targets);
+        const route = el("polyline", { class: "route", stroke: colour }, targets);
         const target = el("g", { class: "target" }, targets);
         el("circle", { r: 7, class: "target-mark" }, target);
         el("line", { x1: -11, y1: 0, x2: 11, y2: 0, class: "target-mark" }, target);
@@ -323,7 +439,7 @@
         const body = el("polygon", { points: "0,-11 8,9 0,4.5 -8,9", class: "vehicle-body" }, group);
         group.style.setProperty("--vehicle-colour", colour);
         const label = el("text", { class: "vehicle-label" }, $("layer-vehicles"));
-        drawn = { group, body, label, track, target, line };
+        drawn = { group, body, label, track, target, line, route };
         vehicles.set(vehicle.id, drawn);
       }
       const p = vehicle.position_m;
@@ -347,10 +463,20 @@
       }
       const points = [...vehicle.track_m, ...(shown ? [p] : [])];
       drawn.track.setAttribute("points", points.map((q) => `${q[0]},${Y(q[1])}`).join(" "));
+      // The route flown (its waypoints, the setpoint first) instead of a straight line to the
+      // target where it bends; a holding vehicle shows none.
+      const legs = vehicle.route && vehicle.route.kind !== "hold" ? vehicle.route.waypoints_m : [];
+      const bends = shown && legs.length > 1;
+      drawn.route.style.display = bends ? "" : "none";
+      drawn.route.dataset.kind = vehicle.route ? vehicle.route.kind : "";
+      if (bends) {
+        drawn.route.setAttribute("points", [p, ...legs].map((q) => `${q[0]},${Y(q[1])}`).join(" "));
+      }
       const t = vehicle.target_m;
       drawn.target.style.display = t ? "" : "none";
       if (t) {
         drawn.target.setAttribute("transform", `translate(${t[0]} ${Y(t[1])})`);
+        drawn.line.style.display = shown && !bends ? "" : "none";
         if (shown) {
           drawn.line.setAttribute("x1", p[0]);
           drawn.line.setAttribute("y1", Y(p[1]));
@@ -409,6 +535,22 @@
       fact(dl, "position", point(vehicle.position_m));
       fact(dl, "heading", vehicle.heading_deg === null ? "from track" : `${fmt(vehicle.heading_deg, 0)}°`);
       fact(dl, "target", point(vehicle.target_m));
+      const route = vehicle.route;
+      if (route) {
+        const words =
+          route.kind === "hold"
+            ? `holding: ${route.hold_reason}`
+            : `${route.kind}, ${route.waypoints_m.length} waypoint${route.waypoints_m.length === 1 ? "" : "s"} left`;
+        fact(dl, "route", words, { testid: `route-${vehicle.id}`, kind: route.kind });
+      }
+      const battery = vehicle.battery || {};
+      if (battery.remaining_pct !== null && battery.remaining_pct !== undefined) {
+        const home =
+          battery.return_at_pct === null ? "" : ` · home at ${fmt(battery.return_at_pct, 0)} %`;
+        fact(dl, "battery", `${fmt(battery.remaining_pct, 0)} %${home}`, {
+          testid: `battery-${vehicle.id}`,
+        });
+      }
       const decision = vehicle.decision;
       if (decision && decision.age_s !== null) {
         fact(dl, "last decision", "", { ageBase: decision.age_s, suffix: ` ago (${decision.source})` });
@@ -422,29 +564,60 @@
     $("vehicles").replaceChildren(...cards);
   }
 
-  function renderUtility(utility, history) {
+  // The utility and its parts against time, up to the frame's time (nowS): values on the y
+  // axis; a line breaks where no report came for more than GAP_PERIODS report periods (the
+  // median interval between the reports shown), and the gap is shaded and says how long.
+  function renderUtility(utility, history, nowS) {
     for (const part of ["value", "throughput", "delay", "loss"]) {
       $(`utility-${part}`).textContent = utility ? fmt(utility[part], 3) : "–";
     }
     const chart = $("chart");
     chart.replaceChildren();
-    for (const v of [0.25, 0.5, 0.75]) {
-      el("line", { x1: 0, x2: 300, y1: 150 * (1 - v), y2: 150 * (1 - v), class: "chart-grid" }, chart);
+    const cy = (v) => CHART.top + (CHART.bottom - CHART.top) * (1 - v);
+    for (const v of CHART_TICKS) {
+      el("line", { x1: CHART.left, x2: CHART.right, y1: cy(v), y2: cy(v), class: "chart-grid" }, chart);
+      const tick = el("text", { x: CHART.left - 4, y: cy(v) + 3, "text-anchor": "end", class: "chart-tick" }, chart);
+      tick.textContent = String(v);
     }
     if (!history.length) return;
-    const tEnd = history[history.length - 1][0];
+    const tEnd = Math.max(history[history.length - 1][0], nowS ?? -Infinity);
     const spanS = clamp(tEnd - history[0][0], 30, CHART_SPAN_S); // what there is, up to 5 min
     const tStart = tEnd - spanS;
     const shown = history.filter((h) => h[0] >= tStart);
+    const cx = (t) => CHART.left + ((t - tStart) / spanS) * (CHART.right - CHART.left);
+    const steps = shown.slice(1).map((h, k) => h[0] - shown[k][0]).sort((a, b) => a - b);
+    const periodS = steps.length ? steps[Math.floor(steps.length / 2)] : 1;
+    const gapS = GAP_PERIODS * Math.max(periodS, 1e-3);
+    const runs = [[]];
+    const gaps = [];
+    shown.forEach((h, k) => {
+      if (k > 0 && h[0] - shown[k - 1][0] > gapS) {
+        gaps.push([shown[k - 1][0], h[0]]);
+        runs.push([]);
+      }
+      runs[runs.length - 1].push(h);
+    });
+    const last = shown.length ? shown[shown.length - 1][0] : tStart;
+    if (tEnd - last > gapS) gaps.push([last, tEnd]); // none since the last report
+    for (const [t0, t1] of gaps) {
+      const gap = el("rect", { x: cx(t0).toFixed(1), y: CHART.top, width: (cx(t1) - cx(t0)).toFixed(1),
+        height: CHART.bottom - CHART.top, class: "chart-gap" }, chart);
+      el("title", {}, gap).textContent = `no report for ${Math.round(t1 - t0)} s`;
+    }
     const series = ["value", "throughput", "delay", "loss"];
     series.forEach((name, i) => {
-      const points = shown
-        .map((h) => `${(((h[0] - tStart) / spanS) * 300).toFixed(1)},${(150 * (1 - h[i + 1])).toFixed(1)}`)
-        .join(" ");
-      el("polyline", { points, class: `series s-${name}` }, chart);
+      for (const run of runs) {
+        const xy = run.map((h) => [cx(h[0]).toFixed(1), cy(h[i + 1]).toFixed(1)]);
+        if (xy.length === 1) {
+          el("circle", { cx: xy[0][0], cy: xy[0][1], r: 1.5, class: `series-dot s-${name}` }, chart);
+        } else if (xy.length > 1) {
+          el("polyline", { points: xy.map((q) => q.join(",")).join(" "), class: `series s-${name}` }, chart);
+        }
+      }
     });
     $("chart-note").textContent =
-      `the last ${Math.round(spanS)} s (up to ${CHART_SPAN_S / 60} min), one point a report`;
+      `the last ${Math.round(spanS)} s (up to ${CHART_SPAN_S / 60} min), one point a report` +
+      (gaps.length ? "; shaded: no report" : "");
   }
 
   function renderUsersTable(list, delayRef) {

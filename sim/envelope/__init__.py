@@ -4,6 +4,8 @@
   band, clearance, speed limit) and its exact point and segment checks.
 * :mod:`sim.envelope.paths`: :func:`legal_target` and :func:`plan_path` (direct, over, around,
   or :class:`Hold`).
+* :mod:`sim.envelope.route`: :class:`Route`, what is streamed leg by leg (planned from where
+  the vehicle is, advanced as it flies, or a hold that says why).
 * :mod:`sim.envelope.files`: the ``tupa-envelope/1`` JSON format and its checks.
 
 Pure geometry on shapely, shared by whatever flies a vehicle (the service's link, the world's
@@ -12,7 +14,7 @@ flight model), so that what is trained, evaluated and flown keeps to the same en
 
 from sim.envelope.files import ENVELOPE_FORMAT, envelope_from_document, load_envelope
 from sim.envelope.paths import FlightPath, Hold, legal_target, plan_path
-from sim.envelope.volume import Envelope, Exclusion
+from sim.envelope.volume import Envelope, Exclusion, home_violation
 
 __all__ = [
     "ENVELOPE_FORMAT",
@@ -21,6 +23,7 @@ __all__ = [
     "FlightPath",
     "Hold",
     "envelope_from_document",
+    "home_violation",
     "legal_target",
     "load_envelope",
     "plan_path",

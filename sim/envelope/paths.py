@@ -9,8 +9,9 @@
   shortest path of a visibility graph over the corners of the exclusions' footprints grown by
   the clearance plus :data:`CORNER_MARGIN_M`. A :class:`Hold` says why there is no path.
 
-Every leg of a returned path is checked with :meth:`Envelope.segment_violation`, so a path is
-never returned that leaves the envelope.
+Every leg of a returned path is checked with :meth:`Envelope.leg_violation` (the straight
+segment, and every way an autopilot that reaches height and position at separate speeds may fly
+it), so a path is never returned that leaves the envelope.
 """
 
 from __future__ import annotations
@@ -83,9 +84,12 @@ def _push(envelope: Envelope, point: Vec3) -> Vec3:
         return point
     here = Point(x_m, y_m)
     if not allowed.covers(here):
-        inner = allowed.buffer(-CORNER_MARGIN_M)
-        target = inner if not inner.is_empty else allowed
-        _, nearest = nearest_points(here, target)
+        # The nearest point of the allowed footprint (on its edge, which is legal); where
+        # rounding leaves that a hair outside, the nearest point a little further in.
+        _, nearest = nearest_points(here, allowed)
+        if not envelope.room.covers(nearest):
+            inner = allowed.buffer(-CORNER_MARGIN_M)
+            _, nearest = nearest_points(here, inner if not inner.is_empty else allowed)
         return (nearest.x, nearest.y, z_m)
     for grown, low, high in envelope.grown:
         if not (low < z_m < high and grown.buffer(EDGE_EPS_M).intersects(here)):
@@ -116,8 +120,18 @@ def plan_path(
         return Hold(f"the target is not legal: {why}")
     if (why := envelope.violation(start)) is not None:
         return Hold(f"the vehicle is outside its envelope ({why}): it holds until moved back")
-    if envelope.segment_violation(start, target) is None:
+    if envelope.leg_violation(start, target) is None:
         return FlightPath((target,), "direct")  # type: ignore[arg-type]
+    if envelope.segment_violation(start, target) is None:
+        # Straight is legal but the autopilot's own way of flying it may not be: height first
+        # when climbing, position first when descending (else the other way round).
+        up = target[2] > start[2]
+        first = (start[0], start[1], target[2]) if up else (target[0], target[1], start[2])
+        other = (target[0], target[1], start[2]) if up else (start[0], start[1], target[2])
+        for corner in (first, other):
+            path = _checked(envelope, start, [corner, target], "direct")  # type: ignore[list-item]
+            if path is not None:
+                return path
     over = _over(envelope, start, target)  # type: ignore[arg-type]
     around = _around(envelope, start, target)  # type: ignore[arg-type]
     options = [p for p in (over, around) if p is not None]
@@ -131,7 +145,7 @@ def _checked(
 ) -> FlightPath | None:
     legs = [start, *waypoints]
     for a, b in itertools.pairwise(legs):
-        if envelope.segment_violation(a, b) is not None:
+        if envelope.leg_violation(a, b) is not None:
             return None
     return FlightPath(tuple(waypoints), kind)
 

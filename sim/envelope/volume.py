@@ -13,7 +13,9 @@ An :class:`Envelope` is, in the area frame (x east, y north, z up, metres):
 
 A point is *legal* when it is inside the inclusion shrunk by the clearance, within the altitude
 band, and outside every exclusion grown by the clearance. A segment is legal when every point of
-it is (:meth:`Envelope.segment_violation` decides it exactly, without sampling). Geometry is
+it is (:meth:`Envelope.segment_violation` decides it exactly, without sampling); a *leg* is
+legal when every path an autopilot may fly between its ends is (:meth:`Envelope.leg_violation`:
+height and position are reached at separate speeds). Geometry is
 shapely's; the checks are pure and thread-safe.
 """
 
@@ -160,6 +162,32 @@ class Envelope:
                 return f"crosses exclusion {_label(exclusion)} on the way"
         return None
 
+    def leg_violation(self, start_m: Sequence[float], end_m: Sequence[float]) -> str | None:
+        """Why flying from ``start_m`` to ``end_m`` *as an autopilot flies it* is not legal, or
+        None. A multirotor's position controller caps horizontal and vertical speed separately,
+        so a leg that climbs or descends while it moves is not flown straight: it may reach its
+        height first or its position first. Every such path lies in the vertical *wall* over
+        the leg's footprint between its two heights, so beyond :meth:`segment_violation` the
+        wall must miss every exclusion (a leg that only climbs, or keeps its height, is its
+        straight segment)."""
+        if (why := self.segment_violation(start_m, end_m)) is not None:
+            return why
+        a = tuple(float(v) for v in start_m)
+        b = tuple(float(v) for v in end_m)
+        if a[2] == b[2] or (a[0], a[1]) == (b[0], b[1]):
+            return None
+        low_z, high_z = min(a[2], b[2]), max(a[2], b[2])
+        footprint = LineString([(a[0], a[1]), (b[0], b[1])])
+        for (_, low, high), prepared, exclusion in zip(
+            self.grown, self._grown_prepared, self.exclusions, strict=True
+        ):
+            if low < high_z and high > low_z and prepared.intersects(footprint):
+                return (
+                    f"may cross exclusion {_label(exclusion)} on the way (the autopilot climbs "
+                    "or descends and moves at separate speeds)"
+                )
+        return None
+
     def blocking(self, start_m: Sequence[float], end_m: Sequence[float]) -> list[int]:
         """The indices of the exclusions the straight segment crosses (see
         :meth:`segment_violation`)."""
@@ -204,6 +232,23 @@ class Envelope:
             parts = [self.grown[i][0] for i in key]
             self._unions[key] = shapely.union_all(parts) if parts else Polygon()
         return self._unions[key]
+
+
+def home_violation(envelope: Envelope, home_xy_m: Sequence[float]) -> str | None:
+    """Why a vehicle cannot take off from ``home_xy_m`` (area frame): its take-off climbs
+    straight up through an exclusion volume (grown by the clearance) below the ceiling; None
+    when it can."""
+    x_m, y_m = (float(v) for v in home_xy_m)
+    point = Point(x_m, y_m)
+    for (_, low, _high), prepared, exclusion in zip(
+        envelope.grown, envelope._grown_prepared, envelope.exclusions, strict=True
+    ):
+        if low < envelope.ceiling_m and prepared.intersects(point):
+            return (
+                f"home ({x_m:.1f}, {y_m:.1f}) is inside exclusion {_label(exclusion)} "
+                f"(with {envelope.clearance_m:g} m clearance): the take-off would climb through it"
+            )
+    return None
 
 
 def _label(exclusion: Exclusion) -> str:

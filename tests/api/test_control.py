@@ -149,3 +149,29 @@ def test_fleet_control_routes_name_the_vehicle(
     assert missing.status_code == 404 and "uav9" in missing.json()["detail"]
     single = client.put("/v1/vehicle/control", json={"holder": "service"}, headers=AUTH)
     assert single.status_code == 409 and "/v1/vehicles/" in single.json()["detail"]
+
+
+def test_a_vehicle_handed_back_on_the_ground_takes_off_only_when_asked() -> None:
+    """Issue 39: a vehicle back from its battery return, recharged, is taken back in by an
+    operator; the service arms it only at the operator's explicit request."""
+    settings = ServiceSettings(mavlink=URLS[0], api_token=TOKEN, decision_mode="on-report")
+    world = settings.policy_world()
+    link = FakeLink(LinkConfig(URLS[0], area=world.area), position_m=(0.0, 0.0, 0.0))
+
+    def factory(s: ServiceSettings) -> PlacementService:
+        return PlacementService(s, link, load_policy("load-weighted", world), world)
+
+    with TestClient(create_app(settings, service_factory=factory)) as client:
+        link.vehicle_leaves("autopilot", "battery reserve reached: returning home (RTL)")
+        body = {"holder": "operator", "takeoff": True}
+        answer = client.put("/v1/vehicle/control", json=body, headers=AUTH)
+        assert answer.status_code == 422 and answer.json()["detail"][0]["loc"][-1] == "takeoff"
+        answer = client.put("/v1/vehicle/control", json={"holder": "service"}, headers=AUTH)
+        assert answer.status_code == 200 and link.arms == 0
+        assert link.state().takeoff == "idle"
+        link.vehicle_leaves("autopilot", "battery reserve reached: returning home (RTL)")
+        body = {"holder": "service", "takeoff": True}
+        answer = client.put("/v1/vehicle/control", json=body, headers=AUTH)
+        assert answer.status_code == 200, answer.text
+        link.advance(20.0)
+        assert link.arms == 1 and link.state().takeoff == "airborne"

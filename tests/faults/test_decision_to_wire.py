@@ -21,11 +21,13 @@ from typing import Any
 
 import numpy as np
 import pytest
+from shapely.geometry import Polygon
 
 from service.frames import FrameConfig, area_to_ned
 from service.links import LINK_BACKENDS, open_link
 from service.vehicle_link import LinkConfig
 from sim.config import AreaConfig
+from sim.envelope import Envelope
 from sitl_mock.vehicle import Vehicle
 from tests.helpers import wait_for
 
@@ -63,7 +65,10 @@ def first_seen(events: list, after: float, ned: tuple[float, float, float]) -> f
 @pytest.mark.parametrize("backend", LINK_BACKENDS)
 def test_a_new_target_is_on_the_wire_within_milliseconds(start_mock, tap, backend) -> None:
     mock = start_mock("px4")
-    config = LinkConfig(f"tcp:127.0.0.1:{mock.port}", area=AREA, frames=FRAMES)
+    # The vehicle stays on the ground: an envelope from the ground up, so that each target
+    # streams as it is (with the area's 5 m floor the route would climb there first).
+    ground_up = Envelope(Polygon([(0, 0), (60, 0), (60, 60), (0, 60)]), 0.0, AREA.z_max_m)
+    config = LinkConfig(f"tcp:127.0.0.1:{mock.port}", area=AREA, frames=FRAMES, envelope=ground_up)
     link = open_link(backend, config)
     link.start()
     try:

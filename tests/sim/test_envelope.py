@@ -61,11 +61,18 @@ def independent_violations(envelope: Envelope, points: np.ndarray) -> list[str]:
 
 
 def sampled(start: tuple[float, ...], path: FlightPath) -> np.ndarray:
+    """Points every :data:`STEP_M` along each leg flown straight, and along both ways an
+    autopilot that reaches height and position at separate speeds may fly it instead (height
+    first, or position first: every path it flies lies between those)."""
     legs = [start, *path.waypoints]
     points = []
     for a, b in itertools.pairwise(legs):
-        n = max(2, math.ceil(math.dist(a, b) / STEP_M) + 1)
-        points.append(np.linspace(a, b, n))
+        height_first = (a[0], a[1], b[2])
+        position_first = (b[0], b[1], a[2])
+        for piece in ((a, b), (a, height_first), (height_first, b), (a, position_first),
+                      (position_first, b)):  # fmt: skip
+            n = max(2, math.ceil(math.dist(*piece) / STEP_M) + 1)
+            points.append(np.linspace(*piece, n))
     return np.concatenate(points)
 
 
@@ -127,6 +134,20 @@ def test_a_straight_line_through_a_tower_goes_around_or_over() -> None:
     assert max(w[2] for w in over.waypoints) == pytest.approx(36.0)
 
 
+def test_a_climb_that_an_autopilot_would_fly_into_a_volume_goes_up_first() -> None:
+    """The straight line climbs under the volume, but an autopilot reaching its position
+    before its height would fly into it: the leg is split, height first."""
+    roof = Exclusion(box(40, 90, 60, 110), 45.0, 55.0, "bridge")
+    envelope = Envelope.for_area(AREA, [roof])
+    start, target = (20.0, 100.0, 30.0), (180.0, 100.0, 70.0)
+    assert envelope.segment_violation(start, target) is None
+    assert "may cross exclusion 'bridge'" in (envelope.leg_violation(start, target) or "")
+    path = plan_path(envelope, start, target)
+    assert isinstance(path, FlightPath)
+    assert path.waypoints == ((20.0, 100.0, 70.0), target)
+    assert independent_violations(envelope, sampled(start, path)) == []
+
+
 def test_no_way_through_a_wall_is_a_hold_that_says_why() -> None:
     wall = Exclusion(box(90, 0, 110, 200), 0.0, 500.0, "wall")
     envelope = Envelope.for_area(AREA, [wall])
@@ -146,7 +167,8 @@ def test_an_illegal_target_moves_to_the_nearest_legal_point() -> None:
     # Low, at its edge: out to the side.
     x, _y, z = legal_target(envelope, (82, 100, 30))
     assert z == 30 and x == pytest.approx(80 - 5 - 0.5)
-    assert legal_target(envelope, (-50, 100, 50))[0] == pytest.approx(5.5)
+    # Outside the inclusion: onto the edge of what the clearance leaves (legal, and nearest).
+    assert legal_target(envelope, (-50, 100, 50)) == pytest.approx((5.0, 100, 50))
     assert legal_target(envelope, (math.nan, 1, 1)) is None
 
 

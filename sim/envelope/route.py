@@ -1,0 +1,145 @@
+"""The way a vehicle is flown to its target inside its envelope: what is streamed, leg by leg.
+
+A :class:`Route` is planned once per decision from where the vehicle is (:func:`plan_route`)
+and then advanced as the vehicle flies (:func:`advance`): the setpoint streamed is always the
+current waypoint of a legal :class:`~sim.envelope.paths.FlightPath`, or a hold point when there
+is none. Contract:
+
+* The target streamed is :func:`~sim.envelope.paths.legal_target` of the decision's target; a
+  target with no legal point near it gives a hold.
+* A waypoint is left for the next one when the vehicle is within ``accept_m`` of it **and**
+  the flight from where the vehicle actually is to the next waypoint is legal
+  (:meth:`~sim.envelope.volume.Envelope.leg_violation`), so cutting a corner never cuts an
+  exclusion; or when it is within :data:`SETTLE_M` of it (it is there, up to the autopilot's
+  tracking error, which the path's :data:`~sim.envelope.paths.CORNER_MARGIN_M` covers).
+* A vehicle outside its envelope (a new envelope it already violates, or a drift) is never sent
+  anywhere else: the route holds where it is and says why. The one exception is a vehicle
+  within ``recover_m`` of the leg it was flying, which is sent back onto that leg's nearest
+  legal point first (the autopilot's tracking error, not a violation of the plan).
+* Holding means streaming the position where the hold began (the vehicle keeps still), never
+  the target.
+
+Pure functions on frozen values: the service's link, the tests and the world's flight model use
+the same ones.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+from sim.envelope.paths import Hold, legal_target, plan_path
+from sim.envelope.volume import Envelope, Vec3
+
+ACCEPT_M = 2.0
+"""Within this distance of a waypoint the vehicle may go on to the next one."""
+SETTLE_M = 0.5
+"""Within this distance of a waypoint the vehicle is at it: it goes on to the next one."""
+RECOVER_M = 3.0
+"""A vehicle outside its envelope but this close to the leg it flies goes back onto the leg."""
+
+
+@dataclass(frozen=True)
+class Route:
+    """What the link streams for one decision.
+
+    ``waypoints`` are the remaining points, the current one first; the last is the (legal)
+    target. A holding route has one waypoint, the hold point, and says why in ``hold_reason``.
+    """
+
+    requested_m: Vec3
+    """The decision's target, as asked for."""
+    target_m: Vec3 | None
+    """The legal target streamed at the end (None when there is none: the route holds)."""
+    waypoints: tuple[Vec3, ...]
+    kind: str
+    """``direct``, ``over``, ``around``, ``hold``."""
+    hold_reason: str | None = None
+
+    @property
+    def setpoint_m(self) -> Vec3:
+        """What is streamed now: the current waypoint (or the hold point)."""
+        return self.waypoints[0]
+
+    @property
+    def holding(self) -> bool:
+        return self.hold_reason is not None
+
+    @property
+    def adjusted(self) -> bool:
+        """The target streamed differs from the one asked for (moved out of a forbidden place)."""
+        return self.target_m is not None and any(
+            abs(a - b) > 1e-9 for a, b in zip(self.target_m, self.requested_m, strict=True)
+        )
+
+
+def _vec(values: Sequence[float]) -> Vec3:
+    x, y, z = (float(v) for v in values)
+    return (x, y, z)
+
+
+def hold_at(requested_m: Sequence[float], position_m: Sequence[float], reason: str) -> Route:
+    """A route that keeps the vehicle where it is, saying why."""
+    return Route(_vec(requested_m), None, (_vec(position_m),), "hold", reason)
+
+
+def plan_route(
+    envelope: Envelope,
+    position_m: Sequence[float],
+    target_m: Sequence[float],
+    previous: Route | None = None,
+    recover_m: float = RECOVER_M,
+) -> Route:
+    """The route from ``position_m`` to (the legal point nearest) ``target_m``.
+
+    ``previous`` is the route being flown, if any: a vehicle slightly off its envelope near that
+    route's current leg is brought back onto the leg first (module docstring)."""
+    requested = _vec(target_m)
+    position = _vec(position_m)
+    legal = legal_target(envelope, requested)
+    if legal is None:
+        return hold_at(requested, position, "no legal point near the target: holding")
+    start = position
+    lead: tuple[Vec3, ...] = ()
+    if (why := envelope.violation(position)) is not None:
+        back = _back_onto_leg(envelope, previous, position, recover_m)
+        if back is None:
+            return hold_at(
+                requested, position, f"the vehicle is outside its envelope ({why}): holding"
+            )
+        start, lead = back, (back,)
+    path = plan_path(envelope, start, legal)
+    if isinstance(path, Hold):
+        return hold_at(requested, position, path.reason)
+    return Route(requested, legal, lead + path.waypoints, path.kind if not lead else "recover")
+
+
+def _back_onto_leg(
+    envelope: Envelope, previous: Route | None, position: Vec3, recover_m: float
+) -> Vec3 | None:
+    """The nearest legal point of the leg ``previous`` was flying (from its hold or current
+    waypoint), when the vehicle is within ``recover_m`` of it; else None."""
+    if previous is None or previous.holding:
+        return None
+    waypoint = previous.setpoint_m
+    if math.dist(waypoint, position) <= recover_m and envelope.violation(waypoint) is None:
+        return waypoint
+    return None
+
+
+def advance(
+    envelope: Envelope, route: Route, position_m: Sequence[float] | None, accept_m: float = ACCEPT_M
+) -> Route:
+    """``route`` with the waypoints the vehicle at ``position_m`` has reached dropped (module
+    docstring: only when the straight flight on from there is legal). Unchanged without a
+    position, while holding, or on the last waypoint."""
+    if position_m is None or route.holding:
+        return route
+    position = _vec(position_m)
+    waypoints = route.waypoints
+    while len(waypoints) > 1 and (gap_m := math.dist(position, waypoints[0])) <= accept_m:
+        if gap_m > SETTLE_M and envelope.leg_violation(position, waypoints[1]) is not None:
+            break
+        waypoints = waypoints[1:]
+    return route if waypoints is route.waypoints else replace(route, waypoints=waypoints)

@@ -1,0 +1,205 @@
+"""What a vehicle link streams inside its envelope (:mod:`service.routing`,
+:mod:`sim.envelope.route`).
+
+The property test flies a vehicle that tracks its setpoints perfectly (straight, a few metres a
+tick) through random envelopes and random decisions, some of them mid-flight, and holds every
+point it passes to the envelope with plain shapely distances (``independent_violations``, not
+the module's own checks). The other tests pin the contract's cases one by one, on the in-memory
+link and on the pymavlink link against the mock autopilot.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from shapely.geometry import box
+
+from service.routing import LinkRoute
+from sim.envelope import Envelope, Exclusion, legal_target
+from tests.fakes import FakeLink
+from tests.helpers import tcp_url, wait_for
+from tests.service.conftest import AREA as LINK_AREA
+from tests.service.conftest import FAST_VEHICLE, mock_in_area_m
+from tests.sim.test_envelope import AREA, envelopes, independent_violations, points3
+
+STEP_M = 3.0
+"""How far the perfectly tracking vehicle moves per tick."""
+TICKS = 400
+
+
+def fly(route: LinkRoute, position: tuple[float, float, float], ticks: int) -> list[np.ndarray]:
+    """Fly a vehicle that tracks each setpoint perfectly for ``ticks`` ticks; the points it
+    passes, sampled every 0.25 m, one array per tick."""
+    flown = []
+    for _ in range(ticks):
+        setpoint = route.setpoint(position)
+        if setpoint is None:
+            break
+        gap = math.dist(position, setpoint)
+        end = (
+            setpoint
+            if gap <= STEP_M
+            else tuple(p + (s - p) * STEP_M / gap for p, s in zip(position, setpoint, strict=True))
+        )
+        n = max(2, math.ceil(math.dist(position, end) / 0.25) + 1)
+        flown.append(np.linspace(position, end, n))
+        position = end  # type: ignore[assignment]
+        if gap == 0 and route.setpoint(position) == setpoint:
+            break
+    return flown
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    envelope=envelopes(),
+    start=points3,
+    targets=st.lists(points3, min_size=1, max_size=3),
+    interrupt=st.integers(1, 30),
+)
+def test_what_is_flown_never_leaves_the_envelope(envelope, start, targets, interrupt):
+    position = legal_target(envelope, start)
+    if position is None:
+        return
+    route = LinkRoute(envelope)
+    for i, target in enumerate(targets):
+        try:
+            legal, _ = route.set_target(target)
+        except ValueError:
+            continue
+        last = i == len(targets) - 1
+        flown = fly(route, position, TICKS if last else interrupt)
+        if flown:
+            position = tuple(flown[-1][-1])  # type: ignore[assignment]
+            assert independent_violations(envelope, np.concatenate(flown)) == []
+        view = route.view()
+        assert view is not None
+        if view.kind == "hold":
+            assert view.hold_reason
+        elif last and legal is not None:
+            assert position == pytest.approx(legal, abs=1e-6)
+
+
+TOWER = Exclusion(box(80, 80, 120, 120), 0.0, 100.0, "tower")
+"""Up to the ceiling: the only way past is around."""
+
+
+def test_a_target_behind_a_tower_is_flown_around_it():
+    envelope = Envelope.for_area(AREA, [TOWER], clearance_m=5.0)
+    route = LinkRoute(envelope)
+    assert route.set_target((150.0, 150.0, 50.0)) == ((150.0, 150.0, 50.0), True)
+    flown = fly(route, (50.0, 50.0, 50.0), TICKS)
+    view = route.view()
+    assert view is not None and view.kind == "around"
+    assert independent_violations(envelope, np.concatenate(flown)) == []
+    assert flown[-1][-1] == pytest.approx((150.0, 150.0, 50.0))
+
+
+def test_the_same_target_again_is_not_planned_again_but_a_hold_is():
+    route = LinkRoute(Envelope.for_area(AREA, [TOWER], clearance_m=5.0))
+    route.set_target((150.0, 150.0, 50.0))
+    route.setpoint((50.0, 50.0, 50.0))
+    assert route.counters["routes_planned"] == 1
+    for _ in range(5):
+        assert route.set_target((150.0, 150.0, 50.0))[1] is False
+        route.setpoint((50.0, 50.0, 50.0))
+    assert route.counters["routes_planned"] == 1
+    # A wall across the area: no way through, the vehicle holds where it is and says why...
+    wall = Exclusion(box(95, 0, 105, 200), 0.0, 100.0, "wall")
+    route.set_envelope(Envelope.for_area(AREA, [wall]))
+    assert route.setpoint((50.0, 50.0, 50.0)) == (50.0, 50.0, 50.0)
+    view = route.view()
+    assert view is not None and view.kind == "hold" and "no legal path" in (view.hold_reason or "")
+    # ... and the same target is planned again at the next decision (the wall may be gone).
+    route.set_envelope(Envelope.for_area(AREA))
+    route.set_target((150.0, 150.0, 50.0))
+    assert route.setpoint((50.0, 50.0, 50.0)) == (150.0, 150.0, 50.0)
+
+
+def test_a_new_envelope_that_the_vehicle_violates_makes_it_hold_where_it_is():
+    route = LinkRoute(Envelope.for_area(AREA))
+    route.set_target((150.0, 150.0, 50.0))
+    assert route.setpoint((100.0, 100.0, 50.0)) == (150.0, 150.0, 50.0)
+    route.set_envelope(Envelope.for_area(AREA, [TOWER]))  # the vehicle is inside the tower
+    assert route.setpoint((100.0, 100.0, 50.0)) == (100.0, 100.0, 50.0)
+    view = route.view()
+    assert view is not None and view.kind == "hold"
+    assert "outside its envelope" in (view.hold_reason or "")
+    assert "tower" in (view.hold_reason or "")
+
+
+def test_a_vehicle_below_the_floor_climbs_straight_into_the_envelope_first():
+    route = LinkRoute(Envelope.for_area(AREA))  # floor 25 m
+    route.set_target((150.0, 150.0, 50.0))
+    assert route.setpoint((20.0, 20.0, 10.0)) == (20.0, 20.0, 25.0)
+    # 1 m below the floor the straight line on is not legal yet; at it (up to the autopilot's
+    # tracking error) it is the next waypoint.
+    assert route.setpoint((20.0, 20.0, 24.0)) == (20.0, 20.0, 25.0)
+    assert route.setpoint((20.0, 20.0, 24.7)) == (150.0, 150.0, 50.0)
+    # A new target while at the floor, up to the tracking error: no climb point first.
+    route.set_target((100.0, 150.0, 50.0))
+    assert route.setpoint((30.0, 30.0, 24.8)) == (100.0, 150.0, 50.0)
+
+
+def test_a_corner_is_cut_only_where_cutting_it_is_legal():
+    envelope = Envelope.for_area(AREA, [TOWER], clearance_m=5.0)
+    route = LinkRoute(envelope)
+    route.set_target((150.0, 150.0, 50.0))
+    start = (50.0, 50.0, 50.0)
+    corner = route.setpoint(start)
+    after = route.view().waypoints_m[1]  # type: ignore[union-attr]
+    # 1.5 m short of the first corner on the leg to it: within the 2 m to go on, but the
+    # straight line from there to the next corner cuts the tower's clearance.
+    short = tuple(
+        c - (c - s) * 1.5 / math.dist(start, corner) for s, c in zip(start, corner, strict=True)
+    )
+    assert envelope.segment_violation(short, after) is not None
+    assert route.setpoint(short) == corner
+    # At the corner the leg on is legal: the next corner is the setpoint.
+    assert route.setpoint(corner) == after
+
+
+def test_targets_and_an_envelope_on_the_in_memory_link():
+    link = FakeLink(position_m=(50.0, 50.0, 50.0))
+    link.set_envelope(Envelope.for_area(link.config.area, [TOWER], clearance_m=5.0))
+    assert link.set_target((100.0, 100.0, 50.0)) != (100.0, 100.0, 50.0)  # moved out of it
+    assert link.counters["geofence_clamps"] == 1
+    target = link.set_target((150.0, 150.0, 50.0))
+    for _ in range(200):
+        link.advance(0.2)
+        assert link.state().position_m is not None
+        assert not TOWER.footprint.buffer(5.0 - 1e-6).contains(
+            box(*link.state().position_m[:2], *link.state().position_m[:2])  # type: ignore[index]
+        )
+    assert link.state().position_m == pytest.approx(target)
+    with pytest.raises(ValueError, match="not a finite point"):
+        link.set_target((math.nan, 1.0, 1.0))
+
+
+@pytest.mark.slow
+def test_the_pymavlink_link_flies_the_mock_around_a_no_fly_zone(start_mock, open_link):
+    """In the link tests' 60 m x 60 m area (home at (10, 20)): a no-fly block between the
+    vehicle and its target, up to the ceiling; the mock is sampled every 50 ms on its way."""
+    block = Exclusion(box(25, 10, 35, 50), 0.0, 20.0, "block")
+    envelope = Envelope.for_area(LINK_AREA, [block], clearance_m=2.0)
+    mock = start_mock("px4", **FAST_VEHICLE)
+    link = open_link(tcp_url(mock), envelope=envelope)
+    link.arm_and_takeoff().result(timeout=30.0)
+    target = (50.0, 30.0, 8.0)
+    assert link.set_target(target) == target
+    closest_m = math.inf
+    deadline = time.monotonic() + 40.0
+    while math.dist(mock_in_area_m(mock), target) > 1.0 and time.monotonic() < deadline:
+        x_m, y_m, _ = mock_in_area_m(mock)
+        closest_m = min(closest_m, block.footprint.exterior.distance(box(x_m, y_m, x_m, y_m)))
+        assert not block.footprint.contains(box(x_m, y_m, x_m, y_m)), (x_m, y_m)
+        time.sleep(0.05)
+    assert math.dist(mock_in_area_m(mock), target) <= 1.0, "the vehicle never got there"
+    state = wait_for(lambda: (s := link.state()).route is not None and s, 5.0)
+    assert state.route.kind == "around"
+    print(f"\nclosest approach to the block: {closest_m:.2f} m (clearance 2 m)")
+    assert closest_m >= 1.0
