@@ -83,6 +83,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "(default 300: a real vehicle needs its GPS lock and pre-arm checks first)",
     )
     parser.add_argument(
+        "--autopilot-fence",
+        action="store_true",
+        default=None,
+        help="also put the envelope on the autopilot as its own fence (polygons, ceiling, breach "
+        "action), read it back, and neither take off nor stream until it is there (pymavlink "
+        "backend)",
+    )
+    parser.add_argument(
+        "--fence-action",
+        choices=("rtl", "hold", "land", "report"),
+        help="what the autopilot does on a fence breach, with --autopilot-fence (default rtl)",
+    )
+    parser.add_argument(
         "--battery-reserve-pct",
         type=_reserve,
         metavar="PCT|off",
@@ -143,6 +156,8 @@ _SETTING_ARGS = (
     "arm_and_takeoff",
     "takeoff_timeout_s",
     "battery_reserve_pct",
+    "autopilot_fence",
+    "fence_action",
     "host",
     "port",
     "insecure",

@@ -149,6 +149,7 @@ def _vehicle_out(state: LinkState) -> VehicleOut:
             waypoints=[_target(w) for w in state.route.waypoints_m],
             hold_reason=state.route.hold_reason,
         ),
+        fence=state.fence,
         battery=BatteryOut(
             remaining_pct=state.battery_pct,
             voltage_v=state.battery_voltage_v,

@@ -336,6 +336,11 @@ class VehicleOut(BaseModel):
         default=None, description="The route flown to the target (None before the first one)"
     )
     battery: BatteryOut | None = Field(default=None, description="The vehicle's battery")
+    fence: str = Field(
+        default="off",
+        description="The autopilot's own fence (--autopilot-fence): off, uploaded, what it waits "
+        "for, or failed: why (nothing streams until it is uploaded)",
+    )
 
 
 class DecisionTimingOut(BaseModel):

@@ -3,8 +3,9 @@
 Random envelopes over the paper's 500 m x 500 m area (``--exclusions`` rectangular volumes of
 10-60 m sides, floors at 0 m, ceilings 30-150 m, clearance 5 m, altitude band 25-100 m) and random
 decisions (a start and a target anywhere, made legal with :func:`legal_target`, then
-:func:`plan_path`). Every leg of every path is sampled every 0.25 m and each sample is held to
-the envelope with the point test (:meth:`Envelope.violation`), a code path apart from the segment
+:func:`plan_path`). Every leg of every path is sampled every 0.25 m, straight and along both
+dog-legs an autopilot may fly instead, and each sample is held to the envelope with the point
+test (:meth:`Envelope.violation`), a code path apart from the segment
 test the planner uses. Reports violations, holds, the kinds of path, and the planning time per
 decision (p50, p99, max) in JSON::
 
@@ -44,11 +45,16 @@ def random_envelope(rng: np.random.Generator, area: AreaConfig, n: int) -> Envel
 
 
 def path_violations(envelope: Envelope, start: tuple[float, ...], path: FlightPath) -> int:
+    """Samples of the path outside the envelope: each leg flown straight, and both ways an
+    autopilot that reaches height and position at separate speeds may fly it (height first,
+    position first: every path it flies lies between those)."""
     bad = 0
     for a, b in itertools.pairwise([start, *path.waypoints]):
-        n = max(2, math.ceil(math.dist(a, b) / STEP_M) + 1)
-        for point in np.linspace(a, b, n):
-            bad += envelope.violation(point) is not None
+        up, across = (a[0], a[1], b[2]), (b[0], b[1], a[2])
+        for p, q in ((a, b), (a, up), (up, b), (a, across), (across, b)):
+            n = max(2, math.ceil(math.dist(p, q) / STEP_M) + 1)
+            for point in np.linspace(p, q, n):
+                bad += envelope.violation(point) is not None
     return bad
 
 

@@ -121,6 +121,8 @@ class FleetPlacementService(PlacementService):
                 setpoint_rate_hz=settings.setpoint_rate_hz,
                 signing_key=settings.signing_key_bytes(),
                 battery=settings.battery(),
+                autopilot_fence=settings.autopilot_fence,
+                fence_action=settings.fence_action,
             )
             try:
                 links[vehicle.id] = open_link(settings.mavlink_backend, config)

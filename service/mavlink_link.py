@@ -54,8 +54,11 @@ from collections.abc import Callable, Sequence
 from typing import Any, Self
 
 from service import mavlink_commands
+from service.fence import FencePlan
+from service.frames import GeoPoint
+from service.mission_protocol import FenceReport, MavPort, MissionError, apply_fence_plan
 from service.modes import GUIDED_MODE_NAME, Flavour, set_mode_numbers
-from service.vehicle_link import LinkConfig, VehicleLinkBase
+from service.vehicle_link import HEARTBEAT_PERIOD_S, LinkConfig, VehicleLinkBase
 
 os.environ.setdefault("MAVLINK20", "1")  # before pymavlink loads its dialect (signing needs v2)
 from pymavlink import mavutil
@@ -88,6 +91,7 @@ VEHICLE_MESSAGES = frozenset(
         "EXTENDED_SYS_STATE",
         "EKF_STATUS_REPORT",
         "SYS_STATUS",
+        "HOME_POSITION",
         "COMMAND_ACK",
         "STATUSTEXT",
     }
@@ -416,6 +420,11 @@ class MavlinkLink(VehicleLinkBase):
                 self._landed_state = message.landed_state
             elif kind == "EKF_STATUS_REPORT":
                 self._ekf_flags = message.flags
+            elif kind == "HOME_POSITION":
+                home = GeoPoint(
+                    message.latitude / 1e7, message.longitude / 1e7, message.altitude / 1e3
+                )
+                self._note_home(home, (message.x, message.y, message.z))
             elif kind == "SYS_STATUS":
                 # battery_remaining: % (-1: unknown); voltage_battery: mV (UINT16_MAX: unknown).
                 self._note_battery(
@@ -507,6 +516,46 @@ class MavlinkLink(VehicleLinkBase):
                         sys_id, comp_id, s, int(rate_hz), 1
                     )
                 )
+
+    def _request_home(self) -> None:
+        self._send_command_long(
+            mavlink.MAV_CMD_REQUEST_MESSAGE,
+            (float(mavlink.MAVLINK_MSG_ID_HOME_POSITION), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+        )
+
+    def _upload_fence(self, plan: FencePlan) -> FenceReport:
+        """The fence through :func:`service.mission_protocol.apply_fence_plan` on this link's
+        own connection, borrowed by the I/O thread: what else arrives meanwhile is handled as
+        usual, and our HEARTBEAT keeps going."""
+        conn = self._conn
+        if conn is None:
+            raise MissionError("the connection closed before the fence upload")
+        next_heartbeat = [time.monotonic() + HEARTBEAT_PERIOD_S]
+
+        def send(message: Any) -> None:
+            if not self._send(lambda mav: mav.send(message)):
+                raise OSError("the connection to the vehicle is down")
+
+        def idle() -> None:
+            if time.monotonic() >= next_heartbeat[0]:
+                next_heartbeat[0] = time.monotonic() + HEARTBEAT_PERIOD_S
+                self._send_heartbeat()
+
+        with self._cond:
+            sys_id, comp_id = self._target_sys, self._target_comp
+        port = MavPort(
+            send=send,
+            receive=lambda timeout_s: conn.recv_match(blocking=True, timeout=timeout_s),
+            target_system=sys_id,
+            target_component=comp_id,
+            on_other=self._handle,
+            on_idle=idle,
+            own_system=self.config.source_system,
+        )
+        try:
+            return apply_fence_plan(port, plan)
+        except OSError as exc:
+            raise MissionError(f"the fence upload lost the connection: {exc}") from None
 
     def _send_setpoint(self, ned_m: tuple[float, float, float], now: float, new: bool) -> bool:
         with self._cond:

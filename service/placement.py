@@ -216,6 +216,8 @@ def link_problem(state: LinkState) -> str | None:
         return f"mavlink link is {state.link}"
     if state.position_m is None:
         return "no vehicle position yet (telemetry not received)"
+    if state.fence not in ("off", "uploaded"):
+        return f"the autopilot's fence is not on the vehicle ({state.fence}): nothing streams yet"
     if state.control != "service":
         return (
             f"the {state.control} has the vehicle: {state.control_reason}; the service streams "
@@ -324,6 +326,8 @@ class PlacementService:
             setpoint_rate_hz=settings.setpoint_rate_hz,
             signing_key=settings.signing_key_bytes(),
             battery=settings.battery(),
+            autopilot_fence=settings.autopilot_fence,
+            fence_action=settings.fence_action,
         )
         link = open_link(settings.mavlink_backend, link_config)
         return cls(settings, link, policy, world)

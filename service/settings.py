@@ -53,6 +53,12 @@ class ServiceSettings(BaseSettings):
     """A checkpoint path, or ``min-distance``, ``load-weighted``, ``oracle``."""
     arm_and_takeoff: bool = False
     """Arm and take off to the minimum altitude before the first placement (never by default)."""
+    autopilot_fence: bool = False
+    """Also put each vehicle's envelope on its autopilot as its own fence (polygons, ceiling,
+    breach action; :mod:`service.fence`), read it back, and neither take off nor stream until it
+    is there (pymavlink backend). Routes then keep out of every exclusion at every height."""
+    fence_action: Literal["rtl", "hold", "land", "report"] = "rtl"
+    """What the autopilot does on a fence breach (with ``autopilot_fence``)."""
     battery_reserve_pct: float | None = Field(default=20.0, ge=0, lt=100, allow_inf_nan=False)
     """Charge to be left on landing, %: at what flying home from where the vehicle is takes plus
     this, the service ends the placement and commands the return (:mod:`service.battery`);
@@ -244,6 +250,11 @@ class ServiceSettings(BaseSettings):
         if self.fleet_file is None:
             for url in self.fleet_mavlink or (self.mavlink,):
                 check_connection(url, "--mavlink", self.mavlink_backend)
+        if self.autopilot_fence and self.mavlink_backend != "pymavlink":
+            raise ValueError(
+                "autopilot_fence: the fence upload needs --mavlink-backend pymavlink (the mavsdk "
+                "backend cannot upload one yet)"
+            )
         token = self.api_token.get_secret_value() if self.api_token else ""
         if not token and not self.insecure:
             raise ValueError(

@@ -46,7 +46,9 @@ from service import control as vehicle_control
 from service import mavlink_commands
 from service.battery import BatteryConfig, DrainEstimate, reserve_reached, return_needs_pct
 from service.control import Control, ControlHolder
-from service.frames import FrameConfig, area_to_ned, ned_to_area
+from service.fence import FenceError, FencePlan, fence_compatible, fence_plan
+from service.frames import FrameConfig, GeoPoint, area_to_ned, ned_to_area
+from service.mission_protocol import MissionError
 from service.modes import GUIDED_MODE_NAME, Flavour, flavour_of, mode_name, set_mode_numbers
 from service.routing import LinkRoute, RouteView
 from sim.config import AreaConfig
@@ -94,6 +96,10 @@ HEARTBEAT_PERIOD_S = 1.0
 """Our own HEARTBEAT's period (where the backend sends it)."""
 TELEMETRY_REQUEST_PERIOD_S = 2.0
 """How often ``_request_telemetry`` is called while the vehicle is up."""
+FENCE_RETRY_S = 10.0
+"""After a failed fence upload, how long until the next try (nothing streams meanwhile)."""
+HOME_REQUEST_PERIOD_S = 2.0
+"""How often HOME_POSITION is asked for while the fence waits for it."""
 BATTERY_CHECK_PERIOD_S = 1.0
 """How often the battery reserve is checked (:mod:`service.battery`)."""
 RETURN_ATTEMPTS = 3
@@ -160,6 +166,13 @@ class LinkConfig:
     mode_retry_s: float = 0.5
     mode_request_window_s: float = 15.0
     """After a target is set, the guided mode is asked for (every ``mode_retry_s``) this long."""
+    autopilot_fence: bool = False
+    """Upload the envelope as the autopilot's own fence (:mod:`service.fence`: polygons, the
+    ceiling, the breach action) once the vehicle's home is known, read it back, and neither take
+    off nor stream while it is not on the vehicle (pymavlink backend). Routes then keep out of
+    every exclusion at every height, as the autopilot's 2-D fence polygons do."""
+    fence_action: str = "rtl"
+    """The autopilot's action on a fence breach: ``rtl``, ``hold``, ``land`` or ``report``."""
     battery: BatteryConfig = BatteryConfig()  # noqa: RUF009 (frozen, so sharing it is safe)
     """The battery reserve at which the service sends the vehicle home (:mod:`service.battery`)."""
     signing_key: bytes | None = None
@@ -181,6 +194,10 @@ class LinkConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name}: must be a positive number, got {value!r}")
+        if self.fence_action not in ("rtl", "hold", "land", "report"):
+            raise ValueError(
+                f"fence_action: must be rtl, hold, land or report, got {self.fence_action!r}"
+            )
         if self.signing_key is not None and len(self.signing_key) != 32:
             raise ValueError(f"signing_key: must be 32 bytes, got {len(self.signing_key)}")
 
@@ -233,6 +250,9 @@ class LinkState:
     route: RouteView | None = None
     """The way to the target inside the envelope (the current setpoint first), or the hold
     point and why; None before the first target is planned."""
+    fence: str = "off"
+    """The autopilot's own fence (``autopilot_fence``): ``off``, ``uploaded``, what it waits
+    for, or ``failed: <why>`` (tried again every ``FENCE_RETRY_S``)."""
     battery_pct: float | None = None
     """Remaining charge, % (SYS_STATUS); None while the vehicle reports none."""
     battery_voltage_v: float | None = None
@@ -387,7 +407,14 @@ class VehicleLinkBase(VehicleLink):
         self._return_pending: str | None = None  # why the vehicle is being sent home
         # Streaming state.
         self._target_m: tuple[float, float, float] | None = None
-        self._routing = LinkRoute(config.envelope or Envelope.for_area(config.area))
+        envelope = config.envelope or Envelope.for_area(config.area)
+        self._fence_envelope = envelope  # what goes on the autopilot (its fence)
+        self._fence = "waiting for the vehicle's home" if config.autopilot_fence else "off"
+        self._fence_next_try = 0.0
+        self._origin: GeoPoint | None = None  # the local NED origin, from HOME_POSITION
+        self._routing = LinkRoute(
+            fence_compatible(envelope) if config.autopilot_fence else envelope
+        )
         self._target_dirty = False  # a new target not sent yet: send it at once
         self._hold_setpoints = False
         self._stream_since: float | None = None
@@ -456,6 +483,16 @@ class VehicleLinkBase(VehicleLink):
         """The vehicle's HEARTBEAT is back (called under ``self._cond``): reset per-session
         bookkeeping."""
 
+    def _request_home(self) -> None:
+        """Ask for the vehicle's HOME_POSITION (for the fence's geography)."""
+
+    def _upload_fence(self, plan: FencePlan) -> object:
+        """Put ``plan`` on the autopilot and read it back (in the I/O thread); raises
+        MissionError or FenceError when it did not. A backend that cannot says so."""
+        raise FenceError(
+            "autopilot_fence: this backend cannot upload a fence (use --mavlink-backend pymavlink)"
+        )
+
     # ------------------------------------------------------------------ public API
 
     def start(self) -> Self:
@@ -505,6 +542,7 @@ class VehicleLinkBase(VehicleLink):
                 control_reason=self._control.reason,
                 control_age_s=now - self._control.since_s,
                 route=self._routing.view(),
+                fence=self._fence,
                 battery_pct=self._battery_pct,
                 battery_voltage_v=self._battery_voltage_v,
                 battery_drain_pct_per_s=self._drain.measured_pct_per_s,
@@ -545,6 +583,12 @@ class VehicleLinkBase(VehicleLink):
     def set_envelope(self, envelope: Envelope) -> None:
         """Fly inside ``envelope`` from now on (see :meth:`VehicleLink.set_envelope`)."""
         with self._cond:
+            if self.config.autopilot_fence:
+                # Planned as the autopilot's fence has it; nothing streams until it is on board.
+                self._fence_envelope = envelope
+                self._fence = "uploading a new envelope"
+                self._fence_next_try = 0.0
+                envelope = fence_compatible(envelope)
             self._routing.set_envelope(envelope)
             if self._target_m is not None:
                 self._target_dirty = True
@@ -552,9 +596,10 @@ class VehicleLinkBase(VehicleLink):
 
     @property
     def envelope(self) -> Envelope:
-        """The envelope the vehicle flies in now."""
+        """The envelope the vehicle flies in now (as given: routes keep out of its exclusions
+        at every height when the autopilot's fence is on)."""
         with self._cond:
-            return self._routing.envelope
+            return self._fence_envelope
 
     def clear_target(self) -> None:
         """Stop streaming setpoints (the vehicle keeps its own behaviour for a lost stream)."""
@@ -731,6 +776,8 @@ class VehicleLinkBase(VehicleLink):
         if now >= times.next_telemetry_request:
             times.next_telemetry_request = now + TELEMETRY_REQUEST_PERIOD_S
             self._request_telemetry(now)
+        if config.autopilot_fence and now >= self._fence_next_try:
+            self._fence_step(now)
         if now - self._battery_checked_at >= BATTERY_CHECK_PERIOD_S:
             self._battery_checked_at = now
             self._check_battery_reserve(now)
@@ -756,6 +803,50 @@ class VehicleLinkBase(VehicleLink):
             if self._target_dirty:  # set_target notifies self._cond: a new target wakes a poll
                 wake_at = min(wake_at, times.last_setpoint + config.setpoint_min_gap_s)
         times.wait_s = min(max(wake_at - time.monotonic(), 0.001), IDLE_WAIT_S)
+
+    # ------------------------------------------------------------------ the autopilot's fence
+
+    def _fence_step(self, now: float) -> None:
+        """Put the envelope on the autopilot as its fence once its home is known (in the I/O
+        thread: the upload borrows the connection for a fraction of a second); on failure, say
+        why and try again after ``FENCE_RETRY_S``."""
+        with self._cond:
+            if self._fence == "uploaded" or self._flavour is None:
+                return
+            flavour, origin, envelope = self._flavour, self._origin, self._fence_envelope
+            if origin is None:
+                self._fence = "waiting for the vehicle's home"
+                self._fence_next_try = now + HOME_REQUEST_PERIOD_S
+        if origin is None:
+            self._request_home()
+            return
+        try:
+            plan = fence_plan(
+                envelope, origin, self.config.frames, flavour, action=self.config.fence_action
+            )
+            report = self._upload_fence(plan)
+        except (FenceError, MissionError) as exc:
+            with self._cond:
+                self._fence = f"failed: {exc}"
+                self._fence_next_try = time.monotonic() + FENCE_RETRY_S
+                self.counters["fence_failures"] += 1
+            log.error("the autopilot's fence could not be put on the vehicle: %s", exc)
+            return
+        with self._cond:
+            if self._fence_envelope is envelope:
+                self._fence = "uploaded"
+                self.counters["fence_uploads"] += 1
+                self._cond.notify_all()
+        log.info("the autopilot's fence is on the vehicle: %s", report)
+
+    def _note_home(self, home: GeoPoint, local_ned_m: tuple[float, float, float]) -> None:
+        """HOME_POSITION (call under ``self._cond``): home's position and where it lies in the
+        local frame give the local frame's origin, which the area frame hangs off."""
+        from service.frames import ned_to_global
+
+        self._origin = ned_to_global(home, *(-v for v in local_ned_m))
+        if self._fence.startswith("waiting for the vehicle's home"):
+            self._fence_next_try = 0.0
 
     # ------------------------------------------------------------------ the battery reserve
 
@@ -1047,6 +1138,7 @@ class VehicleLinkBase(VehicleLink):
             and self._target_m is not None
             and not self._hold_setpoints
             and self._control.service_has_it
+            and self._fence in ("off", "uploaded")
         )
 
     def _guided_mode_due(self, now: float) -> Flavour | None:
@@ -1225,6 +1317,18 @@ class VehicleLinkBase(VehicleLink):
                 return
         self._set_phase("waiting for a position estimate")
         self._wait_for(self._position_estimate_ok, deadline, "a position estimate")
+        if self.config.autopilot_fence:
+            self._set_phase("putting the envelope on the autopilot as its fence")
+            self._wait_for(
+                lambda: self._fence == "uploaded" or self._fence.startswith("failed"),
+                deadline,
+                "the autopilot's fence",
+            )
+            with self._cond:
+                if self._fence != "uploaded":
+                    raise TakeoffRefused(
+                        f"the autopilot's fence is not on the vehicle: {self._fence}"
+                    )
         with self._cond:
             flavour = self._flavour
         if flavour == "ardupilot":

@@ -88,10 +88,13 @@ def running_app() -> Iterator[None]:
 # setting), unique ids, the user count, and a policy that is a loadable checkpoint or a baseline
 # name. Schema-valid bodies may fail them, so "valid data is accepted" does not hold there.
 # Geometry the schema cannot say (a simple polygon, a ceiling above the floor, room to fly, the
-# home outside every no-fly volume) is checked by the service: 422 naming the field.
+# home outside every no-fly volume), and a take-off asked with anything but a hand-back, are
+# checked by the service: 422 naming the field.
 SEMANTIC_422 = {
     ("POST", "/v1/reports"),
     ("PUT", "/v1/policy"),
+    ("PUT", "/v1/vehicle/control"),
+    ("PUT", "/v1/vehicles/{vehicle_id}/control"),
     ("PUT", "/v1/vehicle/envelope"),
     ("PUT", "/v1/vehicles/{vehicle_id}/envelope"),
 }
