@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test test-fast lint format bench clean browser test-containers
+.PHONY: run test test-fast lint format bench clean browser llvm test-containers
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -34,6 +34,19 @@ browser:
 	    echo "chromium is missing (apt-get install chromium): the browser test will skip"; \
 	  fi
 
+# Sionna RT (the sites extra, tupa[sites]) ray-traces on the CPU through Dr.Jit's LLVM backend,
+# which needs Debian's libllvm19 (the system's default LLVM is too old): installed when missing
+# and we are root on Debian, as chromium is (sim/sites/raytrace.py finds it). Without the extra,
+# the site build's test skips and says why.
+llvm:
+	@ls /usr/lib/*/libLLVM.so.19* >/dev/null 2>&1 || \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	    (apt-get update && DEBIAN_FRONTEND=noninteractive apt-get install -y libllvm19) || \
+	      { echo "libllvm19: the install failed"; [ -z "$$CI" ]; }; \
+	  else \
+	    echo "libllvm19 is missing (apt-get install libllvm19): a site build cannot ray-trace"; \
+	  fi
+
 # The tests run in parallel (pytest-xdist): TEST_WORKERS processes (auto: one per core), and
 # --dist loadgroup keeps each xdist_group on one worker, one test after another (the timing
 # tests, the Ray tests, the tests of one ns-3 worker or one module-wide server: tests/tiers.py).
@@ -44,7 +57,7 @@ TEST_WORKERS ?= auto
 PYTEST := $(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadgroup
 
 # Everything: every tier (tests/tiers.py), as CI runs it (.ci/run).
-test: $(STAMP) browser
+test: $(STAMP) browser llvm
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(PYTEST)

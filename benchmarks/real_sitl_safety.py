@@ -28,24 +28,31 @@ and the service's API: ``GET /v1/vehicle`` at 5 Hz (control, mode, fence, route,
 take-off), ``GET /metrics`` at 1 Hz; reports of the three users of ``real_sitl_handback.py``
 every 0.5 s. Seconds are from the SITL's start.
 
-Scenarios (the SITL's simulated quad draws ~29 A hovering, its pack voltage stays constant:
+The area frame: ``TUPA_AREA_ORIGIN_NORTH_M``/``_EAST_M`` -20 (``--area-origin-m``) in every
+scenario, so home is at (20, 20) in the area frame and the users' hot spot, where the service
+flies, ~115 m from home. (With home on the area's corner, ``--area-origin-m 0 0`` as
+``real_sitl_handback.py`` has it, the vehicle drifts a few centimetres outside the default
+envelope, the area box, climbs to 24.1-24.7 m, below its 25 m floor, and its route holds at home
+for the whole flight: ``flew_away_from_home`` fails.)
+
+Scenarios (the SITL's simulated quad draws ~28 A hovering, its pack voltage stays constant:
 ``SIM_BATT_CAP_AH`` is not used by the ``quad`` model, so the remaining charge is ArduPilot's
 own coulomb count against ``BATT_CAPACITY``, the only way to drain it fast):
 
 * ``reserve``: ``BATT_CAPACITY`` ``--capacity-mah`` (1500: about three minutes of flight),
   ArduCopter's failsafe lower than the service's reserve: ``BATT_LOW_MAH`` 15 % of it with
   ``BATT_FS_LOW_ACT`` 2 (RTL), ``BATT_CRT_MAH`` 5 % with ``BATT_FS_CRT_ACT`` 1 (LAND); the
-  service at its default reserve (20 %). Pass: the service lets go with "battery reserve
-  reached", the vehicle is in RTL before any battery-failsafe STATUSTEXT, the service sends no
-  setpoint, mode request or command after its return command, the vehicle never shows GUIDED
-  again.
-* ``failsafe-first``: ``BATT_LOW_MAH`` ``--fs-low-pct`` (default 75 %) of the capacity with
+  service at its default reserve (20 %). Pass: the vehicle flew away from home (> 50 m), the
+  service lets go with "battery reserve reached", the vehicle is in RTL before any
+  battery-failsafe STATUSTEXT, the service sends no setpoint, mode request or command after its
+  return command, the vehicle never shows GUIDED again.
+* ``failsafe-first``: ``BATT_LOW_MAH`` ``--fs-low-pct`` (default 60 %) of the capacity with
   ``BATT_FS_LOW_ACT`` 1 (LAND), above where the service would return (its ``return_at_pct``,
-  ~50-60 % with this pack). Pass: the vehicle lands (LAND, then disarmed) and the service never
-  commands a return or a mode (tap), lets go, and its reserve never fires.
+  ~51 % at the hot spot with this pack), so close that the charge passes the service's
+  ``return_at_pct`` while the vehicle lands. Pass: the vehicle lands (LAND, then disarmed), the
+  service lets go, never commands a return or a mode (tap), and its reserve never fires.
   ``failsafe-first-off``: the same with ``--battery-reserve-pct off``.
-* ``fence``: ``TUPA_AREA_ORIGIN_NORTH_M``/``_EAST_M`` -20 (home at (20, 20) in the area frame),
-  ``--envelope`` (inclusion 10 m inside the 500 m area, one 40 m x 40 m exclusion 0-40 m,
+* ``fence``: ``--envelope`` (inclusion 10 m inside the 500 m area, one 40 m x 40 m exclusion 0-40 m,
   "mast", across the straight line from home to the users' hot spot, clearance 5 m) and
   ``--autopilot-fence``. Pass: ``fence`` is "uploaded" before the vehicle arms, the fence
   read back on SERIAL2 equals what the service sent (tap) and what ``service.fence.fence_plan``
@@ -585,7 +592,7 @@ def battery_params(args: argparse.Namespace) -> dict[str, float]:
     if args.scenario == "reserve":
         low_pct, low_act = args.fs_low_pct if args.fs_low_pct is not None else 15.0, 2.0
     else:
-        low_pct, low_act = args.fs_low_pct if args.fs_low_pct is not None else 75.0, 1.0
+        low_pct, low_act = args.fs_low_pct if args.fs_low_pct is not None else 60.0, 1.0
     return {
         "BATT_CAPACITY": cap,
         "BATT_CRT_MAH": round(cap * args.fs_crt_pct / 100.0),
@@ -610,7 +617,7 @@ def main() -> int:
     parser.add_argument(
         "--fs-low-pct",
         type=float,
-        help="BATT_LOW_MAH as %% of the capacity (reserve: 15, RTL; failsafe-first: 75, LAND)",
+        help="BATT_LOW_MAH as %% of the capacity (reserve: 15, RTL; failsafe-first: 60, LAND)",
     )
     parser.add_argument("--fs-crt-pct", type=float, default=5.0, help="BATT_CRT_MAH, LAND")
     parser.add_argument("--max-flight-s", type=float, default=300.0)

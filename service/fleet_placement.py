@@ -72,6 +72,9 @@ from sim.world import World
 
 log = logging.getLogger(__name__)
 
+LEGAL_ROUNDS = 3
+"""How many times a fleet's targets are made legal in each vehicle's envelope and separated
+again before they are streamed (each link moves an illegal target itself otherwise)."""
 RESTORED = "restored from the state file: not streamed until the next decision (a fresh report)"
 
 
@@ -326,6 +329,7 @@ class FleetPlacementService(PlacementService):
             targets = guard_targets(
                 assign_targets(positions, wanted), obstacles, self.fleet.separation_m, self.area
             )
+            targets = self._legal_targets(flying, targets, obstacles)
         except ValueError as exc:  # refused by the guard: nothing is streamed
             self._count("decisions_rejected")
             log.warning("fleet decision rejected: %s", exc)
@@ -342,6 +346,25 @@ class FleetPlacementService(PlacementService):
             self.counters["decisions"] += 1
         self._persist()
         return next(iter(decisions.values()))
+
+    def _legal_targets(
+        self, flying: list[str], targets: np.ndarray, obstacles: np.ndarray
+    ) -> np.ndarray:
+        """``targets`` each moved into its vehicle's envelope as its link would move it, and
+        separated again where that brought two too close (at most :data:`LEGAL_ROUNDS` rounds;
+        a target with no legal point near stays, and its link refuses it)."""
+        for _ in range(LEGAL_ROUNDS):
+            legal = np.array(
+                [
+                    self.links[vid].legal_target(tuple(t)) or tuple(t)
+                    for vid, t in zip(flying, targets.tolist(), strict=True)
+                ],
+                dtype=float,
+            )
+            if np.allclose(legal, targets, rtol=0.0, atol=1e-9):
+                return legal
+            targets = guard_targets(legal, obstacles, self.fleet.separation_m, self.area)
+        return targets
 
     def _load_allowed(self, spec: str) -> FleetPolicy:  # type: ignore[override]
         return load_fleet_policy(

@@ -52,7 +52,7 @@ from service.mission_protocol import MissionError
 from service.modes import GUIDED_MODE_NAME, Flavour, flavour_of, mode_name, set_mode_numbers
 from service.routing import LinkRoute, RouteView
 from sim.config import AreaConfig
-from sim.envelope import Envelope
+from sim.envelope import Envelope, legal_target
 
 # MAVLink 2 is needed for signing; pymavlink picks the wire version from this variable when its
 # dialect module is first loaded (it would also switch on the first MAVLink 2 packet it sees).
@@ -291,6 +291,12 @@ class VehicleLink(ABC):
     @abstractmethod
     def envelope(self) -> Envelope:
         """The envelope the vehicle flies in now."""
+
+    @abstractmethod
+    def legal_target(self, target_m: Sequence[float]) -> tuple[float, float, float] | None:
+        """The target :meth:`set_target` would stream for ``target_m`` (the nearest legal point
+        of the envelope the routes are planned in), or None when there is none; changes
+        nothing."""
 
     @abstractmethod
     def set_envelope(self, envelope: Envelope) -> None:
@@ -600,6 +606,12 @@ class VehicleLinkBase(VehicleLink):
         at every height when the autopilot's fence is on)."""
         with self._cond:
             return self._fence_envelope
+
+    def legal_target(self, target_m: Sequence[float]) -> tuple[float, float, float] | None:
+        """See :meth:`VehicleLink.legal_target`."""
+        with self._cond:
+            envelope = self._routing.envelope
+        return legal_target(envelope, target_m)
 
     def clear_target(self) -> None:
         """Stop streaming setpoints (the vehicle keeps its own behaviour for a lost stream)."""

@@ -26,6 +26,14 @@ that has the right mean, chosen over spatially consistent states because a decis
 link's history. Its cost: a hovering UAV's links flip state from step to step more often than
 3GPP TR 38.901's LoS-state correlation distance (~50 m outdoors) would have them. The expected
 mode uses the mean path loss.
+
+**Sites** (``site:PATH``, :mod:`sim.sites`): a ray-traced district. A link's mean path loss is
+the site's, interpolated at the UAV's exact position (:func:`sim.sites.lookup.path_loss_db`;
+no path: ``+inf``, out of coverage); its line-of-sight state is not drawn but found, over the
+site's building-height map (:func:`sim.sites.los.line_of_sight`), and its fading is Rician with
+the configured K in line of sight, Rayleigh otherwise (:func:`site_link_channel`). Ray tracing
+already gives the mean loss of each state, so no excess loss is added. :func:`area_site` loads
+the area's site once per file version and checks that it covers the area.
 """
 
 from __future__ import annotations
@@ -33,12 +41,17 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import lru_cache
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numba import njit
 
-from sim.config import ENVIRONMENTS, RadioConfig
+from sim.config import ENVIRONMENTS, AreaConfig, RadioConfig, site_path
 from sim.errors import InputError
+
+if TYPE_CHECKING:
+    from sim.sites.format import Site
 
 SPEED_OF_LIGHT_MPS = 299_792_458.0
 MIN_FREQUENCY_HZ = 1e9
@@ -73,7 +86,13 @@ assert tuple(AIR_TO_GROUND) == ENVIRONMENTS
 
 
 def air_to_ground(environment: str) -> AirToGround | None:
-    """The environment's parameters (``None`` for ``open``); InputError for an unknown name."""
+    """The environment's parameters (``None`` for ``open``); InputError for an unknown name,
+    and for a site, which has no statistical parameters (:func:`site_link_channel`)."""
+    if site_path(environment) is not None:
+        raise InputError(
+            f"environment: {environment!r} is a site: this part of the model takes only "
+            f"{', '.join(ENVIRONMENTS)} so far"
+        )
     try:
         return AIR_TO_GROUND[environment]
     except (KeyError, TypeError):
@@ -233,3 +252,75 @@ def rician_quadrature_db(k_db: float, n_points: int = 32) -> np.ndarray:
     gains_db = 10.0 * np.log10(samples.reshape(n_points, -1).mean(axis=1))
     gains_db.setflags(write=False)  # cached: shared by every caller
     return gains_db
+
+
+def area_site(area: AreaConfig) -> Site | None:
+    """The area's site (None unless its environment is ``site:PATH``), loaded once per version
+    of its files; InputError naming ``environment`` for a missing or broken site, or one that
+    does not cover the area's ground and flight volume."""
+    path = site_path(area.environment)
+    if path is None:
+        return None
+    from sim.sites.format import DATA_FILE, META_FILE
+
+    directory = Path(path).expanduser().resolve()
+    try:
+        stamp = tuple((directory / name).stat().st_mtime_ns for name in (META_FILE, DATA_FILE))
+    except FileNotFoundError:
+        raise InputError(
+            f"environment: {area.environment!r}: no site there ({META_FILE} and {DATA_FILE})"
+        ) from None
+    site = _load_site(str(directory), stamp, area.environment)
+    short = [
+        f"{name} {have:g} m < {need:g} m"
+        for name, have, need in (
+            ("size_x_m", site.size_x_m, area.size_x_m),
+            ("size_y_m", site.size_y_m, area.size_y_m),
+            ("uav_x_m", site.uav_x_m[-1], area.size_x_m),
+            ("uav_y_m", site.uav_y_m[-1], area.size_y_m),
+            ("uav_z_m", site.uav_z_m[-1], area.z_max_m),
+        )
+        if have < need - 1e-9
+    ]
+    if site.uav_x_m[0] > 1e-9 or site.uav_y_m[0] > 1e-9 or site.uav_z_m[0] > area.z_min_m:
+        short.append("its UAV grid starts inside the area's flight volume")
+    if short:
+        raise InputError(
+            f"environment: {area.environment!r} is smaller than the area ({', '.join(short)})"
+        )
+    return site
+
+
+@lru_cache(maxsize=4)
+def _load_site(directory: str, stamp: tuple[int, ...], environment: str) -> Site:
+    from sim.sites.format import load_site
+
+    try:
+        return load_site(Path(directory))
+    except InputError as exc:
+        raise InputError(f"environment: {environment!r}: {exc}") from None
+
+
+def site_link_channel(
+    site: Site,
+    uav_xyz_m: np.ndarray,
+    users_xy_m: np.ndarray,
+    k_db: float,
+    rng: np.random.Generator | None,
+    draws: int,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The links' channel on a site (module doc): path loss (dB, (N, U); ``+inf`` without a
+    path) for UAV positions (N, 3) and users (U, 2), and fading power gains (N, U, draws) —
+    Rician with factor ``k_db`` on links in line of sight, Rayleigh on the others — or None in
+    expected mode (``rng`` None). Draw order: :func:`draw_link_channel`'s, with each link's
+    state given (its uniforms are drawn and do not change it)."""
+    from sim.sites.lookup import path_loss_db
+    from sim.sites.los import line_of_sight
+
+    uav = np.atleast_2d(np.asarray(uav_xyz_m, dtype=float))
+    loss = path_loss_db(site, uav, users_xy_m)
+    if rng is None:
+        return loss, None
+    los = line_of_sight(site, uav, users_xy_m)
+    _, gains = draw_link_channel(rng, los.astype(float), k_db, draws)
+    return loss, gains

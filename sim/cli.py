@@ -1,4 +1,5 @@
-"""``tupa scenarios ...`` and ``tupa sim ...``: scenario files and the network model."""
+"""``tupa scenarios ...`` and ``tupa sim ...``: scenario files and the network model; also
+registers ``tupa site ...`` (:mod:`sim.sites.cli`)."""
 
 from __future__ import annotations
 
@@ -72,6 +73,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--measure-s", type=float, default=2.0, help="measurement window (default 2 s)"
     )
     evaluate.set_defaults(handler=_evaluate)
+
+    from sim.sites.cli import register as register_site  # tupa site: numpy-only until it runs
+
+    register_site(subparsers)
 
 
 def _generate(args: argparse.Namespace) -> int:

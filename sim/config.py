@@ -18,6 +18,16 @@ ENVIRONMENTS: tuple[str, ...] = ("open", "suburban", "urban", "dense-urban", "hi
 """The channel environments (:mod:`sim.channel`): the paper's free space, and ITU-R's urban
 classes with the air-to-ground model of Al-Hourani et al. (2014)."""
 QUEUEING_CHOICES: tuple[str, ...] = ("fq-codel", "mac-only")
+SITE_PREFIX = "site:"
+"""``site:PATH``: a ray-traced district, a site directory (:mod:`sim.sites`), as the channel
+environment; :func:`sim.channel.area_site` loads and checks it."""
+
+
+def site_path(environment: str) -> str | None:
+    """PATH of a ``site:PATH`` environment; None for a named one (:data:`ENVIRONMENTS`)."""
+    if isinstance(environment, str) and environment.startswith(SITE_PREFIX):
+        return environment[len(SITE_PREFIX) :]
+    return None
 
 
 @dataclass(frozen=True)
@@ -28,7 +38,8 @@ class AreaConfig:
     Altitude levels are spaced one zone apart (25, 50, 75, 100 m by default), the grid the discrete
     actions move on. ``environment`` is what stands on the ground (:data:`ENVIRONMENTS`): the
     paper's ``open`` field, or one of ITU-R's urban classes, whose buildings block the line of
-    sight (:mod:`sim.channel`).
+    sight (:mod:`sim.channel`), or ``site:PATH``, a ray-traced district (:mod:`sim.sites`; only
+    its syntax is checked here, the site when the channel loads it).
     """
 
     size_x_m: float = 500.0
@@ -40,10 +51,14 @@ class AreaConfig:
     environment: str = "open"
 
     def __post_init__(self) -> None:
-        if self.environment not in ENVIRONMENTS:
+        path = site_path(self.environment)
+        if path is None and self.environment not in ENVIRONMENTS:
             raise InputError(
-                f"environment: must be one of {', '.join(ENVIRONMENTS)}, got {self.environment!r}"
+                f"environment: must be one of {', '.join(ENVIRONMENTS)} or site:PATH, "
+                f"got {self.environment!r}"
             )
+        if path is not None and not path.strip():
+            raise InputError("environment: 'site:' needs the site directory's path (site:PATH)")
         for name in ("size_x_m", "size_y_m", "zone_m"):
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0:

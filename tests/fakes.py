@@ -37,7 +37,7 @@ from service.vehicle_link import (
     LinkState,
     VehicleLink,
 )
-from sim.envelope import Envelope
+from sim.envelope import Envelope, legal_target
 
 Vec3 = tuple[float, float, float]
 
@@ -166,6 +166,10 @@ class FakeLink(VehicleLink):
     def envelope(self) -> Envelope:
         with self._cond:
             return self._routing.envelope
+
+    def legal_target(self, target_m: Sequence[float]) -> tuple[float, float, float] | None:
+        with self._cond:
+            return legal_target(self._routing.envelope, target_m)
 
     def set_envelope(self, envelope: Envelope) -> None:
         with self._cond:

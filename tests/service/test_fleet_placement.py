@@ -448,3 +448,21 @@ def test_a_fleet_state_file_naming_other_vehicles_or_bad_targets_restores_the_re
         assert service.snapshot_counters()["state_restore_errors"] == 1
     finally:
         service.stop()
+
+
+def test_targets_moved_out_of_a_no_fly_volume_stay_apart(make_fleet: Callable[..., Fleet]) -> None:
+    """Issue 39: two targets inside a no-fly volume are each moved to its nearest legal point
+    (the same edge) and then separated again, as the links will stream them."""
+    from shapely.geometry import box
+
+    from sim.envelope import Envelope, Exclusion
+
+    service, links = make_fleet(2)
+    tower = Exclusion(box(200, 200, 300, 300), 0.0, 120.0, "tower")
+    for link in links.values():
+        link.set_envelope(Envelope.for_area(link.config.area, [tower]))
+    wanted = np.array([[210.0, 250.0, 50.0], [212.0, 250.0, 50.0]])  # 2 m apart, inside it
+    targets = service._legal_targets(["uav1", "uav2"], wanted, np.zeros((0, 3)))
+    assert np.linalg.norm(targets[0] - targets[1]) >= service.fleet.separation_m - 1e-9
+    for target, link in zip(targets, links.values(), strict=True):
+        assert link.envelope.violation(target) is None

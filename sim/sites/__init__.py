@@ -1,0 +1,12 @@
+"""Sites: real districts, ray-traced once, as channel environments (issue 38).
+
+:mod:`sim.sites.format` (the ``tupa-site/1`` directory, its checks and hash),
+:mod:`sim.sites.lookup` (path loss at any UAV position, numpy only),
+:mod:`sim.sites.build` and :mod:`sim.sites.raytrace` (building one with Sionna RT, which only
+``raytrace`` imports, inside its functions), :mod:`sim.sites.cli` (``tupa site build``).
+"""
+
+from sim.sites.format import Site, load_site, save_site
+from sim.sites.lookup import path_loss_db
+
+__all__ = ["Site", "load_site", "path_loss_db", "save_site"]
