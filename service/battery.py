@@ -4,7 +4,8 @@ The vehicle reports its remaining charge (SYS_STATUS ``battery_remaining``, %). 
 measures how fast it drains while flying (:class:`DrainEstimate`: the slope over the last
 ``window_s``) and works out what flying home from where the vehicle is would take
 (:func:`return_needs_pct`: the horizontal distance at ``return_speed_mps``, the descent at
-``descent_speed_mps``, plus ``margin_s``). When the charge left is no more than that plus the
+``descent_speed_mps`` and its last ``land_slow_alt_m`` at ``land_speed_mps``, plus
+``margin_s``). When the charge left is no more than that plus the
 configured ``reserve_pct`` (what should be left on landing), :func:`reserve_reached` says why,
 and the link commands the return (MAV_CMD_NAV_RETURN_TO_LAUNCH) and lets go of the vehicle
 (:mod:`service.control`: the autopilot has it; only an operator hands it back). A reserve above
@@ -34,6 +35,11 @@ class BatteryConfig:
     """Horizontal speed of the return (ArduCopter WPNAV_SPEED / RTL_SPEED, PX4 MPC_XY_CRUISE)."""
     descent_speed_mps: float = 1.5
     """Descent speed of the landing (ArduCopter WPNAV_SPEED_DN, PX4 MPC_Z_VEL_MAX_DN)."""
+    land_speed_mps: float = 0.5
+    """Descent speed of the landing's last ``land_slow_alt_m`` (ArduCopter LAND_SPEED 50 cm/s
+    below LAND_ALT_LOW; PX4 MPC_LAND_SPEED 0.7 m/s)."""
+    land_slow_alt_m: float = 10.0
+    """Height above home below which the landing slows (ArduCopter LAND_ALT_LOW 10 m)."""
     margin_s: float = 20.0
     """Added to the return's time (climb to the return altitude, the landing's slow end)."""
     window_s: float = 120.0
@@ -43,7 +49,13 @@ class BatteryConfig:
     def __post_init__(self) -> None:
         if self.reserve_pct is not None and not (0 <= self.reserve_pct < 100):
             raise ValueError(f"reserve_pct: must be in 0..100, got {self.reserve_pct!r}")
-        for name in ("return_speed_mps", "descent_speed_mps", "window_s", "min_window_s"):
+        for name in (
+            "return_speed_mps",
+            "descent_speed_mps",
+            "land_speed_mps",
+            "window_s",
+            "min_window_s",
+        ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name}: must be a positive number, got {value!r}")
@@ -98,10 +110,14 @@ class DrainEstimate:
 def return_needs_pct(
     drain_pct_per_s: float, distance_home_m: float, height_m: float, config: BatteryConfig
 ) -> float:
-    """The charge (%) flying home from ``distance_home_m`` away and ``height_m`` up takes."""
+    """The charge (%) flying home from ``distance_home_m`` away and ``height_m`` up takes: the
+    way home, the descent, its slow last metres, and the margin."""
+    height_m = max(0.0, height_m)
+    slow_m = min(height_m, config.land_slow_alt_m)
     time_s = (
         max(0.0, distance_home_m) / config.return_speed_mps
-        + max(0.0, height_m) / config.descent_speed_mps
+        + (height_m - slow_m) / config.descent_speed_mps
+        + slow_m / config.land_speed_mps
         + config.margin_s
     )
     return drain_pct_per_s * time_s

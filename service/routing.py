@@ -28,7 +28,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from sim.envelope import Envelope, legal_target
-from sim.envelope.route import SETTLE_M, Route, hold_at, plan_route
+from sim.envelope.route import RECOVER_M, SETTLE_M, Route, hold_at, plan_route, way_in
 from sim.envelope.route import advance as advance_route
 from sim.envelope.volume import Vec3
 
@@ -116,17 +116,17 @@ class LinkRoute:
     def _plan(self, position: Vec3) -> Route:
         assert self._requested is not None
         envelope = self.envelope
-        route = plan_route(envelope, _climbed_in(envelope, position), self._requested, self._route)
+        start = _climbed_in(envelope, position)
+        route = plan_route(envelope, start, self._requested, self._route)
         if route.holding:
             route = hold_at(self._requested, position, route.hold_reason or "holding")
             self.counters["route_holds"] += 1
             log.warning("holding: %s", route.hold_reason)
         else:
             self.counters["routes_planned"] += 1
-            if route.waypoints and position[2] < envelope.floor_m - SETTLE_M:
-                climb = _climb_point(envelope, position)
+            if start != position and position[2] < envelope.floor_m - SETTLE_M:
                 route = Route(
-                    route.requested_m, route.target_m, (climb, *route.waypoints), route.kind
+                    route.requested_m, route.target_m, (start, *route.waypoints), route.kind
                 )
         return route
 
@@ -143,13 +143,17 @@ def _climb_point(envelope: Envelope, position: Vec3) -> Vec3:
 
 
 def _climbed_in(envelope: Envelope, position: Vec3) -> Vec3:
-    """Where planning starts: a vehicle below the floor whose straight climb to the floor is
-    clear plans from the floor above it (the route climbs there first, unless the vehicle is
-    within :data:`~sim.envelope.route.SETTLE_M` of it: at the floor, up to its tracking error);
-    else where it is."""
+    """Where planning starts: a vehicle below the floor (after a take-off) plans from the point
+    of the floor above it, or from the legal point of the floor nearest that one within
+    :data:`~sim.envelope.route.RECOVER_M` (a take-off at the inclusion's very edge), when the
+    climb there crosses no exclusion: the route climbs there first (unless the vehicle is within
+    :data:`~sim.envelope.route.SETTLE_M` of the floor: at it, up to its tracking error). Else
+    where it is."""
     if position[2] >= envelope.floor_m:
         return position
     above = _climb_point(envelope, position)
-    if envelope.violation(above) is None and not envelope.blocking(position, above):
+    if envelope.violation(above) is not None:
+        above = way_in(envelope, above, RECOVER_M) or above
+    if envelope.violation(above) is None and envelope.wall_crossing(position, above) is None:
         return above
     return position

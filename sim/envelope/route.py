@@ -13,9 +13,11 @@ is none. Contract:
   exclusion; or when it is within :data:`SETTLE_M` of it (it is there, up to the autopilot's
   tracking error, which the path's :data:`~sim.envelope.paths.CORNER_MARGIN_M` covers).
 * A vehicle outside its envelope (a new envelope it already violates, or a drift) is never sent
-  anywhere else: the route holds where it is and says why. The one exception is a vehicle
-  within ``recover_m`` of the leg it was flying, which is sent back onto that leg's nearest
-  legal point first (the autopilot's tracking error, not a violation of the plan).
+  anywhere else: the route holds where it is and says why. The exceptions are the autopilot's
+  tracking error: a vehicle within ``recover_m`` of the leg it was flying is sent back onto
+  that leg's waypoint first, and one within ``recover_m`` of its envelope (a hair outside the
+  inclusion's edge, a little below the floor after a take-off) to the nearest legal point
+  (:func:`way_in`), when the way there crosses no exclusion.
 * Holding means streaming the position where the hold began (the vehicle keeps still), never
   the target.
 
@@ -103,7 +105,9 @@ def plan_route(
     start = position
     lead: tuple[Vec3, ...] = ()
     if (why := envelope.violation(position)) is not None:
-        back = _back_onto_leg(envelope, previous, position, recover_m)
+        back = _back_onto_leg(envelope, previous, position, recover_m) or way_in(
+            envelope, position, recover_m
+        )
         if back is None:
             return hold_at(
                 requested, position, f"the vehicle is outside its envelope ({why}): holding"
@@ -126,6 +130,18 @@ def _back_onto_leg(
     if math.dist(waypoint, position) <= recover_m and envelope.violation(waypoint) is None:
         return waypoint
     return None
+
+
+def way_in(envelope: Envelope, position_m: Sequence[float], recover_m: float) -> Vec3 | None:
+    """The nearest legal point to a vehicle outside its envelope by no more than ``recover_m``
+    (its tracking error: a hair outside the inclusion's edge, a little below the floor, a
+    little into an exclusion's clearance) when the way there crosses no exclusion itself; else
+    None (the vehicle holds)."""
+    position = _vec(position_m)
+    nearest = legal_target(envelope, position)
+    if nearest is None or math.dist(position, nearest) > recover_m:
+        return None
+    return None if envelope.wall_crossing(position, nearest, clearance=False) else nearest
 
 
 def advance(

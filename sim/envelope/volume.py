@@ -115,6 +115,10 @@ class Envelope:
         # Grown by the tolerance: a point on (or just off) a grown footprint is inside it.
         return tuple(prep(g.buffer(EDGE_EPS_M, join_style="mitre")) for g, _, _ in self.grown)
 
+    @cached_property
+    def _raw_prepared(self) -> tuple[PreparedGeometry, ...]:
+        return tuple(prep(e.footprint) for e in self.exclusions)
+
     # ------------------------------------------------------------------ checks
 
     def violation(self, xyz_m: Sequence[float]) -> str | None:
@@ -164,24 +168,37 @@ class Envelope:
 
     def leg_violation(self, start_m: Sequence[float], end_m: Sequence[float]) -> str | None:
         """Why flying from ``start_m`` to ``end_m`` *as an autopilot flies it* is not legal, or
-        None. A multirotor's position controller caps horizontal and vertical speed separately,
-        so a leg that climbs or descends while it moves is not flown straight: it may reach its
-        height first or its position first. Every such path lies in the vertical *wall* over
-        the leg's footprint between its two heights, so beyond :meth:`segment_violation` the
-        wall must miss every exclusion (a leg that only climbs, or keeps its height, is its
-        straight segment)."""
+        None: :meth:`segment_violation`, and :meth:`wall_crossing` (a multirotor's position
+        controller caps horizontal and vertical speed separately, so a leg that climbs or
+        descends while it moves may reach its height first or its position first)."""
         if (why := self.segment_violation(start_m, end_m)) is not None:
             return why
+        return self.wall_crossing(start_m, end_m)
+
+    def wall_crossing(
+        self, start_m: Sequence[float], end_m: Sequence[float], clearance: bool = True
+    ) -> str | None:
+        """Which exclusion the vertical *wall* over the leg's footprint, between its two
+        heights, meets (every path an autopilot flies between the ends lies in it), or None.
+        The ends themselves are not checked (a vehicle just outside its envelope may use it to
+        find its way back in); ``clearance=False``: the exclusions themselves, not grown by the
+        clearance (the way out of a clearance zone)."""
         a = tuple(float(v) for v in start_m)
         b = tuple(float(v) for v in end_m)
-        if a[2] == b[2] or (a[0], a[1]) == (b[0], b[1]):
-            return None
         low_z, high_z = min(a[2], b[2]), max(a[2], b[2])
-        footprint = LineString([(a[0], a[1]), (b[0], b[1])])
-        for (_, low, high), prepared, exclusion in zip(
-            self.grown, self._grown_prepared, self.exclusions, strict=True
-        ):
-            if low < high_z and high > low_z and prepared.intersects(footprint):
+        if (a[0], a[1]) == (b[0], b[1]):
+            footprint: shapely.Geometry = Point(a[0], a[1])
+        else:
+            footprint = LineString([(a[0], a[1]), (b[0], b[1])])
+        bands = (
+            self.grown
+            if clearance
+            else tuple((e.footprint, e.floor_m, e.ceiling_m) for e in self.exclusions)
+        )
+        solids = self._grown_prepared if clearance else self._raw_prepared
+        for (_, low, high), prepared, exclusion in zip(bands, solids, self.exclusions, strict=True):
+            overlaps = low < high_z and high > low_z if high_z > low_z else low < low_z < high
+            if overlaps and prepared.intersects(footprint):
                 return (
                     f"may cross exclusion {_label(exclusion)} on the way (the autopilot climbs "
                     "or descends and moves at separate speeds)"

@@ -42,11 +42,12 @@ def test_the_drain_is_the_slope_of_the_readings_once_they_span_the_window() -> N
 
 def test_the_reserve_is_what_flying_home_takes_plus_what_must_be_left() -> None:
     config = BatteryConfig(reserve_pct=20.0, return_speed_mps=5.0, descent_speed_mps=2.0)
-    # 250 m home at 5 m/s, 40 m down at 2 m/s, the 20 s margin: 90 s at 0.1 %/s = 9 %.
-    assert return_needs_pct(0.1, 250.0, 40.0, config) == pytest.approx(9.0)
-    assert reserve_reached(29.5, 0.1, 250.0, 40.0, config) is None
-    why = reserve_reached(28.5, 0.1, 250.0, 40.0, config)
-    assert why is not None and "28 % left" in why and "250 m" in why
+    # 250 m home at 5 m/s (50 s), 30 m down at 2 m/s (15 s) and the last 10 m at 0.5 m/s
+    # (20 s: as ArduCopter lands), the 20 s margin: 105 s at 0.1 %/s = 10.5 %.
+    assert return_needs_pct(0.1, 250.0, 40.0, config) == pytest.approx(10.5)
+    assert reserve_reached(31.0, 0.1, 250.0, 40.0, config) is None
+    why = reserve_reached(30.0, 0.1, 250.0, 40.0, config)
+    assert why is not None and "30 % left" in why and "250 m" in why
     assert reserve_reached(1.0, 0.1, 250.0, 40.0, BatteryConfig(reserve_pct=None)) is None
     with pytest.raises(ValueError, match="reserve_pct"):
         BatteryConfig(reserve_pct=100.0)

@@ -203,3 +203,34 @@ def test_the_pymavlink_link_flies_the_mock_around_a_no_fly_zone(start_mock, open
     assert state.route.kind == "around"
     print(f"\nclosest approach to the block: {closest_m:.2f} m (clearance 2 m)")
     assert closest_m >= 1.0
+
+
+def test_a_take_off_at_the_areas_very_corner_climbs_in_and_flies() -> None:
+    """Found on a real ArduCopter SITL: with home on the area's corner (the default frame), the
+    take-off ends a little below the floor and a few centimetres outside the box; the route
+    must climb in at the nearest legal point, never hold there for ever."""
+    envelope = Envelope.for_area(AREA)  # floor 25 m
+    for start in ((-0.02, 0.013, 24.1), (0.02, 0.013, 24.1), (-0.02, -0.02, 3.0)):
+        route = LinkRoute(envelope)
+        route.set_target((150.0, 150.0, 50.0))
+        flown = fly(route, start, TICKS)
+        view = route.view()
+        assert view is not None and view.kind != "hold", (start, view)
+        assert flown[-1][-1] == pytest.approx((150.0, 150.0, 50.0))
+        # Outside only on the climb in (a few centimetres from the edge), inside ever after.
+        inside = next(i for i, f in enumerate(flown) if envelope.violation(f[-1]) is None)
+        assert all(np.hypot(*(f[:, :2] - start[:2]).T).max() < 0.1 for f in flown[: inside + 1])
+        assert independent_violations(envelope, np.concatenate(flown[inside + 1 :])) == []
+
+
+def test_a_vehicle_a_little_off_its_envelope_is_brought_back_but_one_far_off_holds() -> None:
+    envelope = Envelope.for_area(AREA, [TOWER], clearance_m=5.0)
+    route = LinkRoute(envelope)
+    route.set_target((150.0, 150.0, 50.0))
+    # 1 m inside the tower's 5 m clearance (tracking error): back out to the nearest legal point.
+    assert route.setpoint((76.0, 100.0, 50.0)) == pytest.approx((74.5, 100.0, 50.0))
+    assert route.view().kind == "recover"  # type: ignore[union-attr]
+    route = LinkRoute(envelope)
+    route.set_target((150.0, 150.0, 50.0))
+    assert route.setpoint((90.0, 100.0, 50.0)) == (90.0, 100.0, 50.0)  # deep inside: holds
+    assert route.view().kind == "hold"  # type: ignore[union-attr]
