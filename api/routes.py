@@ -82,6 +82,17 @@ def _service(request: Request) -> PlacementService:
     return request.app.state.service
 
 
+def _single_vehicle(request: Request, fleet_route: str) -> PlacementService:
+    """The service, when it drives one vehicle; 409 naming ``fleet_route`` for a fleet."""
+    service = _service(request)
+    if service.is_fleet:
+        raise HTTPException(
+            status.HTTP_409_CONFLICT,
+            detail=f"this service drives {len(service.links)} vehicles: {fleet_route}",
+        )
+    return service
+
+
 def _unprocessable(loc: list[str | int], msg: str) -> HTTPException:
     """A 422 shaped like FastAPI's own validation errors, naming the field."""
     return HTTPException(
@@ -262,12 +273,7 @@ _FLEET_CONFLICT: dict[int | str, dict[str, Any]] = {
 )
 async def get_vehicle(request: Request) -> VehicleOut:
     """Position in the area frame (x east, y north, z up, metres), mode, armed, link health."""
-    service = _service(request)
-    if service.is_fleet:
-        raise HTTPException(
-            status.HTTP_409_CONFLICT,
-            detail=f"this service drives {len(service.links)} vehicles: GET /v1/vehicles",
-        )
+    service = _single_vehicle(request, "GET /v1/vehicles")
     return _vehicle_out(service.vehicle())
 
 
@@ -357,13 +363,7 @@ async def put_vehicle_control(body: ControlIn, request: Request) -> VehicleOut:
     nothing and asks for nothing until an operator hands it back here (``holder: service``);
     it then streams its next decision and asks for the guided mode during the request window.
     ``holder: operator`` makes the service let go. The answer is the vehicle's state."""
-    service = _service(request)
-    if service.is_fleet:
-        raise HTTPException(
-            status.HTTP_409_CONFLICT,
-            detail=f"this service drives {len(service.links)} vehicles: "
-            "PUT /v1/vehicles/{vehicle_id}/control",
-        )
+    service = _single_vehicle(request, "PUT /v1/vehicles/{vehicle_id}/control")
     _change_control(service, service.link, body)
     return _vehicle_out(service.vehicle())
 
@@ -423,13 +423,7 @@ async def put_vehicle_envelope(body: EnvelopeIn, request: Request) -> VehicleOut
     """From now on the vehicle flies inside this envelope: its route is planned again from where
     it is; a vehicle the new envelope finds outside holds where it is and says why (``route``),
     it never jumps. The answer is the vehicle's state."""
-    service = _service(request)
-    if service.is_fleet:
-        raise HTTPException(
-            status.HTTP_409_CONFLICT,
-            detail=f"this service drives {len(service.links)} vehicles: "
-            "PUT /v1/vehicles/{vehicle_id}/envelope",
-        )
+    service = _single_vehicle(request, "PUT /v1/vehicles/{vehicle_id}/envelope")
     _change_envelope(service, service.link, body)
     return _vehicle_out(service.vehicle())
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import MutableMapping, Sequence
 from dataclasses import dataclass
 
 from sim.envelope import Envelope, legal_target
@@ -62,17 +62,33 @@ class LinkRoute:
     def route(self) -> Route | None:
         return self._route
 
-    def set_target(self, target_m: Sequence[float]) -> tuple[Vec3 | None, bool]:
+    def set_target(
+        self, target_m: Sequence[float], counters: MutableMapping[str, int] | None = None
+    ) -> tuple[Vec3, bool]:
         """Fly to ``target_m`` from the next setpoint on. Returns the legal target streamed at
-        the end (None: there is none, the vehicle holds) and whether it differs from the one
-        set before (a new target). A holding route is planned again either way. ValueError for
-        a non-finite target (nothing changes)."""
+        the end and whether it differs from the one set before (a new target). A holding route
+        is planned again either way. ValueError for a non-finite target or one with no legal
+        point near it (nothing changes). ``counters`` (the link's) count the refused targets
+        (``targets_rejected``) and the moved ones (``geofence_clamps``)."""
+        counters = counters if counters is not None else {}
+        try:
+            legal, changed = self._set_target(target_m)
+        except ValueError:
+            counters["targets_rejected"] = counters.get("targets_rejected", 0) + 1
+            raise
+        if legal != tuple(float(v) for v in target_m):
+            counters["geofence_clamps"] = counters.get("geofence_clamps", 0) + 1
+        return legal, changed
+
+    def _set_target(self, target_m: Sequence[float]) -> tuple[Vec3, bool]:
         x_m, y_m, z_m = (float(v) for v in target_m)
         requested = (x_m, y_m, z_m)
         if not all(map(math.isfinite, requested)):
             raise ValueError(f"target {tuple(target_m)}: not a finite point")
         legal = legal_target(self.envelope, requested)
-        if legal is not None and legal != requested:
+        if legal is None:
+            raise ValueError(f"target {requested}: no legal point near it")
+        if legal != requested:
             self.counters["targets_moved"] += 1
             log.warning("target %s not legal in the envelope: moved to %s", requested, legal)
         changed = self._requested is None or legal != self._legal

@@ -568,16 +568,7 @@ class VehicleLinkBase(VehicleLink):
         service does not hold the vehicle (:mod:`service.control`).
         """
         with self._cond:
-            try:
-                legal, changed = self._routing.set_target(target_m)
-            except ValueError:
-                self.counters["targets_rejected"] += 1
-                raise
-            if legal is None:
-                self.counters["targets_rejected"] += 1
-                raise ValueError(f"target {tuple(target_m)}: no legal point near it")
-            if legal != tuple(float(v) for v in target_m):
-                self.counters["geofence_clamps"] += 1
+            legal, changed = self._routing.set_target(target_m, self.counters)
             if changed:
                 self._target_dirty = True
                 self._cond.notify_all()  # wakes an I/O loop waiting on it: out at once

@@ -13,6 +13,7 @@ from fastapi.testclient import TestClient
 from api.app import create_app
 from service.fleet_placement import FleetPlacementService, load_fleet_policy
 from service.placement import PlacementService
+from service.policy_runtime import load_policy
 from service.settings import ServiceSettings
 from service.vehicle_link import LinkConfig
 from tests.fakes import FakeLink
@@ -30,6 +31,22 @@ def report_body() -> dict[str, Any]:
             users.append({"id": f"u{c}-{i}", "x_m": x, "y_m": y, "offered_bps": 2e6,
                           "throughput_bps": 2e6, "delay_s": 0.01, "plr": 0.0})  # fmt: skip
     return {"timestamp": time.time(), "users": users}
+
+
+def single_app(
+    position_m: tuple[float, float, float] = (250.0, 250.0, 30.0),
+) -> Iterator[tuple[TestClient, FakeLink]]:
+    """A one-vehicle service (load-weighted, on-report) over a FakeLink at ``position_m``
+    behind a TestClient, started while the generator runs."""
+    settings = ServiceSettings(mavlink=URLS[0], api_token=TOKEN, decision_mode="on-report")
+    world = settings.policy_world()
+    link = FakeLink(LinkConfig(URLS[0], area=world.area), position_m=position_m)
+
+    def factory(s: ServiceSettings) -> PlacementService:
+        return PlacementService(s, link, load_policy("load-weighted", world), world)
+
+    with TestClient(create_app(settings, service_factory=factory)) as client:
+        yield client, link
 
 
 def fleet_app() -> Iterator[tuple[TestClient, dict[str, FakeLink]]]:

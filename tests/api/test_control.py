@@ -5,32 +5,14 @@ vehicle leaves the service's hands when told, TestClient."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from contextlib import contextmanager
 
 import pytest
 from fastapi.testclient import TestClient
 
-from api.app import create_app
 from api.live_schemas import LiveFrameOut
-from service.placement import PlacementService
-from service.policy_runtime import load_policy
-from service.settings import ServiceSettings
-from service.vehicle_link import LinkConfig
-from tests.api.fleet_helpers import AUTH, TOKEN, URLS, report_body
+from tests.api.fleet_helpers import AUTH, report_body, single_app
 from tests.fakes import FakeLink
-
-
-@pytest.fixture
-def single() -> Iterator[tuple[TestClient, FakeLink]]:
-    settings = ServiceSettings(mavlink=URLS[0], api_token=TOKEN, decision_mode="on-report")
-    world = settings.policy_world()
-    link = FakeLink(LinkConfig(URLS[0], area=world.area), position_m=(250.0, 250.0, 30.0))
-
-    def factory(s: ServiceSettings) -> PlacementService:
-        return PlacementService(s, link, load_policy("load-weighted", world), world)
-
-    with TestClient(create_app(settings, service_factory=factory)) as client:
-        yield client, link
 
 
 def control(client: TestClient) -> dict[str, object]:
@@ -154,14 +136,7 @@ def test_fleet_control_routes_name_the_vehicle(
 def test_a_vehicle_handed_back_on_the_ground_takes_off_only_when_asked() -> None:
     """Issue 39: a vehicle back from its battery return, recharged, is taken back in by an
     operator; the service arms it only at the operator's explicit request."""
-    settings = ServiceSettings(mavlink=URLS[0], api_token=TOKEN, decision_mode="on-report")
-    world = settings.policy_world()
-    link = FakeLink(LinkConfig(URLS[0], area=world.area), position_m=(0.0, 0.0, 0.0))
-
-    def factory(s: ServiceSettings) -> PlacementService:
-        return PlacementService(s, link, load_policy("load-weighted", world), world)
-
-    with TestClient(create_app(settings, service_factory=factory)) as client:
+    with contextmanager(single_app)(position_m=(0.0, 0.0, 0.0)) as (client, link):
         link.vehicle_leaves("autopilot", "battery reserve reached: returning home (RTL)")
         body = {"holder": "operator", "takeoff": True}
         answer = client.put("/v1/vehicle/control", json=body, headers=AUTH)

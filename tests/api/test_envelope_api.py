@@ -3,34 +3,13 @@ show them (issue 39). In memory: a FakeLink (the same routing as the real links)
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
-import pytest
 from fastapi.testclient import TestClient
 from shapely.geometry import box
 
-from api.app import create_app
 from api.live_schemas import LiveFrameOut
-from service.placement import PlacementService
-from service.policy_runtime import load_policy
-from service.settings import ServiceSettings
-from service.vehicle_link import LinkConfig
 from sim.envelope import Envelope, Exclusion
-from tests.api.fleet_helpers import AUTH, TOKEN, URLS, report_body
+from tests.api.fleet_helpers import AUTH, report_body
 from tests.fakes import FakeLink
-
-
-@pytest.fixture
-def single() -> Iterator[tuple[TestClient, FakeLink]]:
-    settings = ServiceSettings(mavlink=URLS[0], api_token=TOKEN, decision_mode="on-report")
-    world = settings.policy_world()
-    link = FakeLink(LinkConfig(URLS[0], area=world.area), position_m=(250.0, 250.0, 30.0))
-
-    def factory(s: ServiceSettings) -> PlacementService:
-        return PlacementService(s, link, load_policy("load-weighted", world), world)
-
-    with TestClient(create_app(settings, service_factory=factory)) as client:
-        yield client, link
 
 
 def test_a_new_envelope_around_the_vehicle_holds_it_and_says_why_everywhere(
