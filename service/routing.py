@@ -98,6 +98,11 @@ class LinkRoute:
             self._stale = True
         return legal, changed
 
+    def legal(self, target_m: Sequence[float]) -> Vec3 | None:
+        """The legal target :meth:`set_target` would fly to for ``target_m`` (None: none near
+        it); changes nothing."""
+        return legal_target(self.envelope, target_m)
+
     def clear(self) -> None:
         """No target: nothing streams."""
         self._requested = self._legal = None

@@ -47,12 +47,12 @@ from service import mavlink_commands
 from service.battery import BatteryConfig, DrainEstimate, reserve_reached, return_needs_pct
 from service.control import Control, ControlHolder
 from service.fence import FenceError, FencePlan, fence_compatible, fence_plan
-from service.frames import FrameConfig, GeoPoint, area_to_ned, ned_to_area
+from service.frames import FrameConfig, GeoPoint, area_to_ned, ned_to_area, ned_to_global
 from service.mission_protocol import MissionError
 from service.modes import GUIDED_MODE_NAME, Flavour, flavour_of, mode_name, set_mode_numbers
 from service.routing import LinkRoute, RouteView
 from sim.config import AreaConfig
-from sim.envelope import Envelope, legal_target
+from sim.envelope import Envelope
 
 # MAVLink 2 is needed for signing; pymavlink picks the wire version from this variable when its
 # dialect module is first loaded (it would also switch on the first MAVLink 2 packet it sees).
@@ -601,8 +601,7 @@ class VehicleLinkBase(VehicleLink):
     def legal_target(self, target_m: Sequence[float]) -> tuple[float, float, float] | None:
         """See :meth:`VehicleLink.legal_target`."""
         with self._cond:
-            envelope = self._routing.envelope
-        return legal_target(envelope, target_m)
+            return self._routing.legal(target_m)
 
     def clear_target(self) -> None:
         """Stop streaming setpoints (the vehicle keeps its own behaviour for a lost stream)."""
@@ -845,8 +844,6 @@ class VehicleLinkBase(VehicleLink):
     def _note_home(self, home: GeoPoint, local_ned_m: tuple[float, float, float]) -> None:
         """HOME_POSITION (call under ``self._cond``): home's position and where it lies in the
         local frame give the local frame's origin, which the area frame hangs off."""
-        from service.frames import ned_to_global
-
         self._origin = ned_to_global(home, *(-v for v in local_ned_m))
         if self._fence.startswith("waiting for the vehicle's home"):
             self._fence_next_try = 0.0

@@ -37,7 +37,7 @@ from service.vehicle_link import (
     LinkState,
     VehicleLink,
 )
-from sim.envelope import Envelope, legal_target
+from sim.envelope import Envelope
 
 Vec3 = tuple[float, float, float]
 
@@ -160,7 +160,7 @@ class FakeLink(VehicleLink):
 
     def legal_target(self, target_m: Sequence[float]) -> tuple[float, float, float] | None:
         with self._cond:
-            return legal_target(self._routing.envelope, target_m)
+            return self._routing.legal(target_m)
 
     def set_envelope(self, envelope: Envelope) -> None:
         with self._cond:

@@ -40,6 +40,7 @@ from sim.scenarios import ScenarioSampler
 from sim.vector_env import FapVectorEnv
 from sim.world import CLOSED_LOOP, CLOSED_LOOP_MOVING, PAPER, Flight, World, fly, world_with
 from tests.sim.test_envelope import AREA, envelopes, independent_violations
+from tests.sim.test_fleet_env import assert_one_uav_flies_as_the_single_environment
 
 FLIGHT = Flight(10.0, 3.0)
 SEPARATION_M = 10.0
@@ -343,24 +344,13 @@ def test_the_environments_fly_legal_routes(env_type: type) -> None:
 def test_one_uav_flies_as_the_single_environment_in_an_envelope(
     fleet_kind: str, single_env: type
 ) -> None:
-    world = _world(steps=20)
-    sampler = ScenarioSampler(families=("mixture",), users=(5, 10))
-    fleet = FleetParallelEnv(1, fleet_kind, scenarios=sampler, world=world)
-    single = single_env(sampler, world=world)
-    obs_f, _ = fleet.reset(seed=11)
-    obs_s, _ = single.reset(seed=11)
-    np.testing.assert_array_equal(obs_f["uav_0"][:6], obs_s)
-    rng = np.random.default_rng(0)
-    for _ in range(20):
-        if fleet_kind == "discrete":
-            action = int(rng.integers(0, 13))
-        else:
-            action = rng.uniform(0, 1, 3).astype(np.float32)
-        obs_f, rewards, _, _, infos = fleet.step({"uav_0": action})
-        obs_s, reward, _, _, info = single.step(action)
-        assert rewards["uav_0"] == reward
-        np.testing.assert_array_equal(infos["uav_0"]["uav_xyz_m"], info["uav_xyz_m"])
-        np.testing.assert_array_equal(obs_f["uav_0"][:6], obs_s)
+    assert_one_uav_flies_as_the_single_environment(
+        fleet_kind,
+        single_env,
+        _world(steps=20),
+        ScenarioSampler(families=("mixture",), users=(5, 10)),
+        20,
+    )
 
 
 @pytest.mark.parametrize("kind", ["discrete", "continuous"])

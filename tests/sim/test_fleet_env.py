@@ -24,7 +24,7 @@ from sim.fleet_env import (
     parallel_env,
 )
 from sim.scenarios import Scenario, ScenarioSampler
-from sim.world import get_world
+from sim.world import World, get_world
 
 MOVING = replace(get_world("closed-loop-moving"), episode_steps=12)
 
@@ -66,21 +66,32 @@ def test_registered_with_gymnasium() -> None:
 def test_one_uav_flies_as_the_single_environment(fleet_kind: str, single_env: type) -> None:
     """Same seed, same actions: the same rewards and the same six maps, bit for bit."""
     world = replace(get_world("closed-loop-moving"), episode_steps=15)
-    sampler = ScenarioSampler(families=("mixture",), users=(5, 30))
+    assert_one_uav_flies_as_the_single_environment(
+        fleet_kind, single_env, world, ScenarioSampler(families=("mixture",), users=(5, 30)), 15
+    )
+
+
+def assert_one_uav_flies_as_the_single_environment(
+    fleet_kind: str, single_env: type, world: World, sampler: ScenarioSampler, steps: int
+) -> None:
+    """A fleet of one and the single environment, same seed, same random actions for ``steps``
+    steps: the same rewards, truncations, six maps and UAV positions, bit for bit; the fleet's
+    agent gone at the end of the episode."""
     fleet = FleetParallelEnv(1, fleet_kind, scenarios=sampler, world=world)
     single = single_env(sampler, world=world)
     obs_f, _ = fleet.reset(seed=11)
     obs_s, _ = single.reset(seed=11)
     np.testing.assert_array_equal(obs_f["uav_0"][:6], obs_s)
     rng = np.random.default_rng(0)
-    for _ in range(15):
+    for _ in range(steps):
         if fleet_kind == "discrete":
             action = int(rng.integers(0, 13))
         else:
             action = rng.uniform(0, 1, 3).astype(np.float32)
-        obs_f, rewards, _, truncations, _ = fleet.step({"uav_0": action})
-        obs_s, reward, _, truncated, _ = single.step(action)
+        obs_f, rewards, _, truncations, infos = fleet.step({"uav_0": action})
+        obs_s, reward, _, truncated, info = single.step(action)
         assert rewards["uav_0"] == reward
+        np.testing.assert_array_equal(infos["uav_0"]["uav_xyz_m"], info["uav_xyz_m"])
         np.testing.assert_array_equal(obs_f["uav_0"][:6], obs_s)
         assert truncations["uav_0"] == truncated
     assert fleet.agents == []
