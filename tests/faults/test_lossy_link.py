@@ -46,25 +46,40 @@ def fly_to(
     api: Api, mock: MockProcess, users: list[dict[str, Any]], timeout_s: float = 40.0
 ) -> tuple[tuple[float, float, float], int]:
     """Place for ``users`` and wait until the vehicle is there; when a link flap left the vehicle
-    to PX4's offboard-loss hold, hand it back and place again, as an operator would. Returns the
-    target and the number of hand-backs."""
-    target = target_xyz(api.place(users))
-    handbacks = 0
+    to PX4's offboard-loss hold (before or after the report), hand it back and place again, as
+    an operator would. Returns the target and the number of hand-backs."""
     deadline = time.monotonic() + timeout_s
+    target, handbacks, place = None, 0, True
     while True:
         try:
-            wait_at(mock, target, timeout_s=min(2.0, max(0.1, deadline - time.monotonic())))
+            if place:
+                placed = target_xyz(api.place(users, timeout_s=_left(deadline, 3.0)))
+                if target is not None:  # placed again after a hand-back: the same target
+                    assert placed == pytest.approx(target)
+                target, place = placed, False
+            wait_at(mock, target, timeout_s=_left(deadline, 2.0))
             return target, handbacks
         except AssertionError:
             if time.monotonic() >= deadline:
                 raise
-        control = api.vehicle()["control"]
-        if control["holder"] != "service" and api.vehicle()["link"] == "up":
-            assert control["holder"] == "autopilot", control
-            assert "while the link was lost" in control["reason"], control
-            if api.client.put("/v1/vehicle/control", json={"holder": "service"}).is_success:
-                handbacks += 1
-                assert target_xyz(api.place(users)) == pytest.approx(target)
+        if _hand_back_if_left(api):
+            handbacks += 1
+            place = True
+
+
+def _left(deadline: float, most_s: float) -> float:
+    return min(most_s, max(0.1, deadline - time.monotonic()))
+
+
+def _hand_back_if_left(api: Api) -> bool:
+    """Hand the vehicle back when a link flap left it to the autopilot (and only then); True
+    when it was handed back."""
+    control = api.vehicle()["control"]
+    if control["holder"] == "service" or api.vehicle()["link"] != "up":
+        return False
+    assert control["holder"] == "autopilot", control
+    assert "while the link was lost" in control["reason"], control
+    return api.client.put("/v1/vehicle/control", json={"holder": "service"}).is_success
 
 
 @pytest.mark.parametrize("loss", [0.1, 0.3])
