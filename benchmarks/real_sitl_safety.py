@@ -632,6 +632,12 @@ def main() -> int:
         metavar=("NORTH", "EAST"),
         help="TUPA_AREA_ORIGIN_NORTH_M/_EAST_M (default -20 -20: home at (20, 20))",
     )
+    parser.add_argument(
+        "--mavlink-backend",
+        choices=("pymavlink", "mavsdk"),
+        default="pymavlink",
+        help="tupa serve's --mavlink-backend (default pymavlink)",
+    )
     parser.add_argument("--no-unshare", action="store_true", help="refuse outside a namespace")
     args = parser.parse_args()
     frame = FrameConfig(
@@ -707,7 +713,10 @@ def main() -> int:
             "paced",
             "--port",
             "0",
+            "--mavlink-backend",
+            args.mavlink_backend,
         ]
+        result["mavlink_backend"] = args.mavlink_backend
         if args.scenario == "failsafe-first-off":
             serve_cmd += ["--battery-reserve-pct", "off"]
         if args.scenario == "fence":

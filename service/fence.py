@@ -241,6 +241,24 @@ def fence_compatible(envelope: Envelope) -> Envelope:
     )
 
 
+def item_polygons(items: Sequence[FenceItem]) -> list[tuple[int, list[FenceItem]]]:
+    """The items grouped into their polygons: ``(command, [item, ...])`` each, in order;
+    ValueError for items whose vertex counts do not make whole polygons."""
+    polygons: list[tuple[int, list[FenceItem]]] = []
+    i = 0
+    while i < len(items):
+        first = items[i]
+        count = first.vertex_count
+        if count < 3 or i + count > len(items):
+            raise ValueError(f"items[{i}]: vertex count {count} does not fit the items")
+        block = list(items[i : i + count])
+        if any((item.command, item.vertex_count) != (first.command, count) for item in block):
+            raise ValueError(f"items[{i}]: the polygon's items differ in command or count")
+        polygons.append((first.command, block))
+        i += count
+    return polygons
+
+
 def items_to_area(
     items: Sequence[FenceItem], home: GeoPoint, frame: FrameConfig | None = None
 ) -> list[tuple[int, list[tuple[float, float]]]]:
@@ -248,21 +266,13 @@ def items_to_area(
     each, in order; ValueError for items whose vertex counts do not make whole polygons."""
     frame = frame if frame is not None else FrameConfig()
     polygons: list[tuple[int, list[tuple[float, float]]]] = []
-    i = 0
-    while i < len(items):
-        first = items[i]
-        count = first.vertex_count
-        if count < 3 or i + count > len(items):
-            raise ValueError(f"items[{i}]: vertex count {count} does not fit the items")
+    for command, block in item_polygons(items):
         ring = []
-        for item in items[i : i + count]:
-            if (item.command, item.vertex_count) != (first.command, count):
-                raise ValueError(f"items[{i}]: the polygon's items differ in command or count")
+        for item in block:
             point = GeoPoint(item.lat_e7 / 1e7, item.lon_e7 / 1e7, home.alt_amsl_m)
             x_m, y_m, _ = global_to_area(home, point, frame)
             ring.append((x_m, y_m))
-        polygons.append((first.command, ring))
-        i += count
+        polygons.append((command, ring))
     return polygons
 
 

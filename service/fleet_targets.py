@@ -10,18 +10,30 @@ Pure functions, property-tested (``tests/service/test_fleet_targets.py``, hypoth
   all inside the area volume (the geofence). Targets move as little as
   :func:`sim.geometry.enforce_separation`'s rule allows; those obstacles have priority.
 * :func:`check_targets`: the final check, raising rather than letting a violation be streamed.
+* :func:`paths_held`: the paths. Which vehicles hold where they are for this decision so that
+  the flights from where the vehicles are to their targets keep the separation at every
+  instant (the world's rule, :func:`sim.envelope.flight.separate_tracks`, over the whole
+  flight rather than one period): each flight is predicted along the route its link streams
+  (:func:`sim.envelope.flight.fly_route_track`) at :func:`service_flight`'s speed caps.
 
 A lost vehicle's last position counts as an obstacle only while it lies inside the volume (a
-vehicle that never took off, or landed, is below every target). The guard is about targets; the
-paths between them are the autopilots' business (their own avoidance, if any).
+vehicle that never took off, or landed, is below every target). The paths are predicted, not
+measured: a vehicle much slower or faster than the speed caps can meet another where the
+prediction had one pass before the other; the check is made again at every decision from where
+the vehicles are, and the targets' separation holds whatever the timing.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from sim.config import AreaConfig
+from sim.envelope.flight import fly_route_track, separate_tracks
+from sim.envelope.volume import Envelope
 from sim.geometry import assign_targets, enforce_separation, volume_bounds
+from sim.world import Flight
 
 __all__ = [
     "SEPARATION_TOLERANCE_M",
@@ -29,7 +41,12 @@ __all__ = [
     "check_targets",
     "guard_targets",
     "inside_volume",
+    "paths_held",
+    "service_flight",
 ]
+
+PATH_HORIZON_S = 300.0
+"""How far ahead the paths are predicted: long enough for any flight across the area."""
 
 SEPARATION_TOLERANCE_M = 1e-6
 """How far below ``separation_m`` two checked targets may be (floating-point rounding)."""
@@ -94,3 +111,37 @@ def check_targets(
                 f"targets: one is {clearance.min():.3f} m from a vehicle that cannot be "
                 f"commanded, under {separation_m} m"
             )
+
+
+def service_flight(flight: Flight, envelopes: Sequence[Envelope | None]) -> Flight:
+    """The speed caps the paths are predicted with: the served world's flight (its default's,
+    10 m/s and 3 m/s, where the world teleports), the horizontal one no faster than any
+    envelope's ``max_speed_mps``."""
+    horizontal = flight.horizontal_mps or Flight().horizontal_mps
+    vertical = flight.vertical_mps or Flight().vertical_mps
+    for envelope in envelopes:
+        if envelope is not None:
+            horizontal = min(horizontal, envelope.max_speed_mps)  # type: ignore[type-var]
+    return Flight(horizontal, vertical)
+
+
+def paths_held(
+    envelopes: Sequence[Envelope | None],
+    positions_m: np.ndarray,
+    targets_m: np.ndarray,
+    flight: Flight,
+    separation_m: float,
+    horizon_s: float = PATH_HORIZON_S,
+) -> tuple[bool, ...]:
+    """Which of K vehicles at ``positions_m`` (K, 3) hold where they are, instead of flying to
+    ``targets_m`` (K, 3) in their ``envelopes``, so that no two flights come closer than
+    ``separation_m`` (or closer than they start) within ``horizon_s`` (module doc). Lower
+    indices fly first. Pure."""
+    positions = np.asarray(positions_m, dtype=float).reshape(-1, 3)
+    targets = np.asarray(targets_m, dtype=float).reshape(-1, 3)
+    tracks = [
+        fly_route_track(envelope, p, t, flight, horizon_s).track
+        for envelope, p, t in zip(envelopes, positions.tolist(), targets.tolist(), strict=True)
+    ]
+    starts = [(p[0], p[1], p[2]) for p in positions.tolist()]
+    return separate_tracks(starts, tracks, separation_m, horizon_s)

@@ -43,6 +43,10 @@ The loop, heartbeat supervision, setpoint schedule, mode-request window and take
   ``max(setpoint_rate_hz, 20)`` setpoints a second; ``counters["setpoints_sent"]`` counts the
   link's own calls. MAVSDK always sends a yaw with a position setpoint, so the link sends the
   heading the vehicle had when the stream started (it does not turn the vehicle).
+* the autopilot's fence (``autopilot_fence``): MAVSDK's Geofence plugin uploads the polygons
+  and downloads them for comparison, its Param plugin sets and reads back the ceiling and the
+  breach action (:mod:`service.mavsdk_fence`); the vehicle's home comes from HOME_POSITION
+  through MavlinkDirect, asked for with MAV_CMD_REQUEST_MESSAGE.
 * mode: ``Offboard.start`` (on ArduPilot MAVSDK maps it to GUIDED), when the base asks for it.
 * :meth:`~service.vehicle_link.VehicleLink.clear_target` stops the stream without a mode change,
   as the pymavlink backend does, so that the vehicle's own offboard-loss failsafe acts. MAVSDK
@@ -79,8 +83,12 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any, Self
 
+from service.fence import FencePlan
+from service.frames import GeoPoint
 from service.mavlink_link import warn_if_unsigned
+from service.mavsdk_fence import apply_fence_plan_mavsdk
 from service.mavsdk_session import Session, mavsdk_url, route_mavsdk_logs_to_python
+from service.mission_protocol import FenceReport, MissionError
 from service.modes import Flavour
 from service.vehicle_link import LinkConfig, VehicleLinkBase, mavlink
 
@@ -89,6 +97,9 @@ log = logging.getLogger(__name__)
 MAV_COMP_ID_AUTOPILOT1 = 1
 RAW_WAIT_S = 0.005
 """``udpin``: the longest a poll waits for a datagram (a new target goes out within a few ms)."""
+FENCE_CALL_TIMEOUT_S = 30.0
+"""The longest one fence call (upload, download, one parameter) may take; MAVSDK's own retries
+end well before it."""
 ACTION_RESULTS = {
     "COMMAND_DENIED": mavlink.MAV_RESULT_DENIED,
     "COMMAND_DENIED_NOT_LANDED": mavlink.MAV_RESULT_DENIED,
@@ -203,6 +214,7 @@ class MavsdkLink(VehicleLinkBase):
                 return  # its HEARTBEAT's address is not known (yet): look again
             session.make_plugins(system)
             session.direct.subscribe_message("HEARTBEAT", self._on_heartbeat, session.system_id)
+            session.direct.subscribe_message("HOME_POSITION", self._on_home, session.system_id)
             session.telemetry.subscribe_position_velocity_ned(self._on_position_ned)
             session.telemetry.subscribe_position(self._on_position)
             session.telemetry.subscribe_heading(self._on_heading)
@@ -264,6 +276,20 @@ class MavsdkLink(VehicleLinkBase):
                 system_status=int(status) if isinstance(status, int | float) else None,
                 component_id=message.component_id,
             )
+
+    def _on_home(self, message: Any, system_id: int) -> None:
+        if message.system_id != system_id or message.component_id != MAV_COMP_ID_AUTOPILOT1:
+            return
+        try:
+            f = json.loads(message.fields_json)
+            home = GeoPoint(f["latitude"] / 1e7, f["longitude"] / 1e7, f["altitude"] / 1e3)
+            local_ned_m = (float(f["x"]), float(f["y"]), float(f["z"]))
+        except (ValueError, KeyError, TypeError):
+            with self._cond:
+                self.counters["bad_data"] += 1
+            return
+        with self._cond:
+            self._note_home(home, local_ned_m)
 
     def _on_position_ned(self, position_velocity: Any, _user_data: Any) -> None:
         p = position_velocity.position
@@ -342,6 +368,88 @@ class MavsdkLink(VehicleLinkBase):
             if session is None or not session.offboard_fed:
                 return
             session.call_async(session.offboard.start_async, self._on_answer)
+
+    # ------------------------------------------------------------------ the autopilot's fence
+
+    def _request_home(self) -> None:
+        """MAV_CMD_REQUEST_MESSAGE for HOME_POSITION (the answer comes to :meth:`_on_home`)."""
+        from mavsdk.plugins.mavlink_direct import MavlinkMessage
+
+        with self._sdk_lock:
+            session = self._session
+            if session is None or session.system_id is None:
+                return
+            fields = {
+                "target_system": session.system_id,
+                "target_component": MAV_COMP_ID_AUTOPILOT1,
+                "command": mavlink.MAV_CMD_REQUEST_MESSAGE,
+                "confirmation": 0,
+                "param1": float(mavlink.MAVLINK_MSG_ID_HOME_POSITION),
+                **{f"param{i}": 0.0 for i in range(2, 8)},
+            }
+            message = MavlinkMessage(
+                "COMMAND_LONG", 0, 0, session.system_id, MAV_COMP_ID_AUTOPILOT1, json.dumps(fields)
+            )
+            session.call_async(
+                lambda answer: session.direct.send_command_async(
+                    message, lambda result, _ack, user_data: answer(result, user_data)
+                ),
+                self._on_answer,
+            )
+
+    def _upload_fence(self, plan: FencePlan) -> FenceReport:
+        """The fence through MAVSDK's Geofence and Param plugins
+        (:func:`service.mavsdk_fence.apply_fence_plan_mavsdk`), each blocking call on a worker
+        thread while this I/O thread goes on feeding MAVSDK the vehicle's datagrams."""
+        with self._sdk_lock:
+            session = self._session
+        if session is None or session.geofence is None:
+            raise MissionError("the connection closed before the fence upload")
+        log.info("fence upload through MAVSDK (autopilot %s)", session.system.autopilot_type())
+        return apply_fence_plan_mavsdk(
+            session.geofence,
+            session.param,
+            plan,
+            lambda call, what: self._call_blocking(session, call, what),
+        )
+
+    def _call_blocking(self, session: Session, call: Callable[[], Any], what: str) -> Any:
+        """``call()`` (a blocking MAVSDK call) on a worker thread, counted among the session's
+        unanswered calls so that no teardown destroys MAVSDK under it; meanwhile, on ``udpin``,
+        the vehicle's datagrams go on reaching MAVSDK. Its result, or what it raised;
+        MissionError after ``FENCE_CALL_TIMEOUT_S`` or when the link closes."""
+        done = threading.Event()
+        outcome: list[tuple[Any, BaseException | None]] = []
+
+        def start(answer: Callable[..., None]) -> None:
+            def work() -> None:
+                try:
+                    value: tuple[Any, BaseException | None] = (call(), None)
+                except Exception as exc:  # MAVSDK's errors: the caller names them
+                    value = (None, exc)
+                answer(*value)
+
+            threading.Thread(target=work, name="mavsdk-fence-call", daemon=True).start()
+
+        def finished(value: Any, error: BaseException | None) -> None:
+            outcome.append((value, error))
+            done.set()
+
+        session.call_async(start, finished)
+        deadline = time.monotonic() + FENCE_CALL_TIMEOUT_S
+        while not done.is_set():
+            if session.udp is not None:
+                self._feed(session, RAW_WAIT_S * 4)
+            else:
+                done.wait(0.05)
+            if self._stop.is_set():
+                raise MissionError(f"{what}: the link is closing")
+            if time.monotonic() > deadline and not done.is_set():
+                raise MissionError(f"{what}: no answer in {FENCE_CALL_TIMEOUT_S:g} s")
+        value, error = outcome[0]
+        if error is not None:
+            raise error
+        return value
 
     # ------------------------------------------------------------------ commands
 

@@ -260,6 +260,8 @@ class Session:
     action: Any = None
     offboard: Any = None
     direct: Any = None
+    geofence: Any = None
+    param: Any = None
     offboard_fed: bool = False
     """The Offboard plugin got a setpoint since it was made (so MAVSDK may be re-sending it)."""
     keep: list[Any] = field(default_factory=list)
@@ -313,8 +315,10 @@ class Session:
     def make_plugins(self, system: Any) -> None:
         """The plugins the link uses, for the autopilot ``system`` MAVSDK found."""
         from mavsdk.plugins.action import Action
+        from mavsdk.plugins.geofence import Geofence
         from mavsdk.plugins.mavlink_direct import MavlinkDirect
         from mavsdk.plugins.offboard import Offboard
+        from mavsdk.plugins.param import Param
         from mavsdk.plugins.telemetry import Telemetry
 
         self.system = system
@@ -323,6 +327,8 @@ class Session:
         self.action = Action(system)
         self.offboard = Offboard(system)
         self.direct = MavlinkDirect(system)
+        self.geofence = Geofence(system)
+        self.param = Param(system)
 
     def renew_offboard(self) -> None:
         """A fresh Offboard plugin: ends MAVSDK's own re-sending of the last setpoint without a
@@ -341,7 +347,14 @@ class Session:
         # the answer (or the timeout) comes: let them finish first.
         if not self.wait_answered(UNANSWERED_WAIT_S):
             log.debug("closing the MAVSDK session with %d calls unanswered", self.unanswered)
-        for plugin in (self.telemetry, self.action, self.offboard, self.direct):
+        for plugin in (
+            self.telemetry,
+            self.action,
+            self.offboard,
+            self.direct,
+            self.geofence,
+            self.param,
+        ):
             self.hold_callbacks(plugin)
         with contextlib.suppress(Exception):
             self.sdk.destroy()  # joins MAVSDK's threads: no callback comes after it

@@ -250,11 +250,6 @@ class ServiceSettings(BaseSettings):
         if self.fleet_file is None:
             for url in self.fleet_mavlink or (self.mavlink,):
                 check_connection(url, "--mavlink", self.mavlink_backend)
-        if self.autopilot_fence and self.mavlink_backend != "pymavlink":
-            raise ValueError(
-                "autopilot_fence: the fence upload needs --mavlink-backend pymavlink (the mavsdk "
-                "backend cannot upload one yet)"
-            )
         token = self.api_token.get_secret_value() if self.api_token else ""
         if not token and not self.insecure:
             raise ValueError(

@@ -292,6 +292,13 @@ class VehicleLink(ABC):
     def envelope(self) -> Envelope:
         """The envelope the vehicle flies in now."""
 
+    @property
+    @abstractmethod
+    def routing_envelope(self) -> Envelope:
+        """The envelope its routes are planned in: :attr:`envelope`, with every exclusion a
+        full-height column while the autopilot's fence is on
+        (:func:`service.fence.fence_compatible`)."""
+
     @abstractmethod
     def legal_target(self, target_m: Sequence[float]) -> tuple[float, float, float] | None:
         """The target :meth:`set_target` would stream for ``target_m`` (the nearest legal point
@@ -597,6 +604,11 @@ class VehicleLinkBase(VehicleLink):
         at every height when the autopilot's fence is on)."""
         with self._cond:
             return self._fence_envelope
+
+    @property
+    def routing_envelope(self) -> Envelope:
+        with self._cond:
+            return self._routing.envelope
 
     def legal_target(self, target_m: Sequence[float]) -> tuple[float, float, float] | None:
         """See :meth:`VehicleLink.legal_target`."""

@@ -19,6 +19,7 @@ import struct
 
 from sitl_mock.vehicle import Vehicle
 
+PARAM_TYPE_INT8 = 2
 PARAM_TYPE_INT32 = 6
 PARAM_TYPE_REAL32 = 9
 INT_TYPES = frozenset({1, 2, 3, 4, 5, 6})
@@ -64,8 +65,11 @@ def parameter_table(vehicle: Vehicle, system_id: int) -> list[tuple[str, float, 
             ("BAT1_CAPACITY", cfg.battery_capacity_mah, PARAM_TYPE_REAL32),
         ]
     fence = vehicle.autopilot_fence
+    # ArduPilot's fence integers are AP_Int8s (FENCE_ENABLE, FENCE_TYPE, FENCE_ACTION,
+    # AVOID_ENABLE), sent float-cast; PX4's GF_ACTION is an INT32, sent bytewise.
+    integer = PARAM_TYPE_INT8 if vehicle.flavour.name == "ardupilot" else PARAM_TYPE_INT32
     for name, value in fence.params.items():
-        kind = PARAM_TYPE_INT32 if name in fence.INTEGER_PARAMS else PARAM_TYPE_REAL32
+        kind = integer if name in fence.INTEGER_PARAMS else PARAM_TYPE_REAL32
         table.append((name, value, kind))
     return [(name, float(value), kind) for name, value, kind in table]
 

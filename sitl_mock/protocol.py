@@ -31,7 +31,7 @@ from sitl_mock.flavours import (
 )
 from sitl_mock.geo import ned_to_global
 from sitl_mock.mission import MISSION_MESSAGES, FenceMissionServer
-from sitl_mock.params import PARAM_TYPE_INT32, parameter_table, set_parameter
+from sitl_mock.params import INT_TYPES, parameter_table, set_parameter
 from sitl_mock.vehicle import FORCE_MAGIC, Vehicle
 
 log = logging.getLogger(__name__)
@@ -83,6 +83,8 @@ DATA_STREAM_GROUPS: dict[int, tuple[str, ...]] = {
 FLIGHT_SW_VERSION = {"ardupilot": (4, 6, 0), "px4": (1, 15, 0)}
 CAPABILITIES = (
     MAV.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+    | MAV.MAV_PROTOCOL_CAPABILITY_MISSION_INT  # the fence protocol (sitl_mock.mission) is INT
+    | MAV.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
     | MAV.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
     | MAV.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
     | MAV.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
@@ -625,7 +627,7 @@ class MavlinkProtocol:
         self, table: list[tuple[str, float, int]], index: int
     ) -> mavlink.MAVLink_message:
         name, value, kind = table[index]
-        if kind == PARAM_TYPE_INT32 and self.flavour.params_bytewise:
+        if kind in INT_TYPES and self.flavour.params_bytewise:
             value = struct.unpack("<f", struct.pack("<i", round(value)))[0]
         return self._encoder.param_value_encode(name.encode(), value, kind, len(table), index)
 

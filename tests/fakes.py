@@ -158,6 +158,10 @@ class FakeLink(VehicleLink):
         with self._cond:
             return self._routing.envelope
 
+    @property
+    def routing_envelope(self) -> Envelope:
+        return self.envelope
+
     def legal_target(self, target_m: Sequence[float]) -> tuple[float, float, float] | None:
         with self._cond:
             return self._routing.legal(target_m)

@@ -18,9 +18,14 @@ from service.fleet_targets import (
     check_targets,
     guard_targets,
     inside_volume,
+    paths_held,
+    service_flight,
 )
 from sim.config import AreaConfig
+from sim.envelope.flight import Track, closest_approach_m, fly_route_track
+from sim.envelope.volume import Envelope
 from sim.geometry import volume_bounds
+from sim.world import Flight
 
 AREA = AreaConfig()
 SMALL = AreaConfig(size_x_m=60.0, size_y_m=60.0, zone_m=5.0, z_min_m=5.0, z_max_m=20.0)
@@ -130,3 +135,52 @@ def test_each_vehicle_keeps_the_target_above_it() -> None:
     here = np.array([[100.0, 100.0, 30.0], [400.0, 400.0, 30.0], [100.0, 400.0, 30.0]])
     swapped = here[[2, 0, 1]]
     np.testing.assert_array_equal(assign_targets(here, swapped), here)
+
+
+# ---------------------------------------------------------------------- the paths
+
+
+def test_two_flights_that_would_cross_at_once_hold_the_second_vehicle() -> None:
+    """Two flights crossing at right angles, both at the crossing 5 s in: the second vehicle
+    holds; when it starts farther away (there after the first has passed), both fly; swapping
+    places head on, each would end where the other is: both hold."""
+    flight = Flight(10.0, 3.0)
+    positions = np.array([[100.0, 250.0, 50.0], [150.0, 200.0, 50.0]])
+    targets = np.array([[200.0, 250.0, 50.0], [150.0, 300.0, 50.0]])
+    assert paths_held([None, None], positions, targets, flight, 10.0) == (False, True)
+    later = np.array([[100.0, 250.0, 50.0], [150.0, 100.0, 50.0]])
+    assert paths_held([None, None], later, targets, flight, 10.0) == (False, False)
+    swap = np.array([[100.0, 250.0, 50.0], [200.0, 250.0, 50.0]])
+    assert paths_held([None, None], swap, swap[::-1], flight, 10.0) == (True, True)
+
+
+def test_the_flight_speed_is_the_worlds_capped_by_the_envelopes() -> None:
+    slow = Envelope.for_area(AREA, max_speed_mps=4.0)
+    assert service_flight(Flight(None, None), [None]) == Flight(10.0, 3.0)
+    assert service_flight(Flight(12.0, 2.0), [slow, None]) == Flight(4.0, 2.0)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    starts=st.lists(_inside(SMALL), min_size=2, max_size=4),
+    wanted=st.lists(_inside(SMALL), min_size=4, max_size=4),
+    separation_m=st.floats(2.0, 8.0),
+)
+def test_the_flights_that_go_keep_the_separation_at_every_instant(
+    starts: list[tuple[float, float, float]],
+    wanted: list[tuple[float, float, float]],
+    separation_m: float,
+) -> None:
+    """Whatever the targets: the held vehicles stay, the others fly their predicted tracks, and
+    no two come closer than the separation (or than they started) at any instant."""
+    flight = Flight(5.0, 2.0)
+    positions = np.array(starts)
+    targets = np.array(wanted[: len(starts)])
+    held = paths_held([None] * len(starts), positions, targets, flight, separation_m, 60.0)
+    tracks = [
+        Track.still(tuple(p), 60.0) if h else fly_route_track(None, p, t, flight, 60.0).track
+        for h, p, t in zip(held, positions.tolist(), targets.tolist(), strict=True)
+    ]
+    for i, j in itertools.combinations(range(len(starts)), 2):
+        floor = min(separation_m, float(np.linalg.norm(positions[i] - positions[j])))
+        assert closest_approach_m(tracks[i], tracks[j]) >= floor - 1e-6
