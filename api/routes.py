@@ -43,7 +43,6 @@ from api.schemas import (
     VehicleOut,
 )
 from service.errors import InputError
-from service.fleet_spec import envelope_for
 from service.placement import (
     Decision,
     FutureReportError,
@@ -396,17 +395,17 @@ _ENVELOPE_RESPONSES: dict[int | str, dict[str, Any]] = {
 }
 
 
-def _change_envelope(service: PlacementService, link: VehicleLink, body: EnvelopeIn) -> None:
-    """Give ``link``'s vehicle the envelope ``body`` describes (422 naming the field)."""
+def _change_envelope(service: PlacementService, vid: str, body: EnvelopeIn) -> None:
+    """Give vehicle ``vid`` the envelope ``body`` describes (422 naming the field)."""
     document = body.model_dump(mode="json", exclude_none=True)
     try:
-        envelope = envelope_for(document, service.world.area, link.config.frames)
+        envelope = service.set_envelope(vid, document)
     except InputError as exc:
         field = str(exc).split(":", 1)[0].removeprefix("envelope").strip(".")
         raise _unprocessable(field.split(".") if field else [], str(exc)) from None
-    link.set_envelope(envelope)
     log.warning(
-        "an operator gave the vehicle a new envelope: %d no-fly volumes, %g-%g m",
+        "an operator gave %s a new envelope: %d no-fly volumes, %g-%g m",
+        vid,
         len(envelope.exclusions),
         envelope.floor_m,
         envelope.ceiling_m,
@@ -424,7 +423,7 @@ async def put_vehicle_envelope(body: EnvelopeIn, request: Request) -> VehicleOut
     it is; a vehicle the new envelope finds outside holds where it is and says why (``route``),
     it never jumps. The answer is the vehicle's state."""
     service = _single_vehicle(request, "PUT /v1/vehicles/{vehicle_id}/envelope")
-    _change_envelope(service, service.link, body)
+    _change_envelope(service, next(iter(service.links)), body)
     return _vehicle_out(service.vehicle())
 
 
@@ -440,7 +439,7 @@ async def put_fleet_vehicle_envelope(
     """As ``PUT /v1/vehicle/envelope``, for one vehicle of the fleet."""
     service = _service(request)
     _one_vehicle(service, vehicle_id)  # 404 for an unknown id
-    _change_envelope(service, service.links[vehicle_id], body)
+    _change_envelope(service, vehicle_id, body)
     return _fleet_vehicle_out(_one_vehicle(service, vehicle_id))
 
 

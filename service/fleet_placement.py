@@ -230,6 +230,7 @@ class FleetPlacementService(PlacementService):
             "policy": policy.spec,
             "decisions": {vid: asdict(d) for vid, d in decisions.items()},
             "control": self._control_document(),
+            "envelopes": self._envelopes_document(),
         }
 
     def _restore_targets(self, state: dict[str, Any], path: object) -> None:

@@ -75,11 +75,14 @@ from typing import Any, Literal
 import numpy as np
 
 from policies.interface import Policy
+from service.fleet_spec import envelope_for
 from service.live_view import LiveFrame, LiveView, Moment
 from service.policy_runtime import load_policy
 from service.settings import ServiceSettings
 from service.vehicle_link import LinkConfig, LinkState, VehicleLink
 from sim.config import AreaConfig
+from sim.envelope import Envelope
+from sim.errors import InputError
 from sim.files import atomic_write_json
 from sim.observation import UserReports
 from sim.world import World
@@ -261,6 +264,7 @@ class PlacementService:
         self._swapping = threading.Lock()  # one policy load at a time (see swap_policy)
         self._stop = threading.Event()
         self._persisted_control: dict[str, dict[str, str]] = {}  # last written control
+        self._envelope_documents: dict[str, dict[str, Any]] = {}  # put in flight, by vehicle
         self._thread: threading.Thread | None = None
         self._waiting_for_link = threading.Event()  # a report was held because the link is down
         self._report: Report | None = None
@@ -617,6 +621,45 @@ class PlacementService:
             self._persisted_control = control
             self._persist()
 
+    def set_envelope(self, vid: str, document: dict[str, Any], persist: bool = True) -> Envelope:
+        """Give vehicle ``vid`` the envelope ``document`` (a ``tupa-envelope/1`` document, in
+        the live frame) from now on, and keep it in the state file: a restart flies in it again
+        (:meth:`_restore_envelopes`). InputError naming the field for a document that cannot
+        be flown; nothing changes then."""
+        link = self.links[vid]
+        envelope = envelope_for(document, self.world.area, link.config.frames)
+        link.set_envelope(envelope)
+        with self._lock:
+            self._envelope_documents[vid] = document
+        if persist:
+            self._persist()
+        return envelope
+
+    def _restore_envelopes(self, saved: object, path: object) -> None:
+        """Give each vehicle the envelope an operator put in flight before the restart (a
+        saved one that no longer fits the area or names an unknown vehicle is ignored and
+        counted: the configured one stays)."""
+        if saved is None:
+            return
+        if not isinstance(saved, dict):
+            saved = {"": saved}
+        for vid, document in saved.items():
+            if vid not in self.links or not isinstance(document, dict):
+                log.warning("ignoring the envelope of %r in the state file %s", vid, path)
+                self._count("state_restore_errors")
+                continue
+            try:
+                self.set_envelope(vid, document, persist=False)
+            except InputError as exc:
+                log.warning("ignoring the envelope of %r in the state file %s: %s", vid, path, exc)
+                self._count("state_restore_errors")
+                continue
+            log.info("restored %s's envelope from %s", vid, path)
+
+    def _envelopes_document(self) -> dict[str, dict[str, Any]]:
+        with self._lock:
+            return dict(self._envelope_documents)
+
     def _control_document(self) -> dict[str, dict[str, str]]:
         """Who has each vehicle that is not the service's, by id: what a restart must keep (a
         restarted service must not take back a vehicle its pilot or a failsafe took)."""
@@ -779,6 +822,7 @@ class PlacementService:
             "policy": policy.spec,
             "decision": asdict(decision) if decision else None,
             "control": self._control_document(),
+            "envelopes": self._envelopes_document(),
         }
 
     def _persist(self) -> None:
@@ -810,6 +854,7 @@ class PlacementService:
         self._restore_policy(state.get("policy"), path)
         self._restore_targets(state, path)
         self._restore_control(state.get("control"), path)
+        self._restore_envelopes(state.get("envelopes"), path)
         return True
 
     def _restore_control(self, saved: object, path: object) -> None:

@@ -8,6 +8,7 @@ must not arm) run end to end against a real in-process sitl_mock (PX4 flavour)."
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from collections.abc import Callable, Iterator
@@ -296,3 +297,35 @@ def test_serving_a_checkpoint_outside_its_training_environments_is_warned(caplog
     with caplog.at_level(logging.WARNING, logger="service.policy_runtime"):
         load_policy(str(SHIPPED_DDPG), CLOSED_LOOP)
     assert not [r for r in caplog.records if "trained in" in r.getMessage()]
+
+
+def test_an_envelope_put_in_flight_is_flown_again_after_a_restart(
+    make_service: Callable[..., PlacementService], tmp_path: Any
+) -> None:
+    """Issue 39: an operator's envelope is kept in the state file; the restarted service's
+    vehicle flies in it (not the configured one); a saved envelope that no longer fits is
+    ignored and counted, and the configured one stays."""
+    state_file = tmp_path / "state.json"
+    first = make_service(state_file=state_file)
+    document = {
+        "format": "tupa-envelope/1",
+        "exclusions": [
+            {"name": "mast", "polygon": [[200, 200], [260, 200], [260, 260]], "ceiling_m": 80}
+        ],
+        "ceiling_m": 90,
+    }
+    first.set_envelope("uav1", document)
+    first.stop()
+    saved = json.loads(state_file.read_text())
+    assert saved["envelopes"] == {"uav1": document}
+    second = make_service(state_file=state_file)
+    envelope = second.link.envelope
+    assert envelope.ceiling_m == 90 and [e.name for e in envelope.exclusions] == ["mast"]
+    assert second.snapshot_counters().get("state_restore_errors", 0) == 0
+    second.stop()
+    saved["envelopes"]["uav1"]["ceiling_m"] = 5  # below the floor: cannot be flown
+    saved["envelopes"]["uav9"] = document  # no such vehicle
+    state_file.write_text(json.dumps(saved))
+    third = make_service(state_file=state_file)
+    assert third.link.envelope.ceiling_m == AREA.z_max_m and not third.link.envelope.exclusions
+    assert third.snapshot_counters()["state_restore_errors"] == 2
