@@ -4,7 +4,9 @@ matplotlib and friends load in handlers."""
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from policies.sweep.cli import register as register_sweep
 from policies.train_cli import register as register_train
@@ -179,8 +181,9 @@ def add_world_arguments(parser: argparse.ArgumentParser) -> None:
         "--environment",
         default=None,
         metavar="NAME",
-        help="what stands on the ground: open, suburban, urban, dense-urban, highrise-urban "
-        "(default: the scenario file's, open when it says none)",
+        help="what stands on the ground: open, suburban, urban, dense-urban, highrise-urban, or "
+        "site:PATH (a site directory, docs/sites.md) (default: the scenario file's, open when "
+        "it says none)",
     )
 
 
@@ -189,7 +192,7 @@ def world_from_args(args: argparse.Namespace, default: str, area: object = None)
     with ``--queueing`` and ``--episode-steps`` applied when given, over ``area``."""
     from dataclasses import replace
 
-    from sim.config import NetworkConfig
+    from sim.config import NetworkConfig, check_environment
     from sim.errors import InputError
     from sim.world import get_world, world_with
 
@@ -208,8 +211,19 @@ def world_from_args(args: argparse.Namespace, default: str, area: object = None)
         world = replace(world, **overrides)
     settings = list(args.world_set)
     if getattr(args, "environment", None) is not None:
+        check_environment(args.environment, "--environment", on_disk=True)
         settings.append(f"environment={args.environment}")
     return world_with(world, settings)
+
+
+def check_scenarios_in(world: Any, scenarios: Sequence[Any], path: Path) -> None:
+    """Every scenario's users can stand in the world's area: on a site given by
+    ``--environment`` or ``--world-set`` (not by the file, whose loading checked it), none
+    inside a building (``FILE: scenario s0003: users[1]: (...) is inside a building on ...``)."""
+    from sim.scenarios import check_scenario_area
+
+    for scenario in scenarios:
+        check_scenario_area(scenario, world.area, f"{path}: scenario {scenario.id}: ")
 
 
 def _eval(args: argparse.Namespace) -> int:
@@ -241,6 +255,7 @@ def _eval(args: argparse.Namespace) -> int:
     if not scenarios:
         raise InputError(f"{args.scenarios}: scenarios: empty (nothing to evaluate)")
     world = world_from_args(args, "paper", area)
+    check_scenarios_in(world, scenarios, args.scenarios)
     policies = [resolve_policy(name, world) for name in names]
     results = []
     if args.backend is not None:  # fanned out in slices (policies/sweep/fanout.py)
@@ -329,6 +344,7 @@ def _eval_fleet(args: argparse.Namespace) -> int:
     if not scenarios:
         raise InputError(f"{args.scenarios}: scenarios: empty (nothing to evaluate)")
     world = world_from_args(args, "closed-loop", area)
+    check_scenarios_in(world, scenarios, args.scenarios)
     fleet = FleetConfig(n_uavs=k)
     replan = args.replan_every or world.episode_steps
     candidates: dict[str, object] = {}

@@ -93,9 +93,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--environment",
         default=None,
         metavar="ENV",
-        help="the channel environment (open, suburban, urban, dense-urban, highrise-urban); "
-        "several separated by commas: one drawn per episode (with the world), evaluations in "
-        "the first. Default: the test set's",
+        help="the channel environment (open, suburban, urban, dense-urban, highrise-urban, or "
+        "site:PATH, a site directory); several separated by commas: one drawn per episode (with "
+        "the world), evaluations in the first. Default: the test set's",
     )
     parser.add_argument(
         "--action",

@@ -66,12 +66,19 @@ from policies.presets import NetworkPreset, Preset, get_preset
 from policies.progress import Progress, format_duration
 from policies.registry import make_placement
 from policies.residual import ResidualActions, residual_metadata
-from sim.config import ENVIRONMENTS, AreaConfig, NetworkConfig, Queueing
+from sim.config import (
+    ENVIRONMENTS,
+    AreaConfig,
+    NetworkConfig,
+    Queueing,
+    check_environment,
+    site_path,
+)
 from sim.envs import FapContinuousEnv, FapDiscreteEnv, ScenarioCycle
 from sim.errors import InputError
 from sim.files import atomic_write_json, load_scenarios, scenario_set_hash
 from sim.observation import observation_shape
-from sim.scenarios import Scenario, ScenarioSampler, generate_scenarios
+from sim.scenarios import Scenario, ScenarioSampler, check_scenario_area, generate_scenarios
 from sim.world import World, get_world, world_with
 
 STRATEGIES: tuple[str, ...] = ("spec", "gen10k", "gen500")
@@ -122,11 +129,13 @@ class TrainConfig:
             raise InputError(f"--seed: must be >= 0, got {self.seed}")
         if self.envs < 1:
             raise InputError(f"--envs: must be at least 1, got {self.envs}")
-        unknown = [e for e in self.environments if e not in ENVIRONMENTS]
-        if unknown:
-            raise InputError(
-                f"--environment: must be among {', '.join(ENVIRONMENTS)}, got {unknown[0]!r}"
-            )
+        for environment in self.environments:
+            if site_path(environment) is None and environment not in ENVIRONMENTS:
+                raise InputError(
+                    f"--environment: must be among {', '.join(ENVIRONMENTS)} or site:PATH, "
+                    f"got {environment!r}"
+                )
+            check_environment(environment, "--environment", on_disk=True)
         if self.envs > 1 and (
             self.action == "residual" or "," in self.world or len(self.environments) > 1
         ):
@@ -424,13 +433,24 @@ class _Run:
     ) -> None:
         self.config = config
         self.area, self.test = load_scenarios(config.test_scenarios)
+        # On a site (--environment site:PATH) the test users must stand on its walkable
+        # ground, and generated training users are drawn there (the first site's area).
+        site_areas = [
+            w.area for w in config.train_worlds(self.area) if site_path(w.area.environment)
+        ]
+        for site_area in site_areas:
+            for scenario in self.test:
+                check_scenario_area(
+                    scenario, site_area, f"{config.test_scenarios}: scenario {scenario.id}: "
+                )
+        drawn_in = site_areas[0] if site_areas else self.area
         self.train_set = training_scenarios(
             config.strategy,
             config.episodes,
             self.test,
-            self.area,
+            drawn_in,
             config.seed,
-            config.sampler(self.area, self.test[0].n_users) if self.test else None,
+            config.sampler(drawn_in, self.test[0].n_users) if self.test else None,
         )
         self.episodes_done = episodes_done
         self.wall_time_before_s = wall_time_s

@@ -54,6 +54,10 @@ if TYPE_CHECKING:
     from sim.sites.format import Site
 
 SPEED_OF_LIGHT_MPS = 299_792_458.0
+NO_LINK_LOSS_DB = 1000.0
+"""The loss the network model gives a site's link with no path at all (``+inf`` in the
+lookup): far beyond any real link (received power ~ −980 dBm, disconnected, no throughput)
+but finite, so SNRs, sums and differences downstream stay numbers."""
 MIN_FREQUENCY_HZ = 1e9
 MAX_FREQUENCY_HZ = 7e9
 
@@ -310,17 +314,35 @@ def site_link_channel(
     draws: int,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """The links' channel on a site (module doc): path loss (dB, (N, U); ``+inf`` without a
-    path) for UAV positions (N, 3) and users (U, 2), and fading power gains (N, U, draws) —
-    Rician with factor ``k_db`` on links in line of sight, Rayleigh on the others — or None in
-    expected mode (``rng`` None). Draw order: :func:`draw_link_channel`'s, with each link's
-    state given (its uniforms are drawn and do not change it)."""
-    from sim.sites.lookup import path_loss_db
-    from sim.sites.los import line_of_sight
+    path) for UAV positions (N, 3) and users (U, 2) — or (N, U, 2), each position its own users
+    (:func:`sim.sites.los.site_links`) — and fading power gains (N, U, draws) — Rician with
+    factor ``k_db`` on links in line of sight, Rayleigh on the others — or None in expected
+    mode (``rng`` None). Draw order: :func:`draw_link_channel`'s, with each link's state given
+    (its uniforms are drawn and do not change it); the same gains it gives."""
+    from sim.sites.los import site_links
 
-    uav = np.atleast_2d(np.asarray(uav_xyz_m, dtype=float))
-    loss = path_loss_db(site, uav, users_xy_m)
+    loss, los = site_links(site, uav_xyz_m, users_xy_m, rng is not None)
     if rng is None:
         return loss, None
-    los = line_of_sight(site, uav, users_xy_m)
-    _, gains = draw_link_channel(rng, los.astype(float), k_db, draws)
-    return loss, gains
+    assert los is not None
+    rng.random(los.shape)  # draw_link_channel's state uniforms: the states are known here
+    parts = rng.standard_normal((2, *los.shape, draws))
+    los_amplitude, sigma = _rician_parameters(k_db)
+    _combine_by_state(parts.reshape(2, los.size, draws), los.ravel(), los_amplitude, sigma)
+    return loss, parts[0]
+
+
+@njit(cache=True, nogil=True)
+def _combine_by_state(
+    parts: np.ndarray, los: np.ndarray, los_amplitude: float, sigma: float
+) -> None:
+    """:func:`draw_link_channel`'s gains in place into ``parts[0]`` (2, L, draws): Rician
+    (``los_amplitude``, ``sigma``) on links in line of sight, Rayleigh on the others."""
+    rayleigh = math.sqrt(0.5)
+    for link in range(parts.shape[1]):
+        amplitude = los_amplitude if los[link] else 0.0
+        scatter = sigma if los[link] else rayleigh
+        for d in range(parts.shape[2]):
+            re = amplitude + scatter * parts[0, link, d]
+            im = scatter * parts[1, link, d]
+            parts[0, link, d] = re * re + im * im

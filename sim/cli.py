@@ -41,9 +41,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     generate.add_argument(
         "--environment",
-        choices=ENVIRONMENTS,
         default="open",
-        help="what stands on the ground, recorded in the file (default open, the paper's)",
+        metavar="ENV",
+        help=f"what stands on the ground, recorded in the file: {', '.join(ENVIRONMENTS)} "
+        "(default open, the paper's) or site:PATH (a site directory: users on its walkable "
+        "ground)",
     )
     generate.add_argument("--out", type=Path, required=True, help="output file (JSON)")
     generate.set_defaults(handler=_generate)
@@ -80,7 +82,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _generate(args: argparse.Namespace) -> int:
-    from sim.config import AreaConfig
+    from sim.channel import area_site
+    from sim.config import AreaConfig, check_environment
     from sim.errors import InputError
     from sim.files import save_scenarios
     from sim.scenarios import MAX_USERS, format_heterogeneity_histogram, generate_scenarios
@@ -95,7 +98,12 @@ def _generate(args: argparse.Namespace) -> int:
         )
     if not math.isfinite(args.total_load_mbps) or not args.total_load_mbps > 0:
         raise InputError(f"--total-load-mbps: must be positive, got {args.total_load_mbps}")
-    area = AreaConfig(environment=args.environment)
+    environment = check_environment(args.environment, "--environment", on_disk=True)
+    area = AreaConfig(environment=environment)
+    try:
+        area_site(area)  # a site: sound and covering the area
+    except InputError as exc:
+        raise InputError(f"--environment: {str(exc).removeprefix('environment: ')}") from None
     total_load_bps = args.total_load_mbps * 1e6
     scenarios = generate_scenarios(
         args.n,

@@ -7,6 +7,7 @@ shared between environments, the oracle and the service without defensive copies
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -30,6 +31,40 @@ def site_path(environment: str) -> str | None:
     return None
 
 
+def environment_problem(value: object, *, on_disk: bool = False) -> str | None:
+    """What is wrong with ``value`` as a channel environment, None if nothing: it must be one of
+    :data:`ENVIRONMENTS` or ``site:PATH`` with a non-empty PATH; with ``on_disk`` (what a
+    command line asks before it starts), PATH must also hold a site's two files
+    (:mod:`sim.sites.format`). Loading the site, its hash and whether it covers the area are
+    checked where the channel takes it (:func:`sim.channel.area_site`)."""
+    path = site_path(value) if isinstance(value, str) else None
+    if path is None:
+        if value in ENVIRONMENTS:
+            return None
+        return f"must be one of {', '.join(ENVIRONMENTS)} or site:PATH, got {value!r}"
+    if not path.strip():
+        return "'site:' needs the site directory's path (site:PATH)"
+    if on_disk:
+        from sim.sites.format import DATA_FILE, META_FILE
+
+        directory = Path(path).expanduser()
+        if not all((directory / name).is_file() for name in (META_FILE, DATA_FILE)):
+            return f"{value!r}: no site there ({META_FILE} and {DATA_FILE})"
+    return None
+
+
+def check_environment(value: object, where: str = "environment", *, on_disk: bool = False) -> str:
+    """``value`` if it is a channel environment (:func:`environment_problem`), else an
+    :class:`InputError` of one line naming ``where``, the field or option (``environment``,
+    ``--environment``, ``world.environment``): e.g. ``--environment: 'site:/x': no site there
+    (site.json and site.npz)``. The one check of an environment's name: the area, the world's
+    settings and every command line's ``--environment`` use it."""
+    problem = environment_problem(value, on_disk=on_disk)
+    if problem is not None:
+        raise InputError(f"{where}: {problem}")
+    return value  # type: ignore[return-value]  # a str: environment_problem said so
+
+
 @dataclass(frozen=True)
 class AreaConfig:
     """The coverage area (paper §II): a rectangle of square zones, and the UAV's altitude band.
@@ -51,14 +86,7 @@ class AreaConfig:
     environment: str = "open"
 
     def __post_init__(self) -> None:
-        path = site_path(self.environment)
-        if path is None and self.environment not in ENVIRONMENTS:
-            raise InputError(
-                f"environment: must be one of {', '.join(ENVIRONMENTS)} or site:PATH, "
-                f"got {self.environment!r}"
-            )
-        if path is not None and not path.strip():
-            raise InputError("environment: 'site:' needs the site directory's path (site:PATH)")
+        check_environment(self.environment)
         for name in ("size_x_m", "size_y_m", "zone_m"):
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0:

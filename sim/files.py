@@ -11,8 +11,12 @@ Two formats, both a JSON object with a ``format`` field and the area they live i
      "cases": [{"id": "c0", "uav": {"x_m": 250, "y_m": 250, "z_m": 25}, "users": [...]}, ...]}
 
 An optional top-level ``"environment"`` (``open`` when absent: the paper's free space; or
-``suburban``, ``urban``, ``dense-urban``, ``highrise-urban``, :mod:`sim.channel`) says what
-stands on the ground; it becomes the area's ``environment``.
+``suburban``, ``urban``, ``dense-urban``, ``highrise-urban``, :mod:`sim.channel`; or
+``site:PATH``, a ray-traced district, :mod:`sim.sites`) says what stands on the ground; it
+becomes the area's ``environment``. A file on a site is read with its site: the site must be
+there, cover the area, and every user must stand on its walkable ground
+(``scenarios.json: scenario s0003: users[1]: (120.0, 45.0) is inside a building on
+site:sites/munich``).
 
 Coordinates are in the area frame (origin at the south-west corner, x east, y north, z up,
 metres); loads are uplink offered loads in bit/s. Users must lie in the closed area
@@ -41,9 +45,10 @@ from typing import Any
 
 import numpy as np
 
+from sim.channel import area_site
 from sim.config import AreaConfig
 from sim.errors import InputError
-from sim.scenarios import Case, Scenario
+from sim.scenarios import Case, Scenario, check_scenario_area
 
 SCENARIOS_FORMAT = "tupa-scenarios/1"
 CASES_FORMAT = "tupa-cases/1"
@@ -312,10 +317,12 @@ def _parse_area(doc: dict[str, Any], where: _Where) -> AreaConfig:
     values = {name: _finite(raw[name], where, f"area.{name}") for name in _AREA_FIELDS}
     try:
         # AreaConfig names a bad environment ("environment: must be one of ...").
-        return AreaConfig(**values, environment=doc.get("environment", "open"))
+        area = AreaConfig(**values, environment=doc.get("environment", "open"))
+        area_site(area)  # a site: there, sound, and covering the area ("environment: ...")
     except ValueError as exc:
         # AreaConfig's messages already name the field ("area.zone_m: ...").
         raise where.error(None, str(exc)) from None
+    return area
 
 
 def _parse_items(
@@ -406,7 +413,9 @@ def _scenarios_from_document(
     for item_id, obj, item_where in _parse_items(doc, "scenarios", "scenario", where):
         _check_keys(obj, ("id", "users"), item_where, None)
         xy_m, load_bps = _parse_users(obj, item_where, area)
-        scenarios.append(Scenario(item_id, xy_m, load_bps))
+        scenario = Scenario(item_id, xy_m, load_bps)
+        _check_ground(scenario, area, item_where)
+        scenarios.append(scenario)
     return area, scenarios
 
 
@@ -417,8 +426,18 @@ def _cases_from_document(doc: dict[str, Any], where: _Where) -> tuple[AreaConfig
         _check_keys(obj, ("id", "uav", "users"), item_where, None)
         uav_xyz_m = _parse_uav(obj, item_where, area)
         xy_m, load_bps = _parse_users(obj, item_where, area)
-        cases.append(Case(item_id, uav_xyz_m, xy_m, load_bps))
+        case = Case(item_id, uav_xyz_m, xy_m, load_bps)
+        _check_ground(case.scenario, area, item_where)
+        cases.append(case)
     return area, cases
+
+
+def _check_ground(scenario: Scenario, area: AreaConfig, where: _Where) -> None:
+    """On a site: every user on walkable ground (one line naming the item and the user)."""
+    try:
+        check_scenario_area(scenario, area)
+    except InputError as exc:
+        raise where.error(None, str(exc)) from None
 
 
 # --------------------------------------------------------------------------------------------

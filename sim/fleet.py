@@ -26,8 +26,14 @@ A step of the fleet is the single-cell model (:class:`sim.network.NetworkModel`)
     domains' active APs (those with a user offering traffic) as co-channel interference added
     to its noise, the SINR replacing the SNR (interference in dB lowers every link of that AP,
     its rate and its preamble detection alike). This mode builds each link's channel with
-    :meth:`sim.network.NetworkModel.link_channel` (the single model's, in every environment),
-    adds the interference, and steps the rows with :meth:`~sim.network.NetworkModel.step_links`.
+    :meth:`sim.network.NetworkModel.link_channel_at` (the single model's, in every environment,
+    a site's included: from the link's two ends), adds the interference, and steps the rows
+    with :meth:`~sim.network.NetworkModel.step_links`.
+
+**Sites** (``site:PATH``): association hears each AP's mean received power from the site's
+lookup at the AP's exact position (no path: :data:`sim.channel.NO_LINK_LOSS_DB`, never heard);
+the cells' links are the single model's on the site. AP-to-AP carrier sense stays free space
+(the UAVs see each other in the air).
 
 What this abstraction leaves out (its limits): carrier sense is judged AP to AP, standing in
 for the stations that actually transmit uplink, so hidden and exposed stations are not
@@ -71,7 +77,7 @@ import numpy as np
 from numba import njit
 
 from sim.association import NOT_ASSOCIATED, associate, received_power_dbm
-from sim.channel import friis_path_loss_db
+from sim.channel import NO_LINK_LOSS_DB, friis_path_loss_db
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
 from sim.errors import InputError
 from sim.network import NetworkModel, QueueState, StepResult
@@ -257,7 +263,7 @@ class FleetModel:
                 f"users, got {state.association.shape}"
             )
         radio = self.config.radio
-        rx = received_power_dbm(uav, users, self.area, radio)
+        rx = self._received_power_dbm(uav, users)
         previous = state.association
         assoc, handover = associate(
             rx,
@@ -380,19 +386,35 @@ class FleetModel:
         # Each user's link to its own AP, then the rows: row (b, d) holds the users whose AP
         # is in domain d (d an AP index; rows of indices that are no domain's lowest are empty).
         own = np.take_along_axis(uav, assoc[:, :, None], axis=1)  # (B, U, 3)
-        ground = np.hypot(own[..., 0] - users[:, 0], own[..., 1] - users[:, 1])
-        height = np.maximum(own[..., 2] - self.area.user_height_m, 0.0)
         index = _row_index(np.take_along_axis(domain, assoc, axis=1), k)
-        rows_ground = _gather(ground, index, k, 0.0)
-        rows_height = _gather(height, index, k, 1.0)
+        # Padding: an AP 1 m above a user at the origin (what the kernel never reads back).
+        pad_xyz = (0.0, 0.0, self.area.user_height_m + 1.0)
+        rows_ap = np.stack(
+            [_gather(np.ascontiguousarray(own[..., i]), index, k, pad_xyz[i]) for i in range(3)],
+            axis=-1,
+        )
         rows_penalty = _gather(np.take_along_axis(penalty_db, assoc, axis=1), index, k, 0.0)
-        assert self.model is not None
-        loss, gains = self.model.link_channel(rows_ground, rows_height, rng)
         rows_users, rows_load, rows_queues = _gather_cells(users, load, *queues.arrays, index, k)
+        assert self.model is not None
+        loss, gains = self.model.link_channel_at(rows_ap, rows_users, rng)
         result = self.model.step_links(
             loss + rows_penalty, gains, rows_users, rows_load, QueueState(*rows_queues), step_s
         )
         return _scatter_result(index, batch, n_users, result), domain, interference_dbm
+
+    def _received_power_dbm(self, uav: np.ndarray, users: np.ndarray) -> np.ndarray:
+        """Each AP's mean received power at each user (B, K, U), what association hears:
+        :func:`sim.association.received_power_dbm`, or on a site the site's mean loss at the
+        AP's exact position (no path: :data:`~sim.channel.NO_LINK_LOSS_DB`)."""
+        radio = self.config.radio
+        assert self.model is not None
+        site = self.model.site
+        if site is None:
+            return received_power_dbm(uav, users, self.area, radio)
+        from sim.sites.lookup import path_loss_db
+
+        loss = path_loss_db(site, uav.reshape(-1, 3), users).reshape(*uav.shape[:2], -1)
+        return radio.tx_power_dbm - np.minimum(loss, NO_LINK_LOSS_DB)
 
     # -- metrics ----------------------------------------------------------------------------
     def _utility(

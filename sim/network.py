@@ -5,9 +5,12 @@ offered loads) and returns each user's throughput, mean delay and packet loss ov
 every position at once. For each position and user the pipeline is:
 
 1. ``channel``: 3-D distance, path loss (Friis in the ``open`` environment; free space plus the
-   air-to-ground excess loss of a line-of-sight or non-line-of-sight link in the urban ones,
-   :mod:`sim.channel`), noise → SNR; users under the minimum preamble RSSI are disconnected and
-   lose everything they send.
+   air-to-ground excess loss of a line-of-sight or non-line-of-sight link in the urban ones;
+   on a site, ``site:PATH``, the ray-traced loss at the UAV's exact position, :mod:`sim.channel`),
+   noise → SNR; users under the minimum preamble RSSI are disconnected and lose everything they
+   send. A site's link with no path at all is out of coverage: its loss enters the kernel as
+   :data:`~sim.channel.NO_LINK_LOSS_DB` (finite, so the SNR stays a number; the user is
+   disconnected and gets no throughput).
 2. ``phy``: ideal rate selection under fast fading → the user's link (TXOP overhead, subframe
    airtime, A-MPDU size limit, subframe success).
 3. ``mac``: fair sharing of transmit opportunities among stations with traffic, solved exactly,
@@ -30,7 +33,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -38,14 +41,17 @@ from numba import njit
 from sim.channel import (
     MAX_FREQUENCY_HZ,
     MIN_FREQUENCY_HZ,
+    NO_LINK_LOSS_DB,
     SPEED_OF_LIGHT_MPS,
     air_to_ground,
+    area_site,
     draw_link_channel,
     elevation_deg,
     friis_path_loss_db,
     los_probability,
     mean_path_loss_db,
     rician_power_gain,
+    site_link_channel,
 )
 from sim.config import AreaConfig, NetworkConfig
 from sim.errors import InputError
@@ -59,6 +65,9 @@ from sim.mac import (
 from sim.phy import LinkTable, expected_link, sampled_link
 from sim.queues import advance_queue
 from sim.stalls import mean_backoff_slots, stall_lookup, stall_table
+
+if TYPE_CHECKING:
+    from sim.sites.format import Site
 
 # Fading draws of the rate manager per user and step in stochastic mode.
 RATE_DRAWS_PER_STEP = 8
@@ -144,7 +153,13 @@ class _Constants(NamedTuple):
 
 @dataclass
 class NetworkModel:
-    """The cell's model for one configuration: tables are built once, ``step`` is pure."""
+    """The cell's model for one configuration: tables are built once, ``step`` is pure.
+
+    On a site (``area.environment`` ``site:PATH``) the site is loaded and checked once, here
+    (:func:`sim.channel.area_site`: InputError naming ``environment`` for a missing, broken or
+    too small site), and every link's channel comes from it (:func:`sim.channel.
+    site_link_channel`): the mean loss in expected mode, the loss and fading by line of sight
+    otherwise."""
 
     config: NetworkConfig = field(default_factory=NetworkConfig)
     area: AreaConfig = field(default_factory=AreaConfig)
@@ -187,7 +202,8 @@ class NetworkModel:
         )
         # The kernel takes a plain tuple: numba types it much faster than a named tuple.
         self._kt = tuple(self._k)
-        params = air_to_ground(self.area.environment)
+        self._site = area_site(self.area)
+        params = None if self._site is not None else air_to_ground(self.area.environment)
         self._urban = params is not None
         # An urban link's excess loss (dB) in each LoS state, at this carrier: fixed per model.
         self._excess_db = params.excess_db(c.radio.frequency_hz) if params is not None else None
@@ -196,6 +212,11 @@ class NetworkModel:
                 f"frequency_hz: the urban environments' model covers 1–7 GHz, got "
                 f"{c.radio.frequency_hz!r}"
             )
+
+    @property
+    def site(self) -> Site | None:
+        """The area's site (``site:PATH``), or None in a statistical environment."""
+        return self._site
 
     def initial_state(self, batch: int, n_users: int) -> QueueState:
         return QueueState.empty(batch, n_users)
@@ -302,7 +323,9 @@ class NetworkModel:
         else:
             queues = state
         path_loss = _FREE_SPACE
-        if self._urban:
+        if self._site is not None:
+            path_loss, log_gains = self._site_channel(uav, users, rng)
+        elif self._urban:
             path_loss, log_gains = self._urban_channel(uav, users, rng, batch, n_users)
         elif rng is None:
             log_gains = _NO_DRAWS
@@ -370,6 +393,53 @@ class NetworkModel:
         loss, gains = self.link_channel(ground, height, rng)
         return np.ascontiguousarray(loss), _NO_DRAWS if gains is None else gains
 
+    def _site_channel(
+        self, uav: np.ndarray, users: np.ndarray, rng: np.random.Generator | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Path loss (N, U) and fading gains (N, U, draws) on the site: ``users`` (1, U, 2),
+        every position's, or (N, U, 2), one row each. No path: :data:`NO_LINK_LOSS_DB`."""
+        assert self._site is not None
+        shared = users.shape[0] == 1
+        loss, gains = site_link_channel(
+            self._site,
+            uav,
+            users[0] if shared else users,
+            self.config.radio.rician_k_db,
+            rng,
+            RATE_DRAWS_PER_STEP,
+        )
+        np.minimum(loss, NO_LINK_LOSS_DB, out=loss)
+        return np.ascontiguousarray(loss), _NO_DRAWS if gains is None else gains
+
+    def link_channel_at(
+        self, uav_xyz_m: np.ndarray, users_xy_m: np.ndarray, rng: np.random.Generator | None
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The channel of links given by their two ends, in every environment: the AP at
+        ``uav_xyz_m`` (S + (3,)) and the user at ``users_xy_m`` (S + (2,)), one link per index
+        of S. Returns path loss (dB, S) and fading power gains (S + (draws,)), None in expected
+        mode (``rng`` None). In the open and the towns, :meth:`link_channel` of the links'
+        ground distance and height (the same numbers and draws); on a site, the site's loss
+        at the exact AP position (no path: :data:`~sim.channel.NO_LINK_LOSS_DB`) and fading by
+        line of sight (:func:`sim.channel.site_link_channel`, its draw order). How the fleet
+        model (:mod:`sim.fleet`) builds links whose users hear different APs."""
+        uav = np.asarray(uav_xyz_m, dtype=float)
+        users = np.asarray(users_xy_m, dtype=float)
+        shape = users.shape[:-1]
+        if self._site is None:
+            ground = np.hypot(uav[..., 0] - users[..., 0], uav[..., 1] - users[..., 1])
+            height = np.maximum(uav[..., 2] - self.area.user_height_m, 0.0)
+            return self.link_channel(ground, height, rng)
+        loss, gains = site_link_channel(
+            self._site,
+            uav.reshape(-1, 3),
+            users.reshape(-1, 1, 2),
+            self.config.radio.rician_k_db,
+            rng,
+            RATE_DRAWS_PER_STEP,
+        )
+        loss = np.minimum(loss, NO_LINK_LOSS_DB).reshape(shape)
+        return loss, None if gains is None else gains.reshape(*shape, RATE_DRAWS_PER_STEP)
+
     def link_channel(
         self, ground_m: np.ndarray, height_m: np.ndarray, rng: np.random.Generator | None
     ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -377,8 +447,14 @@ class NetworkModel:
         user (arrays of one shape S): path loss (dB, S) and fading power gains (S + (draws,)),
         None in expected mode (``rng`` None). Free space with Rician fading in the open; in a
         town the mean path loss in expected mode, otherwise a line-of-sight state drawn per
-        link (:func:`sim.channel.draw_link_channel`) and its excess loss and fading. The
-        fleet model (:mod:`sim.fleet`) builds its links' channel with it."""
+        link (:func:`sim.channel.draw_link_channel`) and its excess loss and fading. A site's
+        links depend on where both ends are, not on these two numbers: InputError naming
+        ``environment`` (use :meth:`link_channel_at`)."""
+        if self._site is not None:
+            raise InputError(
+                f"environment: {self.area.environment!r} is a site: its links need the AP's "
+                f"and the user's positions (NetworkModel.link_channel_at)"
+            )
         radio = self.config.radio
         environment = self.area.environment
         if environment == "open" or rng is None:

@@ -82,6 +82,7 @@ from sim.config import (
     RadioConfig,
     TrafficConfig,
     UtilityConfig,
+    site_path,
 )
 from sim.errors import InputError
 from sim.evaluate import RESULTS_FORMAT, CaseMetrics
@@ -159,6 +160,11 @@ class Ns3Settings:
     environment: str = "open"
 
     def __post_init__(self) -> None:
+        if site_path(self.environment) is not None:
+            raise InputError(
+                f"environment: {self.environment!r}: the ns-3 backend does not take a site yet "
+                "(use the fast model, --backend fast)"
+            )
         if self.environment not in ENVIRONMENTS:
             raise InputError(
                 f"environment: must be one of {', '.join(ENVIRONMENTS)}, got {self.environment!r}"
@@ -733,9 +739,8 @@ def evaluate_cases_file_ns3(
     Returns a one-line summary and the number of failed cases (listed under ``failed`` in the
     output; the others are written all the same). InputError if ns-3 is not installed.
     """
-    require_ns3()
     area, cases = load_cases(cases_path)  # InputError naming a bad environment
-    settings = Ns3Settings(
+    settings = Ns3Settings(  # InputError for a site, which ns-3 does not take yet
         queueing=queueing,
         warmup_s=warmup_s,
         measure_s=measure_s,
@@ -743,6 +748,7 @@ def evaluate_cases_file_ns3(
         user_height_m=area.user_height_m,
         environment=area.environment,
     )
+    require_ns3()
     with Ns3Runner() as runner:
         results = evaluate_cases_ns3(cases, settings, runner)
         version = runner.version

@@ -32,6 +32,15 @@ Every family uses the same load model: per-scenario skew, loads Exp(1)**skew wit
 scaled to sum to Λ (see :class:`GeneratorConfig`), so each family spans a range of load
 heterogeneity. Every user lies strictly inside the area.
 
+**On a site** (``area.environment`` ``site:PATH``, :mod:`sim.sites`) users stand on walkable
+ground only (:func:`sim.sites.ground.place_on_walkable`): after the scenario's layout and loads
+are drawn as anywhere else, each user that landed inside a building is drawn again from the same
+layout (the same scale and corner, hot spot set, ...: only its own position is new), from the
+scenario's own stream, up to :data:`~sim.sites.ground.PLACEMENT_TRIES` times; one still inside
+then moves to the centre of the nearest walkable cell. Deterministic per seed; outside a site
+nothing changes (the same draws, bit for bit). :func:`check_scenario_area` refuses a scenario
+with a user inside a building.
+
 :class:`ScenarioSampler` draws one scenario at a time from a set of families and a range of user
 counts: what training uses for domain randomisation (a fresh scenario per episode).
 """
@@ -39,11 +48,12 @@ counts: what training uses for domain randomisation (a fresh scenario per episod
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from sim.channel import area_site
 from sim.config import AreaConfig, TrafficConfig
 from sim.errors import InputError
 from sim.utility import heterogeneity_index
@@ -262,13 +272,19 @@ def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
     return math.exp(rng.uniform(math.log(lo), math.log(hi)))
 
 
+# A family's layout draws its users' positions: (rng, which users) -> (len(which), 2). The first
+# call draws everybody; on a site, later calls draw again those inside buildings, the scenario's
+# parameters (scale, corners, hot spots) unchanged.
+_Layout = Callable[[np.random.Generator, np.ndarray], np.ndarray]
+
+
 def _exponential_xy(
     rng: np.random.Generator,
     n_users: int,
     size_m: np.ndarray,
     margin_m: np.ndarray,
     config: GeneratorConfig,
-) -> tuple[np.ndarray, float]:
+) -> tuple[np.ndarray, float, _Layout]:
     """The paper's layout and the load skew, in the draw order the generator always used."""
     scale_max_m = config.position_scale_max_m or float(size_m.max())
     scale_m = _log_uniform(rng, config.position_scale_min_m, scale_max_m)
@@ -278,15 +294,21 @@ def _exponential_xy(
         corner = np.broadcast_to(rng.integers(0, 2, size=(1, 2)), (n_users, 2))
     skew = rng.uniform(0.0, config.load_skew_max)
 
-    distance_m = _reflect_into(rng.exponential(scale_m, size=(n_users, 2)), size_m)
-    xy_m = np.where(corner == 1, size_m - distance_m, distance_m)
-    return np.clip(xy_m, margin_m, size_m - margin_m), skew
+    def layout(rng: np.random.Generator, which: np.ndarray) -> np.ndarray:
+        distance_m = _reflect_into(rng.exponential(scale_m, size=(which.size, 2)), size_m)
+        xy_m = np.where(corner[which] == 1, size_m - distance_m, distance_m)
+        return np.clip(xy_m, margin_m, size_m - margin_m)
+
+    return layout(rng, np.arange(n_users)), skew, layout
 
 
 def _uniform_xy(
     rng: np.random.Generator, n_users: int, size_m: np.ndarray, margin_m: np.ndarray
-) -> np.ndarray:
-    return rng.uniform(margin_m, size_m - margin_m, size=(n_users, 2))
+) -> tuple[np.ndarray, _Layout]:
+    def layout(rng: np.random.Generator, which: np.ndarray) -> np.ndarray:
+        return rng.uniform(margin_m, size_m - margin_m, size=(which.size, 2))
+
+    return layout(rng, np.arange(n_users)), layout
 
 
 def _hotspots_xy(
@@ -295,13 +317,17 @@ def _hotspots_xy(
     size_m: np.ndarray,
     margin_m: np.ndarray,
     families: FamilyConfig,
-) -> np.ndarray:
+) -> tuple[np.ndarray, _Layout]:
     n_spots = int(rng.integers(families.hotspots_min, families.hotspots_max + 1))
     centres_m = rng.uniform(margin_m, size_m - margin_m, size=(n_spots, 2))
     spread_m = _log_uniform(rng, families.hotspot_spread_min_m, families.hotspot_spread_max_m)
     spot = rng.integers(0, n_spots, size=n_users)
-    xy_m = centres_m[spot] + rng.normal(0.0, spread_m, size=(n_users, 2))
-    return np.clip(xy_m, margin_m, size_m - margin_m)
+
+    def layout(rng: np.random.Generator, which: np.ndarray) -> np.ndarray:
+        xy_m = centres_m[spot[which]] + rng.normal(0.0, spread_m, size=(which.size, 2))
+        return np.clip(xy_m, margin_m, size_m - margin_m)
+
+    return layout(rng, np.arange(n_users)), layout
 
 
 def _corners_xy(
@@ -310,15 +336,19 @@ def _corners_xy(
     size_m: np.ndarray,
     margin_m: np.ndarray,
     families: FamilyConfig,
-) -> np.ndarray:
+) -> tuple[np.ndarray, _Layout]:
     n_corners = int(rng.integers(1, families.corners_max + 1))
     corners = rng.permutation(4)[:n_corners]  # corner c: x at the far edge if c & 1, y if c & 2
     scale_m = _log_uniform(rng, families.corner_scale_min_m, families.corner_scale_max_m)
     corner = corners[rng.integers(0, n_corners, size=n_users)]
     far = np.stack([corner & 1, corner >> 1], axis=1)
-    distance_m = _reflect_into(rng.exponential(scale_m, size=(n_users, 2)), size_m)
-    xy_m = np.where(far == 1, size_m - distance_m, distance_m)
-    return np.clip(xy_m, margin_m, size_m - margin_m)
+
+    def layout(rng: np.random.Generator, which: np.ndarray) -> np.ndarray:
+        distance_m = _reflect_into(rng.exponential(scale_m, size=(which.size, 2)), size_m)
+        xy_m = np.where(far[which] == 1, size_m - distance_m, distance_m)
+        return np.clip(xy_m, margin_m, size_m - margin_m)
+
+    return layout(rng, np.arange(n_users)), layout
 
 
 def _loads(
@@ -347,23 +377,32 @@ def _draw(
     config: GeneratorConfig,
     families: FamilyConfig,
 ) -> tuple[np.ndarray, np.ndarray, str]:
-    """Users' positions, loads, and the family drawn (for ``mixture``, the one it picked)."""
+    """Users' positions, loads, and the family drawn (for ``mixture``, the one it picked).
+    On a site, users inside buildings are then drawn again (module doc)."""
     if family == "mixture":
         mixture = families.mixture_families
         family = mixture[int(rng.integers(0, len(mixture)))]
     size_m = np.array([area.size_x_m, area.size_y_m])
     margin_m = np.minimum(config.edge_margin_m, size_m / 4.0)
     if family == "exponential":
-        xy_m, skew = _exponential_xy(rng, n_users, size_m, margin_m, config)
+        xy_m, skew, layout = _exponential_xy(rng, n_users, size_m, margin_m, config)
     else:
         if family == "uniform":
-            xy_m = _uniform_xy(rng, n_users, size_m, margin_m)
+            xy_m, layout = _uniform_xy(rng, n_users, size_m, margin_m)
         elif family == "hotspots":
-            xy_m = _hotspots_xy(rng, n_users, size_m, margin_m, families)
+            xy_m, layout = _hotspots_xy(rng, n_users, size_m, margin_m, families)
         else:
-            xy_m = _corners_xy(rng, n_users, size_m, margin_m, families)
+            xy_m, layout = _corners_xy(rng, n_users, size_m, margin_m, families)
         skew = rng.uniform(0.0, config.load_skew_max)
-    return xy_m, _loads(rng, n_users, skew, total_load_bps, config), family
+    load_bps = _loads(rng, n_users, skew, total_load_bps, config)
+    site = area_site(area)
+    if site is not None:
+        from sim.sites.ground import place_on_walkable
+
+        xy_m = place_on_walkable(
+            site, xy_m, lambda which: layout(rng, which), area.size_x_m, area.size_y_m
+        )
+    return xy_m, load_bps, family
 
 
 def _label(family: str, drawn: str) -> str:
@@ -524,6 +563,19 @@ class ScenarioSampler:
             self.family_config,
         )
         return Scenario(f"{_label(family, drawn)}-{n_users}u-{seed}", xy_m, load_bps)
+
+
+def check_scenario_area(scenario: Scenario, area: AreaConfig, where: str = "") -> None:
+    """InputError of one line when a user of ``scenario`` cannot stand in ``area``: on a site
+    (``site:PATH``), inside a building (``{where}users[3]: (120.0, 45.0) is inside a building on
+    site:/path``) or off the site. Nothing to check elsewhere (the open field and the towns take
+    any position)."""
+    site = area_site(area)
+    if site is None:
+        return
+    from sim.sites.ground import check_walkable
+
+    check_walkable(site, scenario.users_xy_m, area.environment, where)
 
 
 def heterogeneity_indices(scenarios: Sequence[Scenario], area: AreaConfig) -> np.ndarray:

@@ -5,6 +5,18 @@ decision period at a time under the world's :class:`~sim.world.Mobility` and
 :class:`~sim.world.Demand`. With both static (the paper) it never draws a random number and its
 arrays never change. All draws come from the generator passed in, so an episode is reproducible
 from the environment's seed.
+
+**On a site** (``area.environment`` ``site:PATH``, :mod:`sim.sites`) users walk on walkable
+ground only. The scenario's users must start on it (InputError naming the first one inside a
+building, :func:`sim.scenarios.check_scenario_area`). A walker's waypoints are drawn on walkable
+ground (drawn again up to :data:`~sim.sites.ground.PLACEMENT_TRIES` times, then the nearest
+walkable cell's centre). A step is *cancelled* when the straight segment from where the user was
+to where the step would take it crosses a building (:func:`sim.sites.ground.walkable_path`,
+sampled at most half a cell apart): the user stays where it was for this step, and a walker
+picks a new leg (a new waypoint; no pause). In the ``group`` model the leader moves freely and
+each user's step is cancelled on its own, so the group bunches up against walls. Reported
+positions are therefore always on walkable ground; a path may clip the corner of a building
+between two samples. Outside a site nothing changes (the same draws, bit for bit).
 """
 
 from __future__ import annotations
@@ -13,7 +25,9 @@ import math
 
 import numpy as np
 
+from sim.channel import area_site
 from sim.config import AreaConfig
+from sim.sites.ground import PLACEMENT_TRIES, check_walkable, walkable_at, walkable_path
 from sim.world import Demand, Mobility, World
 
 
@@ -42,7 +56,9 @@ class UserDynamics:
     """Positions (U, 2) and offered loads (U,) of a scenario's users as time passes.
 
     ``xy_m`` and ``load_bps`` are read-only arrays that :meth:`advance` replaces rather than
-    changes, so a caller may keep them (in a report, an ``info``) without copying.
+    changes, so a caller may keep them (in a report, an ``info``) without copying. On a site
+    (module doc) users start and stay on walkable ground; a user that starts inside a building
+    is an InputError naming it.
     """
 
     def __init__(
@@ -58,6 +74,9 @@ class UserDynamics:
         self.mobility = mobility
         self.demand = demand
         self.xy_m = _frozen(np.array(users_xy_m, dtype=float))
+        self._site = area_site(area)
+        if self._site is not None:
+            check_walkable(self._site, self.xy_m, area.environment)
         self.base_load_bps = _frozen(np.array(load_bps, dtype=float))
         self.load_bps = self.base_load_bps
         n = len(self.load_bps)
@@ -87,19 +106,41 @@ class UserDynamics:
     # -- mobility -------------------------------------------------------------------------------
     def _new_leg(self, walker: int, rng: np.random.Generator) -> None:
         area = self.area
-        self._waypoint[walker] = rng.uniform([0.0, 0.0], [area.size_x_m, area.size_y_m])
+        upper = [area.size_x_m, area.size_y_m]
+        self._waypoint[walker] = rng.uniform([0.0, 0.0], upper)
+        if self._site is not None:  # a waypoint on walkable ground (module doc)
+            for _ in range(PLACEMENT_TRIES):
+                if walkable_at(self._site, self._waypoint[walker])[0]:
+                    break
+                self._waypoint[walker] = rng.uniform([0.0, 0.0], upper)
+            else:
+                from sim.sites.ground import nearest_walkable_xy
+
+                self._waypoint[walker] = nearest_walkable_xy(
+                    self._site, self._waypoint[walker], *upper
+                )[0]
         self._speed[walker] = rng.uniform(*self.mobility.speed_mps)
 
     def _walk(self, dt_s: float, rng: np.random.Generator) -> None:
+        site = self._site
         if self.mobility.model == "group":
             self._leader = self._step_walker(0, self._leader, dt_s, rng)
             upper = [self.area.size_x_m, self.area.size_y_m]
             moved = np.clip(self._leader + self._offsets, 0.0, upper)
+            if site is not None:  # each user's step into a building is cancelled
+                for u in np.flatnonzero(self._moving):
+                    if not walkable_path(site, self.xy_m[u], moved[u]):
+                        moved[u] = self.xy_m[u]
             self.xy_m = _frozen(np.where(self._moving[:, None], moved, self.xy_m))
             return
         xy = self.xy_m.copy()
         for u in np.flatnonzero(self._moving):
-            xy[u] = self._step_walker(u, xy[u], dt_s, rng)
+            step = self._step_walker(u, xy[u], dt_s, rng)
+            if site is not None and not walkable_path(site, xy[u], step):
+                self._pause_left_s[u] = 0.0  # the step is cancelled: a new leg instead
+                self._new_leg(u, rng)
+                continue
+            xy[u] = step
         self.xy_m = _frozen(xy)
 
     def _step_walker(

@@ -40,7 +40,8 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
-from sim.config import AreaConfig, NetworkConfig, UtilityConfig
+from sim.channel import area_site
+from sim.config import AreaConfig, NetworkConfig, UtilityConfig, check_environment
 from sim.errors import InputError
 from sim.geometry import SCALAR_ROWS, zone_position
 
@@ -467,10 +468,14 @@ def _set(world: World, key: str, raw: Any) -> World:
         value = _parse(f"world.{key}", raw, getattr(part, rest))
         return replace(world, **{head: _replace(part, key, rest, value)})
     if key == "environment" and not rest:
+        # One line naming world.environment; a site must be there, sound and cover the area.
+        environment = check_environment(str(raw).strip(), "world.environment", on_disk=True)
+        area = replace(world.area, environment=environment)
         try:
-            return replace(world, area=replace(world.area, environment=str(raw).strip()))
+            area_site(area)
         except InputError as exc:
             raise InputError(f"world.{exc}") from None
+        return replace(world, area=area)
     if key == "envelope" and not rest:
         return _with_envelope(world, raw)
     if key in _SETTABLE_TOP and not rest:

@@ -308,7 +308,7 @@ def _normalise(key: str, value: Any, where: str, test_sets: dict[str, TestSet], 
     """One trial parameter's value checked and in canonical JSON form."""
     from policies.presets import ALGORITHMS, PRESET_NAMES
     from policies.training import STRATEGIES
-    from sim.config import ENVIRONMENTS, QUEUEING_CHOICES
+    from sim.config import QUEUEING_CHOICES, environment_problem
     from sim.scenarios import FAMILIES
 
     choices = {
@@ -316,10 +316,14 @@ def _normalise(key: str, value: Any, where: str, test_sets: dict[str, TestSet], 
         "strategy": STRATEGIES,
         "preset": PRESET_NAMES,
         "queueing": QUEUEING_CHOICES,
-        "environment": ENVIRONMENTS,
         "action": ("coordinates", "residual"),
         "test_set": tuple(test_sets),
     }
+    if key == "environment":  # a named one or site:PATH, the site there
+        problem = environment_problem(value, on_disk=True)
+        if problem is not None:
+            raise fail(where, problem)
+        return value
     if key in choices:
         if value not in choices[key]:
             raise fail(where, f"must be one of {', '.join(choices[key])}, got {value!r}")
@@ -381,7 +385,7 @@ def _normalise(key: str, value: Any, where: str, test_sets: dict[str, TestSet], 
 
 
 def _parse_test_sets(raw: Any, path: Path, fail: Any) -> dict[str, TestSet]:
-    from sim.config import ENVIRONMENTS
+    from sim.config import environment_problem
     from sim.files import load_scenarios, scenario_set_hash
     from sim.scenarios import FAMILIES, MAX_USERS
 
@@ -435,10 +439,9 @@ def _parse_test_sets(raw: Any, path: Path, fail: Any) -> dict[str, TestSet]:
                 raise fail(f"{where}.generate.seed", f"must be an integer >= 0, got {seed!r}")
             if settings["family"] not in FAMILIES:
                 raise fail(f"{where}.generate.family", f"must be one of {', '.join(FAMILIES)}")
-            if settings["environment"] not in ENVIRONMENTS:
-                raise fail(
-                    f"{where}.generate.environment", f"must be one of {', '.join(ENVIRONMENTS)}"
-                )
+            problem = environment_problem(settings["environment"], on_disk=True)
+            if problem is not None:
+                raise fail(f"{where}.generate.environment", problem)
             load = settings["total_load_mbps"]
             if isinstance(load, bool) or not isinstance(load, (int, float)) or not load > 0:
                 raise fail(f"{where}.generate.total_load_mbps", f"must be positive, got {load!r}")

@@ -1,7 +1,9 @@
 """Sites: real districts, ray-traced once, as channel environments (issue 38).
 
 :mod:`sim.sites.format` (the ``tupa-site/1`` directory, its checks and hash),
-:mod:`sim.sites.lookup` (path loss at any UAV position, numpy only),
+:mod:`sim.sites.lookup` (path loss at any UAV position, numpy only), :mod:`sim.sites.los`
+(line of sight; a call's losses and line of sight, `site_links`), :mod:`sim.sites.ground`
+(walkable ground: where users may stand and walk),
 :mod:`sim.sites.build` and :mod:`sim.sites.raytrace` (building one with Sionna RT, which only
 ``raytrace`` imports, inside its functions), :mod:`sim.sites.cli` (``tupa site build``).
 """

@@ -1,4 +1,5 @@
-"""The site's path loss at any UAV position: numpy only, no ray tracer.
+"""The site's path loss at any UAV position: numpy (and numba, as the network model) only,
+no ray tracer.
 
 :func:`path_loss_db` interpolates the stored mean path loss trilinearly (in dB) over the UAV
 grid and takes each user's ground cell (the cell the user stands in: the stored value is the
@@ -16,6 +17,7 @@ attached to the area). Users must lie in the site's area.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from sim.errors import InputError
 from sim.sites.format import LOSS_STEP_DB, NO_PATH_CODE, Site
@@ -24,17 +26,15 @@ COVERED_WEIGHT = 0.5
 """The least weight of interpolation corners with a path for a link to have one."""
 
 
-def _bracket(axis: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For each value: the grid indices below and above and the fraction of the way between
-    them (0 at the lower one), values clamped to the axis' range."""
+@njit(cache=True, nogil=True)
+def _bracket(axis: np.ndarray, value: float) -> tuple[int, float]:
+    """The grid index below ``value`` and the fraction of the way to the one above (0 at the
+    lower one), the value clamped to the axis' range; (0, 0.0) on a one-point axis."""
     if axis.size == 1:
-        zeros = np.zeros(values.shape, dtype=np.intp)
-        return zeros, zeros, np.zeros(values.shape)
-    clamped = np.clip(values, axis[0], axis[-1])
-    lower = np.clip(np.searchsorted(axis, clamped, side="right") - 1, 0, axis.size - 2)
-    upper = lower + 1
-    fraction = (clamped - axis[lower]) / (axis[upper] - axis[lower])
-    return lower, upper, fraction
+        return 0, 0.0
+    clamped = min(max(value, axis[0]), axis[-1])
+    lower = min(max(np.searchsorted(axis, clamped, side="right") - 1, 0), axis.size - 2)
+    return lower, (clamped - axis[lower]) / (axis[lower + 1] - axis[lower])
 
 
 def ground_cells(site: Site, users_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -43,22 +43,41 @@ def ground_cells(site: Site, users_xy: np.ndarray) -> tuple[np.ndarray, np.ndarr
     users = np.asarray(users_xy, dtype=np.float64)
     if users.ndim != 2 or users.shape[1] != 2:
         raise InputError(f"users_xy: must have shape (M, 2), got {users.shape}")
-    inside = (
-        np.isfinite(users).all(axis=1)
-        & (users[:, 0] >= 0)
-        & (users[:, 0] <= site.size_x_m)
-        & (users[:, 1] >= 0)
-        & (users[:, 1] <= site.size_y_m)
-    )
-    if not inside.all():
-        k = int(np.flatnonzero(~inside)[0])
+    users = np.ascontiguousarray(users)
+    row = np.empty(users.shape[0], dtype=np.intp)
+    column = np.empty(users.shape[0], dtype=np.intp)
+    k = _cells_kernel(
+        users, float(site.size_x_m), float(site.size_y_m), float(site.cell_m),
+        site.cells_x - 1, site.cells_y - 1, row, column,
+    )  # fmt: skip
+    if k >= 0:
         raise InputError(
             f"users_xy[{k}]: {users[k].tolist()} is outside the site's area "
             f"[0, {site.size_x_m:g}] × [0, {site.size_y_m:g}] m"
         )
-    column = np.minimum((users[:, 0] // site.cell_m).astype(np.intp), site.cells_x - 1)
-    row = np.minimum((users[:, 1] // site.cell_m).astype(np.intp), site.cells_y - 1)
     return row, column
+
+
+@njit(cache=True, nogil=True)
+def _cells_kernel(
+    users: np.ndarray,
+    size_x_m: float,
+    size_y_m: float,
+    cell_m: float,
+    last_x: int,
+    last_y: int,
+    row: np.ndarray,
+    column: np.ndarray,
+) -> int:
+    """:func:`ground_cells` into ``row`` and ``column``: the index of the first user outside
+    ``[0, size_x_m] × [0, size_y_m]`` (NaN included), or -1."""
+    for u in range(users.shape[0]):
+        x, y = users[u, 0], users[u, 1]
+        if not (0.0 <= x <= size_x_m and 0.0 <= y <= size_y_m):
+            return u
+        column[u] = min(int(x // cell_m), last_x)
+        row[u] = min(int(y // cell_m), last_y)
+    return -1
 
 
 def path_loss_db(site: Site, uav_xyz: np.ndarray, users_xy: np.ndarray) -> np.ndarray:
@@ -67,28 +86,68 @@ def path_loss_db(site: Site, uav_xyz: np.ndarray, users_xy: np.ndarray) -> np.nd
     is no path. InputError naming the argument for a wrong shape or a user off the site."""
     uav = np.asarray(uav_xyz, dtype=np.float64)
     single = uav.ndim == 1
+    uav = check_uav(uav)
+    row, column = ground_cells(site, users_xy)
+    loss = interpolate(site, uav, row[None, :], column[None, :])
+    return loss[0] if single else loss
+
+
+def check_uav(uav: np.ndarray) -> np.ndarray:
+    """UAV positions (3,) or (N, 3) as (N, 3), or InputError naming ``uav_xyz``."""
     uav = np.atleast_2d(uav)
     if uav.ndim != 2 or uav.shape[1] != 3 or not np.isfinite(uav).all():
         raise InputError(f"uav_xyz: must be finite with shape (3,) or (N, 3), got {uav.shape}")
-    row, column = ground_cells(site, users_xy)
-    axes = [_bracket(site.uav_x_m, uav[:, 0]), _bracket(site.uav_y_m, uav[:, 1])]
-    axes.append(_bracket(site.uav_z_m, uav[:, 2]))
-    total = np.zeros((uav.shape[0], row.size))
-    weight = np.zeros_like(total)
-    for corner in range(8):
-        index = []
-        corner_weight = np.ones(uav.shape[0])
-        for axis, (lower, upper, fraction) in enumerate(axes):
-            high = (corner >> axis) & 1
-            index.append(upper if high else lower)
-            corner_weight = corner_weight * (fraction if high else 1.0 - fraction)
-        ix, iy, iz = (i[:, None] for i in index)
-        codes = site.loss_code[iz, iy, ix, row[None, :], column[None, :]]
-        covered = codes != NO_PATH_CODE
-        w = np.where(covered, corner_weight[:, None], 0.0)
-        total += w * codes.astype(np.float64)
-        weight += w
-    has_path = weight >= COVERED_WEIGHT
-    loss = np.full(total.shape, np.inf)
-    loss[has_path] = total[has_path] / weight[has_path] * LOSS_STEP_DB
-    return loss[0] if single else loss
+    return uav
+
+
+def interpolate(site: Site, uav: np.ndarray, row: np.ndarray, column: np.ndarray) -> np.ndarray:
+    """The trilinear lookup (module doc) for positions ``uav`` (N, 3), checked, and ground cells
+    ``row``, ``column`` (:func:`ground_cells`) of shape (N, M), each position its own users, or
+    (1, M), every position the same users: (N, M) dB."""
+    out = np.empty((uav.shape[0], row.shape[1]))
+    _interpolate_kernel(
+        site.loss_code, site.uav_x_m, site.uav_y_m, site.uav_z_m,
+        np.ascontiguousarray(uav), np.ascontiguousarray(row, dtype=np.intp),
+        np.ascontiguousarray(column, dtype=np.intp), out,
+    )  # fmt: skip
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _interpolate_kernel(
+    codes: np.ndarray,
+    axis_x: np.ndarray,
+    axis_y: np.ndarray,
+    axis_z: np.ndarray,
+    uav: np.ndarray,
+    row: np.ndarray,
+    column: np.ndarray,
+    out: np.ndarray,
+) -> None:
+    """:func:`interpolate` into ``out`` (N, M): the eight corners of each position's grid
+    cell in a fixed order (x fastest), weights the products of the axes' fractions, the
+    corners without a path left out and the rest renormalised when they carry at least
+    :data:`COVERED_WEIGHT`, else ``+inf``."""
+    shared = row.shape[0] == 1
+    for n in range(uav.shape[0]):
+        lx, fx = _bracket(axis_x, uav[n, 0])
+        ly, fy = _bracket(axis_y, uav[n, 1])
+        lz, fz = _bracket(axis_z, uav[n, 2])
+        s = 0 if shared else n
+        for m in range(row.shape[1]):
+            r, c = row[s, m], column[s, m]
+            total = 0.0
+            weight = 0.0
+            for corner in range(8):
+                w = 1.0
+                w *= fx if corner & 1 else 1.0 - fx
+                w *= fy if corner & 2 else 1.0 - fy
+                w *= fz if corner & 4 else 1.0 - fz
+                ix = lx + 1 if corner & 1 and axis_x.size > 1 else lx
+                iy = ly + 1 if corner & 2 and axis_y.size > 1 else ly
+                iz = lz + 1 if corner & 4 and axis_z.size > 1 else lz
+                code = codes[iz, iy, ix, r, c]
+                if code != NO_PATH_CODE:
+                    total += w * code
+                    weight += w
+            out[n, m] = total / weight * LOSS_STEP_DB if weight >= COVERED_WEIGHT else np.inf
