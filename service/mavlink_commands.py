@@ -14,6 +14,8 @@ What each autopilot makes of them:
   (:func:`takeoff`'s caller picks); NaN yaw keeps the vehicle's heading; NaN latitude/longitude
   take off where the vehicle stands. ArduCopter reads param3 = 0 as "must navigate", which its
   navigating modes (GUIDED) accept.
+* ``MAV_CMD_DO_CHANGE_SPEED``: ArduCopter's GUIDED takes it as its horizontal speed until it
+  leaves GUIDED; PX4 applies it to its flight tasks (missions, hold), not to offboard.
 * ``MAV_CMD_DO_SET_MODE``: param1 says the mode is a custom one; param2 is the custom (main) mode,
   param3 PX4's sub mode (0 for the main modes we ask for, and unused on ArduPilot).
 """
@@ -57,6 +59,12 @@ def set_mode(custom_mode: int, custom_sub_mode: int = 0) -> Params:
 def return_to_launch() -> Params:
     """MAV_CMD_NAV_RETURN_TO_LAUNCH: the autopilot's own return (its RTL mode and altitude)."""
     return (0.0,) * 7  # type: ignore[return-value]
+
+
+def change_speed(ground_speed_mps: float) -> Params:
+    """MAV_CMD_DO_CHANGE_SPEED: the horizontal ground speed (speed type 1), throttle unchanged
+    (-1); ArduCopter applies it to GUIDED's position controller."""
+    return (1.0, float(ground_speed_mps), -1.0, 0.0, 0.0, 0.0, 0.0)
 
 
 def set_message_interval(message_id: int, rate_hz: float) -> Params:

@@ -36,7 +36,8 @@ The loop, heartbeat supervision, setpoint schedule, mode-request window and take
   backend where that matters).
 * the vehicle's HEARTBEATs come through the MavlinkDirect plugin, decoded by the base as the
   pymavlink backend's are; positions come from the Telemetry plugin (``position_velocity_ned``,
-  ``position``), at ``telemetry_rate_hz`` asked once per connection with ``set_rate_*``; the
+  ``position``), at ``telemetry_rate_hz`` asked once per connection with ``set_rate_*``, and the
+  battery (``battery``) at :data:`BATTERY_RATE_HZ`; the
   vehicle's STATUSTEXTs from Telemetry's ``status_text``.
 * setpoints: the Offboard plugin's ``set_position_ned``. MAVSDK itself also re-sends the latest
   setpoint every 50 ms (20 Hz) while its offboard stream is active, so the vehicle sees about
@@ -97,6 +98,9 @@ log = logging.getLogger(__name__)
 MAV_COMP_ID_AUTOPILOT1 = 1
 RAW_WAIT_S = 0.005
 """``udpin``: the longest a poll waits for a datagram (a new target goes out within a few ms)."""
+BATTERY_RATE_HZ = 1.0
+"""The battery's rate asked for (BATTERY_STATUS): ArduPilot sends none on a link that does not
+ask, and the battery reserve needs it."""
 FENCE_CALL_TIMEOUT_S = 30.0
 """The longest one fence call (upload, download, one parameter) may take; MAVSDK's own retries
 end well before it."""
@@ -221,9 +225,13 @@ class MavsdkLink(VehicleLinkBase):
             session.telemetry.subscribe_battery(self._on_battery)
             session.telemetry.subscribe_status_text(self._on_status_text)
             rate_hz, telemetry = self.config.telemetry_rate_hz, session.telemetry
-            for name in ("set_rate_position_velocity_ned_async", "set_rate_position_async"):
+            for name, rate in (
+                ("set_rate_position_velocity_ned_async", rate_hz),
+                ("set_rate_position_async", rate_hz),
+                ("set_rate_battery_async", BATTERY_RATE_HZ),
+            ):
                 session.call_async(
-                    lambda answer, name=name: getattr(telemetry, name)(rate_hz, answer),
+                    lambda answer, name=name, rate=rate: getattr(telemetry, name)(rate, answer),
                     self._on_answer,
                 )
         log.info("MAVSDK found autopilot system %s", session.system_id)

@@ -102,6 +102,8 @@ HOME_REQUEST_PERIOD_S = 2.0
 """How often HOME_POSITION is asked for while the fence waits for it."""
 BATTERY_CHECK_PERIOD_S = 1.0
 """How often the battery reserve is checked (:mod:`service.battery`)."""
+SPEED_RETRY_S = 5.0
+"""After an unanswered or refused speed limit, how long until it is asked for again."""
 RETURN_ATTEMPTS = 3
 """How many times the return home is asked for before the link gives up (and says so)."""
 
@@ -424,6 +426,9 @@ class VehicleLinkBase(VehicleLink):
         self._fence_envelope = envelope  # what goes on the autopilot (its fence)
         self._fence = "waiting for the vehicle's home" if config.autopilot_fence else "off"
         self._fence_next_try = 0.0
+        self._speed_limit_mps: float | None = None  # set in this stay in GUIDED (ArduPilot)
+        self._speed_next_try = 0.0
+        self._speed_busy = False
         self._origin: GeoPoint | None = None  # the local NED origin, from HOME_POSITION
         self._routing = LinkRoute(
             fence_compatible(envelope) if config.autopilot_fence else envelope
@@ -812,11 +817,59 @@ class VehicleLinkBase(VehicleLink):
             flavour = self._guided_mode_due(now)
             if flavour is not None:
                 self._send_guided_mode_request(flavour)
+        if now >= self._speed_next_try:
+            self._speed_limit_step(now)
         wake_at = min(times.next_setpoint, times.next_mode_request)
         with self._cond:
             if self._target_dirty:  # set_target notifies self._cond: a new target wakes a poll
                 wake_at = min(wake_at, times.last_setpoint + config.setpoint_min_gap_s)
         times.wait_s = min(max(wake_at - time.monotonic(), 0.001), IDLE_WAIT_S)
+
+    # ------------------------------------------------------------------ the speed limit
+
+    def _speed_limit_step(self, now: float) -> None:
+        """ArduPilot: the envelope's ``max_speed_mps`` as the guided mode's horizontal speed
+        (MAV_CMD_DO_CHANGE_SPEED, ground speed), once per stay in GUIDED with the service's
+        stream and again when the envelope's changes; asked on a worker (the I/O loop never
+        waits for an answer), again after ``SPEED_RETRY_S`` when unanswered or refused. PX4 is
+        not asked: its offboard mode ignores the command (its position controller flies at
+        ``MPC_XY_VEL_MAX``)."""
+        with self._cond:
+            wanted_mps = self._routing.envelope.max_speed_mps
+            if (
+                self._speed_busy
+                or self._flavour != "ardupilot"
+                or not self._streaming_now()
+                or self._mode_locked() != GUIDED_MODE_NAME["ardupilot"]
+                or self._speed_limit_mps == wanted_mps
+            ):
+                return
+            self._speed_busy = True
+            self._speed_next_try = now + SPEED_RETRY_S
+        worker = threading.Thread(
+            target=self._speed_limit_worker,
+            args=(wanted_mps,),
+            name=f"{self._thread_name}-speed",
+            daemon=True,
+        )
+        self._workers.append(worker)
+        worker.start()
+
+    def _speed_limit_worker(self, speed_mps: float) -> None:
+        result = self._ask(
+            mavlink.MAV_CMD_DO_CHANGE_SPEED, mavlink_commands.change_speed(speed_mps), 3.0
+        )
+        with self._cond:
+            self._speed_busy = False
+            if result == mavlink.MAV_RESULT_ACCEPTED:
+                self._speed_limit_mps = speed_mps
+                self.counters["speed_limits_set"] += 1
+            else:
+                self.counters["speed_limit_failures"] += 1
+        if result == mavlink.MAV_RESULT_ACCEPTED:
+            log.info("the guided mode's speed is now the envelope's %g m/s", speed_mps)
+        else:
+            log.warning("the vehicle did not take the envelope's speed limit (%s)", result)
 
     # ------------------------------------------------------------------ the autopilot's fence
 
@@ -1031,6 +1084,8 @@ class VehicleLinkBase(VehicleLink):
             if system_id is not None:
                 self._system_id = system_id
             self._custom_mode = custom_mode
+            if after_loss or self._mode_locked() != previous_mode:
+                self._speed_limit_mps = None  # a new stay in GUIDED starts at WPNAV_SPEED
             self._armed = bool(base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
             self._system_status = system_status
             self._last_hb = now

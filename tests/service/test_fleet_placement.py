@@ -474,7 +474,7 @@ def test_a_vehicle_whose_flight_would_cross_anothers_holds_where_it_is(
     """Issue 39: the paths, not only the targets. uav2's flight would cross uav1's at the same
     moment: it holds where it is (a legal point of its envelope) for this decision, and is
     counted; targets whose flights keep apart go out as decided."""
-    service, links = make_fleet(2)
+    service, _ = make_fleet(2)
     positions = np.array([[200.0, 250.0, 30.0], [250.0, 200.0, 30.0]])
     crossing = np.array([[300.0, 250.0, 30.0], [250.0, 300.0, 30.0]])
     out = service._hold_crossing_paths(["uav1", "uav2"], positions, crossing)

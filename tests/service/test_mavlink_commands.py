@@ -17,12 +17,14 @@ SENT = {
     mavlink.MAV_CMD_COMPONENT_ARM_DISARM: mavlink_commands.arm(),
     mavlink.MAV_CMD_DO_SET_MODE: mavlink_commands.set_mode(4),
     mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: mavlink_commands.set_message_interval(32, 10.0),
+    mavlink.MAV_CMD_DO_CHANGE_SPEED: mavlink_commands.change_speed(6.0),
 }
 USED = {
     mavlink.MAV_CMD_NAV_TAKEOFF: {7},
     mavlink.MAV_CMD_COMPONENT_ARM_DISARM: {1, 2},
     mavlink.MAV_CMD_DO_SET_MODE: {1, 2, 3},
     mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: {1, 2, 7},
+    mavlink.MAV_CMD_DO_CHANGE_SPEED: {1, 2, 3},
 }
 """The params each command means to set (the rest are unused)."""
 
