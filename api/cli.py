@@ -122,7 +122,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--environment",
         help="what stands on the ground: open (default, the paper's), suburban, urban, "
-        "dense-urban, highrise-urban (the channel the policy and the oracle assume)",
+        "dense-urban, highrise-urban, or site:PATH, a ray-traced district (tupa site build) "
+        "(the channel the policy and the oracle assume)",
     )
     parser.add_argument(
         "--step-s", type=float, help="decision period in seconds (default: the world's, 1)"
@@ -211,7 +212,8 @@ def settings_from_args(args: argparse.Namespace):  # -> ServiceSettings (lazy im
     except ValidationError as exc:
         first = exc.errors()[0]
         field = ".".join(str(p) for p in first["loc"]) or "settings"
-        raise InputError(f"{field}: {first['msg']}") from None
+        message = str(first["msg"]).removeprefix("Value error, ")  # pydantic's own prefix
+        raise InputError(f"{field}: {message}") from None
 
 
 def _serve(args: argparse.Namespace) -> int:

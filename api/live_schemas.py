@@ -85,6 +85,29 @@ class LiveBattery(_Frame):
     )
 
 
+class LiveSite(_Frame):
+    """The district's buildings (on a site): the tallest building in each square."""
+
+    cell_m: float
+    nx: int
+    ny: int
+    heights_m: list[float] = Field(
+        description="`nx` × `ny` heights, row by row from the south-west corner; 0: no building"
+    )
+
+
+class LiveCoverage(_Frame):
+    """What a vehicle covers from where it is (on a site): the mean path loss to each square."""
+
+    cell_m: float
+    nx: int
+    ny: int
+    loss_db: list[float | None] = Field(
+        description="`nx` × `ny` path losses (dB), row by row from the south-west corner; "
+        "null: no path"
+    )
+
+
 class LiveVehicle(_Frame):
     id: str
     link: Literal["connecting", "up", "link_lost"]
@@ -104,6 +127,7 @@ class LiveVehicle(_Frame):
     envelope: int = Field(description="Its envelope: an index into the frame's `envelopes`")
     route: LiveRoute | None
     battery: LiveBattery
+    coverage: LiveCoverage | None = Field(description="On a site; null elsewhere")
 
 
 class LiveUser(_Frame):
@@ -146,6 +170,7 @@ class LiveFrameOut(_Frame):
     envelopes: list[LiveEnvelope] = Field(
         description="The vehicles' envelopes, each once (vehicles share one unless given their own)"
     )
+    site: LiveSite | None = Field(description="The buildings, on a site; null elsewhere")
     policy: LivePolicy
     vehicles: list[LiveVehicle] = Field(
         description="The vehicle (id uav1), or a fleet's vehicles in the fleet's order"

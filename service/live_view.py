@@ -14,13 +14,16 @@ A frame (``format: tupa-live/1``, JSON; metres in the area frame: x east, y nort
      "geofence": {"x_m": [lo, hi], "y_m": [..], "z_m": [..]},
      "envelopes": [{"inclusion": [[x, y], ...], "floor_m", "ceiling_m", "clearance_m",
                     "exclusions": [{"name", "polygon": [[x, y], ...], "floor_m", "ceiling_m"}]}],
+     "site": {"cell_m", "nx", "ny", "heights_m": [...]} | null,   # buildings, on a site
+
      "policy": {"name", "spec"},
      "vehicles": [{"id", "link", "mode", "armed", "flavour", "streaming", "heartbeat_age_s",
                    "position_m", "heading_deg", "target_m", "track_m": [[x, y, z], ...],
                    "decision": {"source", "policy", "decided_at", "age_s"} | null,
                    "envelope": index into "envelopes",
                    "route": {"kind", "waypoints_m": [[x, y, z], ...], "hold_reason"} | null,
-                   "battery": {"remaining_pct", "return_at_pct"}}],
+                   "battery": {"remaining_pct", "return_at_pct"},
+                   "coverage": {"cell_m", "nx", "ny", "loss_db": [... | null]} | null}],
      "users": [{"id", "x_m", "y_m", "offered_bps", "throughput_bps", "delay_s", "plr",
                 "served"}],                       # served: throughput / offered, in [0, 1]
      "report": {"timestamp", "age_s", "stale"} | null,
@@ -32,7 +35,9 @@ parts are the weighted terms ``0.6·T``, ``0.3·(1 − D)`` and ``0.1·(1 − P)
 function with the other two weights set to zero), so they add up to it. ``vehicles`` holds
 the one vehicle (``uav1``) or a fleet's, in the fleet's order, each with its own track.
 ``heading_deg`` is the vehicle's own (telemetry; degrees clockwise from north), or null when it
-sends none.
+sends none. On a site (``environment`` ``site:PATH``), ``site`` holds the buildings and each
+vehicle's ``coverage`` the path loss from where it is (:mod:`service.live_site`); both are null
+elsewhere.
 """
 
 from __future__ import annotations
@@ -47,8 +52,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from service.live_site import buildings_layer, coverage_layer
 from service.pubsub import Hub
 from service.vehicle_link import LinkState
+from sim.channel import area_site
 from sim.config import AreaConfig, UtilityConfig
 from sim.envelope import Envelope
 from sim.utility import network_utility
@@ -128,6 +135,8 @@ class LiveView:
         self.envelope_of: Callable[[str], Envelope | None] = lambda _vehicle_id: None
         """Each vehicle's envelope by id (the service sets it; None: the area's box)."""
         self._envelope_docs: dict[int, tuple[Envelope, dict[str, Any]]] = {}
+        self._site = area_site(area)  # the area's district (site:PATH), None elsewhere
+        self._buildings = None if self._site is None else buildings_layer(self._site, area)
 
     def record(self, moment: Moment) -> None:
         """Once per decision period: extend the track and the history, and publish a frame
@@ -206,11 +215,13 @@ class LiveView:
                 "z_m": [area.z_min_m, area.z_max_m],
             },
             "envelopes": envelopes,
+            "site": self._buildings,
             "policy": {"name": moment.policy_name, "spec": moment.policy_spec},
             "vehicles": [
                 {
                     **_vehicle(vid, link, decision, moment.time_s, tracks.get(vid, [])),
                     "envelope": envelope_index[vid],
+                    "coverage": self._coverage(link.position_m),
                 }
                 for vid, link, decision in moment.vehicles()
             ],
@@ -223,6 +234,15 @@ class LiveView:
         }
         data = json.dumps(body, separators=(",", ":"), allow_nan=False).encode()
         return LiveFrame(seq, data)
+
+    def _coverage(self, position_m: tuple[float, float, float] | None) -> dict[str, Any] | None:
+        """On a site, what the vehicle at ``position_m`` covers (:func:`~service.live_site.
+        coverage_layer`); None elsewhere or without a (finite) position."""
+        if self._site is None or position_m is None:
+            return None
+        if not all(math.isfinite(v) for v in position_m):
+            return None
+        return coverage_layer(self._site, self.area, position_m)
 
     def _envelope_document(self, vehicle_id: str) -> dict[str, Any]:
         """The vehicle's envelope as the frame carries it, built once per envelope."""

@@ -149,12 +149,15 @@ class ServiceSettings(BaseSettings):
     @field_validator("world", "environment")
     @classmethod
     def _known_name(cls, value: str, info: ValidationInfo) -> str:
-        from sim.config import ENVIRONMENTS
+        from sim.config import environment_problem
         from sim.world import WORLDS
 
-        choices = WORLDS if info.field_name == "world" else ENVIRONMENTS
-        if value not in choices:
-            raise ValueError(f"must be one of {', '.join(choices)}, got {value!r}")
+        if info.field_name == "environment":
+            problem = environment_problem(value, on_disk=True)  # a named one, or site:PATH
+            if problem is not None:
+                raise ValueError(problem)
+        elif value not in WORLDS:
+            raise ValueError(f"must be one of {', '.join(WORLDS)}, got {value!r}")
         return value
 
     @property

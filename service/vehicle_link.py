@@ -104,6 +104,13 @@ BATTERY_CHECK_PERIOD_S = 1.0
 """How often the battery reserve is checked (:mod:`service.battery`)."""
 SPEED_RETRY_S = 5.0
 """After an unanswered or refused speed limit, how long until it is asked for again."""
+SPEED_AFTER_STREAM_S = 1.0
+"""How long the stream runs in GUIDED before the speed limit is sent: ArduCopter resets GUIDED's
+speed to WPNAV_SPEED when the first position target moves it into its position sub-mode (from
+the take-off's), so a limit sent before that is lost (seen on its SITL)."""
+SPEED_REASSERT_S = 10.0
+"""The limit is sent again this often while the vehicle stays in GUIDED: any later switch of
+GUIDED's sub-mode resets it the same way."""
 RETURN_ATTEMPTS = 3
 """How many times the return home is asked for before the link gives up (and says so)."""
 
@@ -427,6 +434,7 @@ class VehicleLinkBase(VehicleLink):
         self._fence = "waiting for the vehicle's home" if config.autopilot_fence else "off"
         self._fence_next_try = 0.0
         self._speed_limit_mps: float | None = None  # set in this stay in GUIDED (ArduPilot)
+        self._speed_set_at = -math.inf
         self._speed_next_try = 0.0
         self._speed_busy = False
         self._origin: GeoPoint | None = None  # the local NED origin, from HOME_POSITION
@@ -829,9 +837,10 @@ class VehicleLinkBase(VehicleLink):
 
     def _speed_limit_step(self, now: float) -> None:
         """ArduPilot: the envelope's ``max_speed_mps`` as the guided mode's horizontal speed
-        (MAV_CMD_DO_CHANGE_SPEED, ground speed), once per stay in GUIDED with the service's
-        stream and again when the envelope's changes; asked on a worker (the I/O loop never
-        waits for an answer), again after ``SPEED_RETRY_S`` when unanswered or refused. PX4 is
+        (MAV_CMD_DO_CHANGE_SPEED, ground speed), once the stream has run
+        ``SPEED_AFTER_STREAM_S`` in GUIDED, again every ``SPEED_REASSERT_S`` while it stays and
+        at once for a new envelope's; asked on a worker (the I/O loop never waits for an
+        answer), again after ``SPEED_RETRY_S`` when unanswered or refused. PX4 is
         not asked: its offboard mode ignores the command (its position controller flies at
         ``MPC_XY_VEL_MAX``)."""
         with self._cond:
@@ -840,8 +849,13 @@ class VehicleLinkBase(VehicleLink):
                 self._speed_busy
                 or self._flavour != "ardupilot"
                 or not self._streaming_now()
+                or self._stream_since is None
+                or now - self._stream_since < SPEED_AFTER_STREAM_S
                 or self._mode_locked() != GUIDED_MODE_NAME["ardupilot"]
-                or self._speed_limit_mps == wanted_mps
+                or (
+                    self._speed_limit_mps == wanted_mps
+                    and now - self._speed_set_at < SPEED_REASSERT_S
+                )
             ):
                 return
             self._speed_busy = True
@@ -859,16 +873,19 @@ class VehicleLinkBase(VehicleLink):
         result = self._ask(
             mavlink.MAV_CMD_DO_CHANGE_SPEED, mavlink_commands.change_speed(speed_mps), 3.0
         )
+        new = False
         with self._cond:
             self._speed_busy = False
             if result == mavlink.MAV_RESULT_ACCEPTED:
+                new = self._speed_limit_mps != speed_mps
+                self.counters["speed_limits_set"] += new
                 self._speed_limit_mps = speed_mps
-                self.counters["speed_limits_set"] += 1
+                self._speed_set_at = time.monotonic()
             else:
                 self.counters["speed_limit_failures"] += 1
-        if result == mavlink.MAV_RESULT_ACCEPTED:
+        if new:
             log.info("the guided mode's speed is now the envelope's %g m/s", speed_mps)
-        else:
+        elif result != mavlink.MAV_RESULT_ACCEPTED:
             log.warning("the vehicle did not take the envelope's speed limit (%s)", result)
 
     # ------------------------------------------------------------------ the autopilot's fence

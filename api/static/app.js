@@ -189,6 +189,7 @@
 
   let areaKey = null;
   let envelopesKey = null;
+  let sitesKey = null;
   let H = 500;
   const Y = (y) => H - y; // north up
   const users = new Map(); // id -> {circle, title, label}
@@ -201,6 +202,12 @@
       drawArea(frame.area, frame.geofence);
       clipUsers(frame.area);
     }
+    const siteKey = JSON.stringify(frame.site || null);
+    if (siteKey !== sitesKey) {
+      sitesKey = siteKey;
+      drawSite(frame.site || null);
+    }
+    drawCoverage(frame.vehicles.find((v) => v.coverage) || null);
     const envelopeKey = JSON.stringify(frame.envelopes || []);
     if (envelopeKey !== envelopesKey) {
       envelopesKey = envelopeKey;
@@ -283,6 +290,78 @@
             `${e.exclusions.length} no-fly volume${e.exclusions.length === 1 ? "" : "s"}`,
         )
         .join(" · ");
+    }
+  }
+
+  // A site (sim/sites): its buildings, the tallest in each square, grey by height.
+  function drawSite(site) {
+    const layer = $("layer-site");
+    layer.replaceChildren();
+    view.siteMaxHeight = 0;
+    if (!site) return;
+    const top = Math.max(1, ...site.heights_m);
+    view.siteMaxHeight = top;
+    site.heights_m.forEach((h, k) => {
+      if (h <= 0) return;
+      const i = k % site.nx;
+      const j = Math.floor(k / site.nx);
+      const shade = Math.round(200 - 140 * Math.min(h / top, 1));
+      const cell = el(
+        "rect",
+        {
+          x: i * site.cell_m,
+          y: Y((j + 1) * site.cell_m),
+          width: site.cell_m,
+          height: site.cell_m,
+          class: "building",
+          fill: `rgb(${shade},${shade},${shade + 10})`,
+          "fill-opacity": 0.85,
+        },
+        layer,
+      );
+      el("title", {}, cell).textContent = `building ${fmt(h, 0)} m`;
+    });
+  }
+
+  // What the first vehicle with a coverage covers from where it is: path loss per square,
+  // green (<= 90 dB) to red (>= 130 dB); a square with no path is left empty.
+  function drawCoverage(vehicle) {
+    const layer = $("layer-coverage");
+    layer.replaceChildren();
+    const legend = $("site-legend");
+    if (!vehicle) {
+      if (legend) legend.textContent = "";
+      return;
+    }
+    const cov = vehicle.coverage;
+    let covered = 0;
+    cov.loss_db.forEach((loss, k) => {
+      if (loss === null) return;
+      covered += 1;
+      const i = k % cov.nx;
+      const j = Math.floor(k / cov.nx);
+      const t = clamp((loss - 90) / 40, 0, 1);
+      const hue = Math.round(120 * (1 - t));
+      el(
+        "rect",
+        {
+          x: i * cov.cell_m,
+          y: Y((j + 1) * cov.cell_m),
+          width: cov.cell_m,
+          height: cov.cell_m,
+          class: "coverage",
+          fill: `hsl(${hue},70%,45%)`,
+          "fill-opacity": 0.22,
+        },
+        layer,
+      );
+    });
+    if (legend) {
+      const share = Math.round((100 * covered) / Math.max(cov.loss_db.length, 1));
+      legend.textContent =
+        `Buildings grey (darker: taller, up to ${fmt(view.siteMaxHeight || 0, 0)} m); ` +
+        `shaded: what ${vehicle.id} covers from where it is, green ≤ 90 dB path loss to red ` +
+        `≥ 130 dB, ${share} % of the area has a path.`;
     }
   }
 

@@ -112,6 +112,22 @@ def test_a_mavsdk_url_is_refused_by_the_pymavlink_backend_only(capsys):
         main(["serve", "--mavlink", url, "--mavlink-backend", "mavsdk", "--insecure"])
 
 
+@pytest.mark.usefixtures("never_served")
+def test_serve_takes_a_site_as_its_environment_and_refuses_a_missing_one(capsys, tmp_path):
+    """Issue 38: ``--environment site:PATH`` is checked before anything starts; a site that is
+    there goes on to build the service."""
+    from sim.sites import save_site
+    from tests.sim.test_sites_channel import _site
+
+    base = ["serve", "--mavlink", "tcp:127.0.0.1:5760", "--insecure", "--port", "0"]
+    assert main([*base, "--environment", f"site:{tmp_path / 'none'}"]) == 2
+    err = _one_line_error(capsys)
+    assert err.startswith("tupa serve: error: environment: 'site:") and "no site there" in err
+    save_site(_site(500.0), tmp_path / "town")
+    with pytest.raises(AssertionError, match="went on to build the service"):
+        main([*base, "--environment", f"site:{tmp_path / 'town'}"])
+
+
 def _help_of(parser: argparse.ArgumentParser, action: argparse.Action) -> str:
     """What ``parser``'s help says of ``action`` (its help text with the defaults expanded)."""
     formatter = parser._get_formatter()

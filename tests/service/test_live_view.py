@@ -208,3 +208,31 @@ def test_the_loop_publishes_once_per_decision_period(mode: str) -> None:
     finally:
         service.stop()
     assert sub.closed  # stopping the service ends the streams
+
+
+def test_on_a_site_the_frame_carries_the_buildings_and_what_the_vehicle_covers(
+    tmp_path,
+) -> None:
+    """Issue 38, seen: the buildings (the tallest in each 10 m square) once per frame, and each
+    vehicle's coverage from where it is (the site's path loss to each 20 m square, null where
+    no ray reaches); the frame still matches the published schema."""
+    from api.live_schemas import LiveFrameOut
+    from sim.sites import save_site
+    from tests.sim.test_sites_channel import _site
+
+    save_site(_site(100.0), tmp_path / "s")  # a 30 m block on x 40-60 m; no path from (0, 0, 25)
+    area = AreaConfig(size_x_m=100, size_y_m=100, environment=f"site:{tmp_path / 's'}")
+    view = LiveView(area, UtilityConfig())
+    frame = json.loads(view.frame(_moment(_state(position_m=(10.0, 50.0, 50.0)))).data)
+    LiveFrameOut.model_validate(frame)
+    site = frame["site"]
+    assert (site["cell_m"], site["nx"], site["ny"]) == (10.0, 10, 10)
+    row = site["heights_m"][:10]
+    assert row == [0.0] * 4 + [30.0, 30.0] + [0.0] * 4
+    coverage = frame["vehicles"][0]["coverage"]
+    assert (coverage["nx"], coverage["ny"]) == (5, 5)
+    assert coverage["loss_db"] == [90.0] * 25
+    shadow = json.loads(view.frame(_moment(_state(position_m=(0.0, 0.0, 25.0)))).data)
+    assert shadow["vehicles"][0]["coverage"]["loss_db"] == [None] * 25
+    open_field = json.loads(LiveView(AreaConfig(), UtilityConfig()).frame(_moment(_state())).data)
+    assert open_field["site"] is None and open_field["vehicles"][0]["coverage"] is None
