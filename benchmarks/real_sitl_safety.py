@@ -127,10 +127,16 @@ and 20 m west of home, so home is at (20, 20) in the area frame (inside the fenc
 with home on the corner, 0 0, the vehicle holds at home: see ``--area-origin-m``)."""
 INCLUSION = [[10.0, 10.0], [490.0, 10.0], [490.0, 490.0], [10.0, 490.0]]
 EXCLUSION = [[45.0, 35.0], [85.0, 35.0], [85.0, 75.0], [45.0, 75.0]]
+MAX_SPEED_MPS = 5.0
+"""The envelope's speed limit in ``fence``: half ArduCopter's default WPNAV_SPEED (10 m/s)."""
+SPEED_TOLERANCE_MPS = 0.75
+"""How far above the limit the measured horizontal speed (1 s differences of the 5 Hz track)
+may go: the position controller's overshoot and the EKF's noise."""
 ENVELOPE = {
     "format": "tupa-envelope/1",
     "inclusion": INCLUSION,
     "clearance_m": 5.0,
+    "max_speed_mps": MAX_SPEED_MPS,
     "exclusions": [{"name": "mast", "polygon": EXCLUSION, "floor_m": 0.0, "ceiling_m": 40.0}],
 }
 
@@ -839,7 +845,7 @@ def main() -> int:
                 result["fence_readback"] = fence_readback(
                     gcs, tap, out / "envelope.json", frame, t0, note
                 )
-            fly_fence(args, api, gcs, frame, result, note)
+            fly_fence(args, api, gcs, tap, frame, result, note)
         else:
             fly_battery(args, api, gcs, tap, result, t0, note)
         return 0 if result["passed"] else 1
@@ -1159,6 +1165,7 @@ def fly_fence(
     args: argparse.Namespace,
     api: Api,
     gcs: Station,
+    tap: Tap,
     frame: FrameConfig,
     result: dict[str, Any],
     note: Any,
@@ -1215,6 +1222,13 @@ def fly_fence(
         x for x in gcs.texts if "fence" in x["text"].lower() or "breach" in x["text"].lower()
     ]
     dt = [b[0] - a[0] for a, b in itertools.pairwise(track)]
+    speed_sent = [
+        c
+        for c in tap.commands
+        if c["command"] == "MAV_CMD_DO_CHANGE_SPEED" and c["params"][1] == MAX_SPEED_MPS
+    ]
+    limited_from = speed_sent[0]["t"] + 2.0 if speed_sent else math.inf
+    speeds = horizontal_speeds([p for p in track if p[0] >= limited_from])
     r = {
         "fence_timeline": fences,
         "fence_uploaded_s": uploaded,
@@ -1232,6 +1246,13 @@ def fly_fence(
         "track_points_outside_inclusion": len(outside_inclusion),
         "max_height_m": round(max(p[3] for p in track), 2) if track else None,
         "fence_statustexts": fence_texts,
+        "speed_limit_sent_s": speed_sent[0]["t"] if speed_sent else None,
+        "max_horizontal_speed_mps": round(max(speeds), 2) if speeds else None,
+        "max_horizontal_speed_before_limit_mps": (
+            round(max(sp), 2)
+            if (sp := horizontal_speeds([p for p in track if p[0] < limited_from]))
+            else None
+        ),
         "track_1hz": one_hz(track),
     }
     result["fence"] = r
@@ -1247,10 +1268,27 @@ def fly_fence(
         "track_inside_inclusion": bool(track) and not outside_inclusion,
         "no_fence_breach_text": not any("breach" in x["text"].lower() for x in fence_texts),
         "reached_target": at_target_since is not None,
+        "speed_limit_sent": bool(speed_sent),
+        "flew_within_the_speed_limit": bool(speeds)
+        and max(speeds) <= MAX_SPEED_MPS + SPEED_TOLERANCE_MPS,
     }
     result["checks"] = checks
     result["passed"] = all(checks.values())
     print(f"{'PASS' if result['passed'] else 'FAIL'}: {checks}", flush=True)
+
+
+def horizontal_speeds(track: list[tuple[float, ...]]) -> list[float]:
+    """Horizontal speeds (m/s) over 1 s windows of ``(t, x, y, z)`` points."""
+    speeds = []
+    j = 0
+    for p in track:
+        while j < len(track) and track[j][0] < p[0] + 1.0:
+            j += 1
+        if j >= len(track):
+            break
+        q = track[j]
+        speeds.append(math.hypot(q[1] - p[1], q[2] - p[2]) / (q[0] - p[0]))
+    return speeds
 
 
 def one_hz(track: list[tuple[float, ...]]) -> list[list[float]]:
