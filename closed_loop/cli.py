@@ -59,10 +59,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     demo.add_argument("--flavour", choices=("px4", "ardupilot"), default="px4")
     demo.add_argument(
         "--environment",
-        choices=ENVIRONMENTS,
         default=None,
-        help="what stands on the ground: the simulated network's channel and the service's "
-        "(default: the --scenarios file's, else open, the paper's)",
+        metavar="ENV",
+        help=f"what stands on the ground: {', '.join(ENVIRONMENTS)} or site:PATH (a site "
+        "directory, docs/sites.md: users on its walkable ground, its buildings in track.png); "
+        "the simulated network's channel and the service's (default: the --scenarios file's, "
+        "else open, the paper's)",
     )
     demo.add_argument(
         "--out", type=Path, metavar="DIR", help="default runs/demo (the fleet's: runs/demo-fleet)"
@@ -81,9 +83,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ctl.add_argument("--api", default="http://127.0.0.1:8080", help="the service's base URL")
     ctl.add_argument(
         "--environment",
-        choices=ENVIRONMENTS,
         default="open",
-        help="the channel of generated scenarios (a --scenarios file says its own)",
+        metavar="ENV",
+        help=f"the channel of generated scenarios: {', '.join(ENVIRONMENTS)} or site:PATH (a "
+        "site directory: users on its walkable ground) (default open; a --scenarios file says "
+        "its own)",
     )
     ctl.add_argument(
         "--mavlink", default="tcp:127.0.0.1:5760", help="the autopilot (true position)"
@@ -132,12 +136,31 @@ def _positive(name: str, value: float) -> None:
         raise InputError(f"{name}: must be positive, got {value}")
 
 
+def _check_environment(value: str | None) -> str | None:
+    """``--environment`` checked before anything starts (None stays None): a named environment,
+    or ``site:PATH`` with a sound site there that covers the default area; otherwise one
+    InputError line naming ``--environment`` (:func:`sim.config.check_environment`)."""
+    if value is None:
+        return None
+    from sim.channel import area_site
+    from sim.config import AreaConfig, check_environment
+    from sim.errors import InputError
+
+    environment = check_environment(value, "--environment", on_disk=True)
+    try:
+        area_site(AreaConfig(environment=environment))  # a site: sound and covering the area
+    except InputError as exc:
+        raise InputError(f"--environment: {str(exc).removeprefix('environment: ')}") from None
+    return environment
+
+
 def _demo(args: argparse.Namespace) -> int:
     from sim.errors import InputError
     from sim.fleet import MAX_UAVS
 
     if not 1 <= args.uavs <= MAX_UAVS:
         raise InputError(f"--uavs: must be in 1..{MAX_UAVS}, got {args.uavs}")
+    args.environment = _check_environment(args.environment)
     if args.uavs > 1:
         return _fleet_demo(args)
     from dataclasses import replace
@@ -214,14 +237,14 @@ def _controller_sim(args: argparse.Namespace) -> int:
     _positive("step-s", args.step_s)
     if not args.wait_s >= 0:
         raise InputError(f"--wait-s: must be >= 0, got {args.wait_s}")
-    area = AreaConfig(environment=args.environment)
+    area = AreaConfig(environment=_check_environment(args.environment) or "open")
     if args.scenarios is not None:
         from sim.files import load_scenarios
 
         area, scenarios = load_scenarios(args.scenarios)  # the file's environment
     else:
         _positive("count", args.count)
-        scenarios = generate_scenarios(args.count, args.users, seed=args.seed)
+        scenarios = generate_scenarios(args.count, args.users, seed=args.seed, area=area)
     check_connection(args.mavlink, "--mavlink")
     frames = FrameConfig(args.area_origin_north_m, args.area_origin_east_m)
     with _service_client(args.api, args.wait_s) as client, _one_line_errors(args.api, "--mavlink"):
@@ -261,8 +284,8 @@ def _fleet_controller_sim(args: argparse.Namespace) -> int:
     _positive("step-s", args.step_s)
     if not args.wait_s >= 0:
         raise InputError(f"--wait-s: must be >= 0, got {args.wait_s}")
+    area = AreaConfig(environment=_check_environment(args.environment) or "open")
     spec = load_fleet_file(args.fleet_file)
-    area = AreaConfig(environment=args.environment)
     if args.scenarios is not None:
         from sim.files import load_scenarios
 

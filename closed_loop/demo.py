@@ -13,7 +13,9 @@ flying on from wherever the previous scenario left it. It ends with a table: the
 served policy achieved in the loop against ``min-distance``, ``load-weighted`` and the tracking
 oracle, each re-placed every step from the latest report and flown from the same start under
 the ``closed-loop`` world's limits, with the same users (the same motion and demand) — the
-protocol of ``tupa eval --world closed-loop``. A PNG shows each scenario's users and the track.
+protocol of ``tupa eval --world closed-loop``. A PNG shows each scenario's users and the track,
+over a site's buildings (footprints shaded by height, :func:`draw_buildings`) when the demo flies
+over one (``--environment site:PATH``).
 """
 
 from __future__ import annotations
@@ -369,9 +371,58 @@ def format_table(results: Sequence[dict[str, Any]], policy_name: str) -> str:
     return "\n".join(lines)
 
 
+BUILDINGS_CMAP = "Greys"
+"""The colour map of the buildings' heights in the track figures (light: low, dark: tall)."""
+BUILDINGS_LIGHTEST = 0.2
+"""Where on :data:`BUILDINGS_CMAP` a roof at 0 m starts, so that the lowest roofs still show
+against the blank ground."""
+
+
+def draw_buildings(ax: Any, area: AreaConfig) -> Any | None:
+    """On a site (``area.environment`` ``site:PATH``), draw its buildings under everything else
+    on the axes ``ax`` (area frame, metres): every ground cell with something standing on it
+    (``building_height_m`` > 0) as a footprint shaded by its height (:data:`BUILDINGS_CMAP`
+    from :data:`BUILDINGS_LIGHTEST` at 0 m to black at the tallest roof of the area), with a
+    colour bar "building height (m)".
+    Walkable and open ground stays blank. Returns the image (None off a site, where nothing is
+    drawn). The site is the one the channel loads (:func:`sim.channel.area_site`)."""
+    from sim.channel import area_site
+
+    site = area_site(area)
+    if site is None:
+        return None
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import ListedColormap
+
+    height_m = np.asarray(site.building_height_m, dtype=float)
+    cells_x = min(site.cells_x, int(np.ceil(area.size_x_m / site.cell_m - 1e-9)))
+    cells_y = min(site.cells_y, int(np.ceil(area.size_y_m / site.cell_m - 1e-9)))
+    height_m = height_m[:cells_y, :cells_x]
+    shown = np.ma.masked_less_equal(height_m, 0.0)
+    top_m = float(height_m.max()) if height_m.size and height_m.max() > 0 else 1.0
+    shades = plt.get_cmap(BUILDINGS_CMAP)(np.linspace(BUILDINGS_LIGHTEST, 1.0, 256))
+    image = ax.imshow(
+        shown,
+        origin="lower",
+        extent=(0.0, cells_x * site.cell_m, 0.0, cells_y * site.cell_m),
+        cmap=ListedColormap(shades, name=f"{BUILDINGS_CMAP}-buildings"),
+        vmin=0.0,
+        vmax=top_m,
+        interpolation="nearest",
+        zorder=0,
+    )
+    bar = plt.colorbar(image, ax=ax, fraction=0.046, pad=0.02)
+    bar.set_label("building height (m)", fontsize=7)
+    bar.ax.tick_params(labelsize=7)
+    return image
+
+
 def plot_tracks(
     results: Sequence[dict[str, Any]], area: AreaConfig, path: Path, policy_name: str
 ) -> None:
+    """One panel per scenario: the users (size: load; a walking user's trail), the served
+    policy's track (start, end), min-distance's and the oracle's last targets; on a site, the
+    buildings under them (:func:`draw_buildings`). Written atomically to ``path``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -380,6 +431,7 @@ def plot_tracks(
     n = len(results)
     fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 4.4), squeeze=False)
     for ax, (i, r) in zip(axes[0], enumerate(results), strict=True):
+        draw_buildings(ax, area)
         users = np.asarray(r["users_xy_m"])
         loads = np.asarray(r["load_bps"])
         ax.scatter(

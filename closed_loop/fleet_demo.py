@@ -41,7 +41,7 @@ import httpx
 import numpy as np
 
 from closed_loop.controller import TruePosition
-from closed_loop.demo import _in_parallel, _jsonable, _say, _wait_airborne
+from closed_loop.demo import _in_parallel, _jsonable, _say, _wait_airborne, draw_buildings
 from closed_loop.fleet_controller import (
     FleetStepRecord,
     GroupedUsers,
@@ -57,6 +57,7 @@ from closed_loop.processes import (
 )
 from policies.fleet_policy import FLEET_POLICIES
 from service.frames import FrameConfig
+from sim.channel import area_site
 from sim.config import AreaConfig, NetworkConfig
 from sim.errors import InputError
 from sim.fleet import MAX_UAVS, FleetConfig
@@ -161,7 +162,10 @@ def hot_spot_layout(
     ``load_per_uav_bps`` per UAV, split between the hot spots by a Dirichlet(2) draw over
     what is left after 5 % each (some hot spots heavy, some light, none empty), and within a
     hot spot by Exp(1) weights with a floor of 3 % of the spot's mean. The walking hot spot
-    is the one nearest the median load. Deterministic given ``seed``."""
+    is the one nearest the median load. On a site (``site:PATH``) a user drawn inside a
+    building is drawn again from its hot spot (:func:`sim.sites.ground.place_on_walkable`; the
+    nearest walkable cell after its tries), so every user stands on walkable ground; elsewhere
+    the draws are what they always were. Deterministic given ``seed``."""
     rng = np.random.default_rng(seed)
     n_spots = n_uavs + 1
     middle = np.array([area.size_x_m / 2, area.size_y_m / 2])
@@ -173,8 +177,17 @@ def hot_spot_layout(
     total = load_per_uav_bps * n_uavs
     xy, load = [], []
     upper = np.array([area.size_x_m, area.size_y_m]) - 1.0
+    site = area_site(area)
     for s in range(n_spots):
-        xy.append(np.clip(centres[s] + rng.normal(0.0, spread_m, (users_per_spot, 2)), 1.0, upper))
+        spot_xy = np.clip(centres[s] + rng.normal(0.0, spread_m, (users_per_spot, 2)), 1.0, upper)
+        if site is not None:
+            from sim.sites.ground import place_on_walkable
+
+            def redraw(which: np.ndarray, centre: np.ndarray = centres[s]) -> np.ndarray:
+                return np.clip(centre + rng.normal(0.0, spread_m, (which.size, 2)), 1.0, upper)
+
+            spot_xy = place_on_walkable(site, spot_xy, redraw, area.size_x_m, area.size_y_m)
+        xy.append(spot_xy)
         weights = rng.exponential(1.0, users_per_spot)
         weights = np.maximum(weights / weights.sum(), 0.03 / users_per_spot)
         load.append(total * shares[s] * weights / weights.sum())
@@ -459,7 +472,8 @@ def format_fleet_table(summary: dict[str, Any]) -> str:
 def plot_fleet_tracks(summary: dict[str, Any], area: AreaConfig, path: Path) -> None:
     """One panel per policy: the hot spots (the walking one's path dashed), the users at the
     end coloured by the vehicle serving them, every vehicle's track in its own colour (start
-    square, end star, last target cross)."""
+    square, end star, last target cross); on a site, under it all, the buildings' footprints
+    shaded by height (:func:`closed_loop.demo.draw_buildings`)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -473,6 +487,7 @@ def plot_fleet_tracks(summary: dict[str, Any], area: AreaConfig, path: Path) -> 
     spots = summary["hot_spots"]
     spot = np.asarray(summary["users"]["spot"])
     for ax, (policy, r) in zip(axes[0], policies.items(), strict=True):
+        draw_buildings(ax, area)
         steps = r["steps"]
         trails = np.array([s["users_xy_m"] for s in steps])  # (T, U, 2)
         for s, centre in enumerate(spots["centres_m"]):

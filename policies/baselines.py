@@ -17,7 +17,15 @@ never sees network metrics.
 * ``min-distance-env``: min-distance's ground point, at the altitude that maximises the users'
   mean SNR under the area's channel environment (:func:`sim.channel.mean_path_loss_db`): still
   traffic-blind, but it knows that over a town climbing buys line of sight. In the ``open``
-  environment it is min-distance.
+  environment it is min-distance. **On a site** (``site:PATH``), where the loss depends on
+  where the UAV is and not only on how far, the same rule — the least mean path loss in dB the
+  model sees, i.e. the highest mean SNR — is applied to the whole position
+  (:func:`best_site_position_m`): the site's loss (:func:`sim.sites.lookup.path_loss_db`) at
+  every point of a lattice over the flight volume (the site's UAV grid and the midpoints
+  between its points, where coverage can change), then a local pattern search down to 1 m.
+  A link with no path counts at :data:`sim.channel.NO_LINK_LOSS_DB`, as the network model
+  takes it, so reaching every user comes first and the mean SNR second. Positions inside a
+  building (at or below the roof of the ground cell the UAV hovers over) are never chosen.
 
 The ``oracle`` (:mod:`policies.oracle`: exhaustive search with the network model itself) is the
 third placement; :mod:`policies.registry` builds any of them by name.
@@ -26,19 +34,26 @@ third placement; :mod:`policies.registry` builds any of them by name.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
 from policies.interface import UsersLike
-from sim.channel import mean_path_loss_db
+from sim.channel import NO_LINK_LOSS_DB, area_site, mean_path_loss_db
 from sim.config import AreaConfig, RadioConfig
 from sim.geometry import clip_to_volume
+
+if TYPE_CHECKING:
+    from sim.sites.format import Site
 
 DistanceMetric = Literal["3d", "ground"]
 AltitudeRule = Literal["lowest", "best-snr"]
 ALTITUDE_STEP_M = 1.0
 """The altitude grid ``best-snr`` searches (metres)."""
+SITE_REFINE_MIN_STEP_M = 1.0
+"""The finest step of :func:`best_site_position_m`'s local search (metres)."""
+SITE_REFINE_MAX_ROUNDS = 200
+"""At most this many moves or step halvings in :func:`best_site_position_m`'s local search."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -179,7 +194,11 @@ class MinDistancePolicy:
     ``user_height_m``; ``"ground"`` the ground distance (plain geometric median).
     ``altitude="best-snr"`` then flies at the altitude (on a 1 m grid) with the highest mean SNR
     over the users under the area's environment, ``frequency_hz`` its carrier
-    (``min-distance-env``); ``"lowest"`` (default) at ``z_min_m``.
+    (``min-distance-env``); ``"lowest"`` (default) at ``z_min_m``. On a site ``best-snr``
+    chooses the whole position with the highest mean SNR the site gives
+    (:func:`best_site_position_m`; the mean weighted by load with ``load_weighted``), ties
+    going to the place nearest the min-distance point; ``frequency_hz`` is then unused (the
+    site's losses are at the carrier it was built for).
     """
 
     area: AreaConfig = field(default_factory=AreaConfig)
@@ -208,6 +227,10 @@ class MinDistancePolicy:
         xy_m = geometric_median(scenario.users_xy_m, weights, max(height_m, 0.0), self.median)
         z_m = area.z_min_m
         if self.altitude == "best-snr" and area.environment != "open":
+            site = area_site(area)
+            if site is not None:
+                start_m = clip_to_volume(np.array([xy_m[0], xy_m[1], z_m]), area)
+                return best_site_position_m(scenario.users_xy_m, area, site, weights, start_m)
             z_m = best_snr_altitude_m(scenario.users_xy_m, xy_m, area, self.frequency_hz)
         return clip_to_volume(np.array([xy_m[0], xy_m[1], z_m]), area)
 
@@ -227,3 +250,99 @@ def best_snr_altitude_m(
         frequency_hz,
     )
     return float(heights_m[int(np.argmin(loss_db.mean(axis=1)))])
+
+
+# --------------------------------------------------------------------------------------------
+# Sites
+
+
+def site_mean_loss_db(
+    site: Site, positions_xyz_m: np.ndarray, users_xy_m: np.ndarray, weights: np.ndarray | None
+) -> np.ndarray:
+    """The users' mean path loss in dB (N,) at each UAV position (N, 3) on ``site``, as the
+    network model sees it: the site's loss, a link with no path at
+    :data:`~sim.channel.NO_LINK_LOSS_DB`; weighted by ``weights`` (U,) when given (normalised;
+    all zero: equal)."""
+    from sim.sites.lookup import path_loss_db
+
+    loss = np.minimum(path_loss_db(site, positions_xyz_m, users_xy_m), NO_LINK_LOSS_DB)
+    if weights is None or not np.sum(weights) > 0:
+        return loss.mean(axis=1)
+    w = np.asarray(weights, dtype=float)
+    return loss @ (w / w.sum())
+
+
+def _lattice_axis(grid_m: np.ndarray, lo_m: float, hi_m: float) -> np.ndarray:
+    """A search axis in [lo_m, hi_m]: the grid's points, the midpoints between neighbours (where
+    the lookup's coverage can change) and both ends."""
+    grid = np.asarray(grid_m, dtype=float)
+    values = np.concatenate([grid, (grid[1:] + grid[:-1]) / 2.0, [lo_m, hi_m]])
+    return np.unique(values[(values >= lo_m) & (values <= hi_m)])
+
+
+def _above_roofs(site: Site, positions_xyz_m: np.ndarray) -> np.ndarray:
+    """Whether each position (N, 3) is above the roof of the ground cell it hovers over (N,)."""
+    from sim.sites.lookup import ground_cells
+
+    row, column = ground_cells(site, positions_xyz_m[:, :2])
+    return positions_xyz_m[:, 2] > site.building_height_m[row, column]
+
+
+def best_site_position_m(
+    users_xy_m: np.ndarray,
+    area: AreaConfig,
+    site: Site,
+    weights: np.ndarray | None = None,
+    start_xyz_m: np.ndarray | None = None,
+) -> np.ndarray:
+    """The position (3,) in ``area``'s flight volume, above the roofs, with the least mean path
+    loss over the users on ``site`` (:func:`site_mean_loss_db`; the highest mean SNR): the best
+    point of a lattice (the site's UAV grid, its midpoints and the volume's faces — between
+    grid points the lookup is trilinear, so a covered link's mean loss is least at such a
+    point), then a pattern search over the 26 neighbours from half the lattice's finest
+    spacing down to :data:`SITE_REFINE_MIN_STEP_M`, each move taken only if it lowers the mean
+    (it also finds where coverage changes off the lattice). Ties (within 1e-9 dB) go to the
+    lattice point nearest ``start_xyz_m`` (default: the volume's centre at ``z_min_m``).
+    Deterministic; never inside a building unless no lattice point is above the roofs."""
+    users = np.asarray(users_xy_m, dtype=float).reshape(-1, 2)
+    w = None if weights is None else np.asarray(weights, dtype=float)
+    lower = np.array([0.0, 0.0, area.z_min_m])
+    upper = np.array([area.size_x_m, area.size_y_m, area.z_max_m])
+    start = (
+        np.array([area.size_x_m / 2, area.size_y_m / 2, area.z_min_m])
+        if start_xyz_m is None
+        else np.clip(np.asarray(start_xyz_m, dtype=float), lower, upper)
+    )
+    axes = [
+        _lattice_axis(grid, lo, hi)
+        for grid, lo, hi in zip(
+            (site.uav_x_m, site.uav_y_m, site.uav_z_m), lower, upper, strict=True
+        )
+    ]
+    z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    candidates = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
+    allowed = _above_roofs(site, candidates)
+    if allowed.any():
+        candidates = candidates[allowed]
+    cost = site_mean_loss_db(site, candidates, users, w)
+    ties = np.flatnonzero(cost <= cost.min() + 1e-9)
+    gap = candidates[ties] - start
+    best = candidates[ties[int(np.argmin(np.einsum("ij,ij->i", gap, gap)))]]
+    best_cost = float(cost.min())
+    spacing = [np.diff(a).min() for a in axes[:2] if a.size > 1]
+    step = (min(spacing) if spacing else 2.0 * SITE_REFINE_MIN_STEP_M) / 2.0
+    moves = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
+    moves = moves[np.any(moves != 0, axis=1)].astype(float)
+    for _ in range(SITE_REFINE_MAX_ROUNDS):
+        if step < SITE_REFINE_MIN_STEP_M:
+            break
+        trial = np.clip(best + step * moves, lower, upper)
+        trial = trial[_above_roofs(site, trial)]
+        if trial.size:
+            trial_cost = site_mean_loss_db(site, trial, users, w)
+            i = int(np.argmin(trial_cost))
+            if trial_cost[i] < best_cost - 1e-9:
+                best, best_cost = trial[i], float(trial_cost[i])
+                continue
+        step /= 2.0
+    return best.copy()

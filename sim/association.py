@@ -9,6 +9,12 @@ as either moves a little). Received power is the **mean** one: transmit power le
 environment's mean path loss (:func:`sim.channel.mean_path_loss_db`), not a faded sample, since
 stations average beacons' RSSI before roaming. Ties go to the lowest AP index.
 
+On a site (``site:PATH``, :mod:`sim.sites`) the mean loss is the site's, looked up at each AP's
+exact position (:func:`sim.sites.lookup.path_loss_db`, what :class:`sim.fleet.FleetModel`'s
+association hears too); an AP with no path to a user gets :data:`sim.channel.NO_LINK_LOSS_DB`,
+far below the minimum preamble RSSI, so that user never hears it. The open field and the towns
+are computed as before, bit for bit.
+
 Arrays: received powers (B, K, U) for B fleets of K UAVs and U users; associations (B, U) as
 AP indices, ``-1`` for a user not associated yet.
 """
@@ -20,7 +26,7 @@ from functools import lru_cache
 import numpy as np
 from numba import njit
 
-from sim.channel import friis_path_loss_db, mean_path_loss_db
+from sim.channel import NO_LINK_LOSS_DB, area_site, friis_path_loss_db, mean_path_loss_db
 from sim.config import AreaConfig, RadioConfig
 
 __all__ = ["NOT_ASSOCIATED", "associate", "associate_at", "received_power_dbm"]
@@ -32,7 +38,10 @@ def received_power_dbm(
     uav_xyz_m: np.ndarray, users_xy_m: np.ndarray, area: AreaConfig, radio: RadioConfig
 ) -> np.ndarray:
     """Mean received power (dBm) of each UAV's AP at each user: (B, K, U) for UAVs (B, K, 3)
-    and users (U, 2); the area's environment sets the path loss (Friis in the open)."""
+    and users (U, 2); the area's environment sets the path loss (Friis in the open, the
+    statistical mean in a town, the site's lookup at the AP's exact position on a site, where
+    no path gives ``tx_power_dbm − NO_LINK_LOSS_DB``: never heard). On a site the users must
+    stand on it (InputError naming the first one off it)."""
     uav = np.asarray(uav_xyz_m, dtype=float)
     users = np.asarray(users_xy_m, dtype=float)
     if area.environment == "open":
@@ -40,6 +49,14 @@ def received_power_dbm(
         _open_power(uav.reshape(-1, 3), users, area.user_height_m, radio.tx_power_dbm,
                     _loss_1m_db(radio.frequency_hz), out.reshape(-1, users.shape[0]))  # fmt: skip
         return out
+    site = area_site(area)
+    if site is not None:
+        from sim.sites.lookup import path_loss_db
+
+        loss = path_loss_db(site, uav.reshape(-1, 3), users).reshape(
+            *uav.shape[:-1], users.shape[0]
+        )
+        return radio.tx_power_dbm - np.minimum(loss, NO_LINK_LOSS_DB)
     ground = np.hypot(uav[..., 0, None] - users[:, 0], uav[..., 1, None] - users[:, 1])  # (B, K, U)
     height = np.maximum(uav[..., 2, None] - area.user_height_m, 0.0)
     loss = mean_path_loss_db(area.environment, ground, height, radio.frequency_hz)
@@ -141,7 +158,8 @@ def associate_at(
     hysteresis_db: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`associate` on :func:`received_power_dbm` of UAVs (B, K, 3) and users (U, 2), the
-    minimum RSSI the radio's; in the open environment one compiled pass does both."""
+    minimum RSSI the radio's (on a site: the site's loss at each AP's position, an AP with no
+    path never heard); in the open environment one compiled pass does both."""
     uav = np.ascontiguousarray(uav_xyz_m, dtype=float)
     users = np.ascontiguousarray(users_xy_m, dtype=float)
     if area.environment != "open":

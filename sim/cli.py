@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 
 from sim.config import ENVIRONMENTS, QUEUEING_CHOICES
-from sim.scenarios import FAMILIES
+from sim.scenarios import FAMILIES, SITE_FAMILIES
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -28,9 +28,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     generate.add_argument(
         "--family",
         default="exponential",
-        metavar="{" + ",".join(FAMILIES) + "}",
+        metavar="{" + ",".join((*FAMILIES, *SITE_FAMILIES)) + "}",
         help="users' layout family (default exponential, the paper's; mixture: each scenario "
-        "one of the others)",
+        "one of the others; streets, squares, crowd: on a site only, users in its streets, its "
+        "largest squares, or mostly within 20 m of one point)",
     )
     generate.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     generate.add_argument(
@@ -86,20 +87,27 @@ def _generate(args: argparse.Namespace) -> int:
     from sim.config import AreaConfig, check_environment
     from sim.errors import InputError
     from sim.files import save_scenarios
-    from sim.scenarios import MAX_USERS, format_heterogeneity_histogram, generate_scenarios
+    from sim.scenarios import (
+        MAX_USERS,
+        check_family_area,
+        format_heterogeneity_histogram,
+        generate_scenarios,
+    )
 
     if args.n < 1:
         raise InputError(f"--n: must be at least 1, got {args.n}")
     if not 1 <= args.users <= MAX_USERS:
         raise InputError(f"--users: must be in 1..{MAX_USERS}, got {args.users}")
-    if args.family not in FAMILIES:
+    if args.family not in (*FAMILIES, *SITE_FAMILIES):
         raise InputError(
-            f"--family: unknown family {args.family!r} (choose from {', '.join(FAMILIES)})"
+            f"--family: unknown family {args.family!r} (choose from {', '.join(FAMILIES)}; on a "
+            f"site also {', '.join(SITE_FAMILIES)})"
         )
     if not math.isfinite(args.total_load_mbps) or not args.total_load_mbps > 0:
         raise InputError(f"--total-load-mbps: must be positive, got {args.total_load_mbps}")
     environment = check_environment(args.environment, "--environment", on_disk=True)
     area = AreaConfig(environment=environment)
+    check_family_area(args.family, area, "--family")  # a site family: only on a site
     try:
         area_site(area)  # a site: sound and covering the area
     except InputError as exc:

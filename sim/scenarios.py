@@ -28,6 +28,35 @@ Beyond the paper, the generator has named *families* of layouts (:data:`FAMILIES
 * ``mixture``: each scenario first draws one of the families above (equally likely), then is
   drawn from it.
 
+Three more families (:data:`SITE_FAMILIES`) put users where people are in a real district and so
+need a site (``area.environment`` ``site:PATH``; refused in one line elsewhere,
+:func:`check_family_area`). They read the site's walkable ground (cells of the area outside
+buildings) through one analysis (:func:`site_ground`): each walkable cell's *clearance* (the
+distance from its centre to the nearest non-walkable cell's centre; the area's edge is not a
+wall), the *open* ground (what a disc of radius r = ``street_width_max_m / 2`` covers when
+rolled over walkable ground without touching a wall, the morphological opening: the walkable
+cells within r of a cell whose clearance is at least r plus half a cell), and the *street*
+ground (walkable but not open: passages narrower than ``street_width_max_m``, in 8-connected
+pieces at least ``street_length_min_m`` long, the bounding box's diagonal; shorter nooks are
+dropped).
+
+* ``streets``: 1-``street_segments_max`` stretches of street per scenario, each the street cells
+  within ``L/2`` of a street cell drawn uniformly, counted in 8-connected steps along the street
+  (L log-uniform in [``street_segment_min_m``, ``street_segment_max_m``]); each user joins a
+  stretch at random and stands in one of its cells.
+* ``squares``: the open ground's 8-connected pieces, largest first; each scenario draws how many
+  of the ``squares_max`` largest it uses (uniform in 1..that many) and which, and its users stand
+  uniformly over their cells (a larger square holds more users).
+* ``crowd``: a strict majority of the users (a share uniform in [``crowd_share_min``,
+  ``crowd_share_max``]) stand in the walkable cells whose centres lie within ``crowd_radius_m``
+  of the centre of one walkable cell drawn uniformly (those reachable from it without leaving
+  the disc: a crowd does not stand behind a wall), the others uniformly over the area's
+  walkable ground.
+
+In each, a user stands uniformly inside its cell, kept ``min(edge_margin_m, cell_m / 4)`` from
+the cell's edges (so on walkable ground and strictly inside the area), and loads follow the
+common load model below. Deterministic per seed, like every family.
+
 Every family uses the same load model: per-scenario skew, loads Exp(1)**skew with a floor,
 scaled to sum to Λ (see :class:`GeneratorConfig`), so each family spans a range of load
 heterogeneity. Every user lies strictly inside the area.
@@ -47,21 +76,30 @@ counts: what training uses for domain randomisation (a fresh scenario per episod
 
 from __future__ import annotations
 
+import hashlib
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numba import njit
 
 from sim.channel import area_site
-from sim.config import AreaConfig, TrafficConfig
+from sim.config import AreaConfig, TrafficConfig, site_path
 from sim.errors import InputError
 from sim.utility import heterogeneity_index
+
+if TYPE_CHECKING:
+    from sim.sites.format import Site
 
 _DEFAULT_AREA = AreaConfig()
 
 FAMILIES: tuple[str, ...] = ("exponential", "uniform", "hotspots", "corners", "mixture")
-"""The scenario families :func:`generate_scenarios` and :class:`ScenarioSampler` know."""
+"""The scenario families :func:`generate_scenarios` and :class:`ScenarioSampler` know anywhere."""
+
+SITE_FAMILIES: tuple[str, ...] = ("streets", "squares", "crowd")
+"""The families that need a site (module doc): users in its streets, its squares, a crowd."""
 
 MAX_USERS = 300
 """The most users a generated scenario may have."""
@@ -220,8 +258,9 @@ class FamilyConfig:
     ``hotspot_spread_max_m``]; ``corners`` draws a number of corners uniform in [1,
     ``corners_max``] and a distance scale log-uniform in [``corner_scale_min_m``,
     ``corner_scale_max_m``]; ``mixture`` draws one of ``mixture_families``, equally likely (list
-    a family twice to weight it double). Loads and the edge margin follow
-    :class:`GeneratorConfig`.
+    a family twice to weight it double; the site families are not mixed). The site families'
+    knobs (``street_*``, ``squares_max``, ``crowd_*``) are described in the module doc. Loads
+    and the edge margin follow :class:`GeneratorConfig`.
     """
 
     hotspots_min: int = 1
@@ -232,6 +271,15 @@ class FamilyConfig:
     corner_scale_min_m: float = 10.0
     corner_scale_max_m: float = 80.0
     mixture_families: tuple[str, ...] = ("exponential", "uniform", "hotspots", "corners")
+    street_width_max_m: float = 30.0
+    street_length_min_m: float = 40.0
+    street_segments_max: int = 3
+    street_segment_min_m: float = 40.0
+    street_segment_max_m: float = 200.0
+    squares_max: int = 3
+    crowd_radius_m: float = 20.0
+    crowd_share_min: float = 0.6
+    crowd_share_max: float = 0.95
 
     def __post_init__(self) -> None:
         def positive_range(lo_name: str, hi_name: str) -> None:
@@ -250,6 +298,20 @@ class FamilyConfig:
         if not 1 <= self.corners_max <= 4:
             raise ValueError(f"corners_max: must be in 1..4, got {self.corners_max}")
         positive_range("corner_scale_min_m", "corner_scale_max_m")
+        positive_range("street_segment_min_m", "street_segment_max_m")
+        for name in ("street_width_max_m", "street_length_min_m", "crowd_radius_m"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name}: must be a positive number, got {value}")
+        for name in ("street_segments_max", "squares_max"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name}: must be a whole number >= 1, got {value!r}")
+        if not 0.5 < self.crowd_share_min <= self.crowd_share_max <= 1.0:
+            raise ValueError(
+                f"crowd_share_min/crowd_share_max: need 0.5 < crowd_share_min <= "
+                f"crowd_share_max <= 1, got {self.crowd_share_min} and {self.crowd_share_max}"
+            )
         mixture = self.mixture_families
         if isinstance(mixture, str):
             mixture = (mixture,)
@@ -351,6 +413,245 @@ def _corners_xy(
     return layout(rng, np.arange(n_users)), layout
 
 
+# --------------------------------------------------------------------------------------------
+# The site families: the walkable ground's streets and squares (module doc)
+
+
+@dataclass(frozen=True)
+class SiteGround:
+    """The walkable ground of a site's area as the site families read it (module doc). Masks
+    are (rows, columns) over the ground cells lying wholly inside the area (cell (j, i) is
+    ``[i·cell_m, (i+1)·cell_m] × [j·cell_m, (j+1)·cell_m]``); cell lists are flat indices
+    ``j·columns + i``, ascending. ``squares`` lists the open ground's 8-connected pieces,
+    largest first (ties: the piece whose first cell comes first)."""
+
+    cell_m: float
+    walkable: np.ndarray
+    clearance_m: np.ndarray
+    open: np.ndarray
+    street: np.ndarray
+    walkable_cells: np.ndarray
+    street_cells: np.ndarray
+    squares: tuple[np.ndarray, ...]
+
+    @property
+    def columns(self) -> int:
+        return int(self.walkable.shape[1])
+
+
+@njit(cache=True, nogil=True)
+def _clearance_kernel(wall: np.ndarray, cap: int) -> np.ndarray:
+    """Each cell's distance (in cells, centre to centre) to the nearest ``wall`` cell, looked
+    for within ``cap`` cells; ``cap + 1`` where none is that close."""
+    rows, columns = wall.shape
+    out = np.full((rows, columns), cap + 1.0)
+    for j in range(rows):
+        for i in range(columns):
+            best = (cap + 1.0) ** 2
+            for dj in range(-cap, cap + 1):
+                jj = j + dj
+                if jj < 0 or jj >= rows:
+                    continue
+                for di in range(-cap, cap + 1):
+                    ii = i + di
+                    if 0 <= ii < columns and wall[jj, ii]:
+                        d2 = float(dj * dj + di * di)
+                        if d2 < best:
+                            best = d2
+            out[j, i] = math.sqrt(best)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _dilate_kernel(core: np.ndarray, allowed: np.ndarray, radius: float) -> np.ndarray:
+    """The ``allowed`` cells whose centre lies within ``radius`` cells of a ``core`` cell's."""
+    rows, columns = core.shape
+    reach = math.floor(radius)
+    out = np.zeros((rows, columns), dtype=np.bool_)
+    for j in range(rows):
+        for i in range(columns):
+            if not core[j, i]:
+                continue
+            for dj in range(-reach, reach + 1):
+                jj = j + dj
+                if jj < 0 or jj >= rows:
+                    continue
+                for di in range(-reach, reach + 1):
+                    ii = i + di
+                    if 0 <= ii < columns and allowed[jj, ii] and dj * dj + di * di <= radius**2:
+                        out[jj, ii] = True
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _steps_kernel(mask: np.ndarray, start: int, max_steps: int) -> np.ndarray:
+    """8-connected breadth-first steps from cell ``start`` (flat index) over ``mask``, at most
+    ``max_steps`` (negative: no limit): (rows, columns) int64, -1 where not reached."""
+    rows, columns = mask.shape
+    steps = np.full(rows * columns, -1, dtype=np.int64)
+    queue = np.empty(rows * columns, dtype=np.int64)
+    if not mask.ravel()[start]:
+        return steps.reshape(rows, columns)
+    steps[start] = 0
+    queue[0] = start
+    head, tail = 0, 1
+    while head < tail:
+        cell = queue[head]
+        head += 1
+        if 0 <= max_steps <= steps[cell]:
+            continue
+        j, i = cell // columns, cell % columns
+        for dj in (-1, 0, 1):
+            for di in (-1, 0, 1):
+                jj, ii = j + dj, i + di
+                if 0 <= jj < rows and 0 <= ii < columns and mask[jj, ii]:
+                    other = jj * columns + ii
+                    if steps[other] < 0:
+                        steps[other] = steps[cell] + 1
+                        queue[tail] = other
+                        tail += 1
+    return steps.reshape(rows, columns)
+
+
+def _pieces(mask: np.ndarray) -> list[np.ndarray]:
+    """The 8-connected pieces of ``mask`` as ascending flat cell indices, in the order of their
+    first cell."""
+    left = mask.copy()
+    pieces = []
+    for start in np.flatnonzero(mask):
+        if left.ravel()[start]:
+            cells = np.flatnonzero(_steps_kernel(left, int(start), -1) >= 0)
+            left.ravel()[cells] = False
+            pieces.append(cells)
+    return pieces
+
+
+_GROUND_CACHE: dict[tuple[object, ...], SiteGround] = {}
+_GROUND_CACHE_SIZE = 8
+
+
+def site_ground(site: Site, area: AreaConfig, families: FamilyConfig) -> SiteGround:
+    """The analysis of ``site``'s walkable ground inside ``area`` that the site families draw
+    from (module doc), computed once per mask, area and knobs."""
+    cell_m = float(site.cell_m)
+    columns = min(math.floor(area.size_x_m / cell_m + 1e-9), site.cells_x)
+    rows = min(math.floor(area.size_y_m / cell_m + 1e-9), site.cells_y)
+    walkable = np.ascontiguousarray(site.walkable[:rows, :columns])
+    width_m, length_m = families.street_width_max_m, families.street_length_min_m
+    digest = hashlib.sha1(walkable.tobytes()).hexdigest()
+    key = (digest, walkable.shape, cell_m, width_m, length_m)
+    if key in _GROUND_CACHE:
+        return _GROUND_CACHE[key]
+    radius_m = width_m / 2.0
+    # A disc of radius r fits around a cell whose nearest wall centre is r + half a cell away.
+    cap = math.ceil((radius_m + cell_m) / cell_m) + 1
+    clearance_m = _clearance_kernel(~walkable, cap) * cell_m
+    core = walkable & (clearance_m >= radius_m + cell_m / 2.0)
+    open_ground = _dilate_kernel(core, walkable, radius_m / cell_m)
+    narrow = walkable & ~open_ground
+    street = np.zeros_like(narrow)
+    for cells in _pieces(narrow):
+        j, i = np.divmod(cells, columns)
+        if math.hypot(np.ptp(i) + 1, np.ptp(j) + 1) * cell_m >= length_m:
+            street.ravel()[cells] = True
+    squares = sorted(_pieces(open_ground), key=lambda cells: (-cells.size, int(cells[0])))
+    ground = SiteGround(
+        cell_m=cell_m,
+        walkable=walkable,
+        clearance_m=clearance_m,
+        open=open_ground,
+        street=street,
+        walkable_cells=np.flatnonzero(walkable),
+        street_cells=np.flatnonzero(street),
+        squares=tuple(squares),
+    )
+    for array in (
+        walkable, clearance_m, open_ground, street, ground.walkable_cells, ground.street_cells,
+        *squares,
+    ):  # fmt: skip
+        array.setflags(write=False)
+    if len(_GROUND_CACHE) >= _GROUND_CACHE_SIZE:
+        _GROUND_CACHE.pop(next(iter(_GROUND_CACHE)))
+    _GROUND_CACHE[key] = ground
+    return ground
+
+
+def _in_cells(
+    rng: np.random.Generator, ground: SiteGround, cells: np.ndarray, n: int, margin_m: float
+) -> np.ndarray:
+    """``n`` users (n, 2), each in a cell drawn uniformly from ``cells`` (flat indices), uniform
+    inside it at least ``margin_m`` from its edges."""
+    picked = cells[rng.integers(0, cells.size, size=n)]
+    j, i = np.divmod(picked, ground.columns)
+    offset = rng.uniform(margin_m, ground.cell_m - margin_m, size=(n, 2))
+    return np.column_stack([i * ground.cell_m + offset[:, 0], j * ground.cell_m + offset[:, 1]])
+
+
+def _site_family_xy(
+    rng: np.random.Generator,
+    family: str,
+    n_users: int,
+    ground: SiteGround,
+    margin_m: float,
+    families: FamilyConfig,
+    environment: str,
+) -> np.ndarray:
+    """Users' positions (U, 2) of a site family (module doc); InputError naming ``family``
+    when the site has no ground of the kind the family needs."""
+
+    def missing(what: str) -> InputError:
+        return InputError(f"family: {family!r}: {environment} has {what} in the area")
+
+    cell_m = ground.cell_m
+    if family == "streets":
+        if ground.street_cells.size == 0:
+            raise missing(
+                f"no street (walkable passages narrower than {families.street_width_max_m:g} m, "
+                f"at least {families.street_length_min_m:g} m long)"
+            )
+        n_stretches = int(rng.integers(1, families.street_segments_max + 1))
+        stretches = []
+        for _ in range(n_stretches):
+            seed = int(ground.street_cells[rng.integers(0, ground.street_cells.size)])
+            length_m = _log_uniform(
+                rng, families.street_segment_min_m, families.street_segment_max_m
+            )
+            reach = int(length_m / 2.0 // cell_m)
+            stretches.append(np.flatnonzero(_steps_kernel(ground.street, seed, reach) >= 0))
+        member = rng.integers(0, n_stretches, size=n_users)
+        xy = np.empty((n_users, 2))
+        for k, cells in enumerate(stretches):
+            mine = np.flatnonzero(member == k)
+            xy[mine] = _in_cells(rng, ground, cells, mine.size, margin_m)
+        return xy
+    if family == "squares":
+        if not ground.squares:
+            raise missing(
+                f"no open walkable ground (nowhere a {families.street_width_max_m:g} m wide "
+                "disc fits between buildings)"
+            )
+        available = min(families.squares_max, len(ground.squares))
+        used = np.sort(rng.permutation(available)[: int(rng.integers(1, available + 1))])
+        cells = np.concatenate([ground.squares[k] for k in used])
+        return _in_cells(rng, ground, cells, n_users, margin_m)
+    # crowd
+    if ground.walkable_cells.size == 0:
+        raise missing("no walkable ground")
+    centre = int(ground.walkable_cells[rng.integers(0, ground.walkable_cells.size)])
+    share = rng.uniform(families.crowd_share_min, families.crowd_share_max)
+    in_crowd = min(n_users, max(n_users // 2 + 1, round(share * n_users)))
+    rows, columns = ground.walkable.shape
+    cj, ci = divmod(centre, columns)
+    jj, ii = np.mgrid[0:rows, 0:columns]
+    disc = ground.walkable & (
+        (jj - cj) ** 2 + (ii - ci) ** 2 <= (families.crowd_radius_m / cell_m) ** 2
+    )
+    cells = np.flatnonzero(_steps_kernel(disc, centre, -1) >= 0)
+    crowd = _in_cells(rng, ground, cells, in_crowd, margin_m)
+    rest = _in_cells(rng, ground, ground.walkable_cells, n_users - in_crowd, margin_m)
+    return np.vstack([crowd, rest])
+
+
 def _loads(
     rng: np.random.Generator,
     n_users: int,
@@ -378,7 +679,17 @@ def _draw(
     families: FamilyConfig,
 ) -> tuple[np.ndarray, np.ndarray, str]:
     """Users' positions, loads, and the family drawn (for ``mixture``, the one it picked).
-    On a site, users inside buildings are then drawn again (module doc)."""
+    On a site, users inside buildings are then drawn again (module doc); the site families
+    draw on walkable ground directly."""
+    if family in SITE_FAMILIES:
+        site = area_site(area)
+        if site is None:
+            raise InputError(_needs_site(family, area.environment))
+        ground = site_ground(site, area, families)
+        margin_m = min(config.edge_margin_m, ground.cell_m / 4.0)
+        xy_m = _site_family_xy(rng, family, n_users, ground, margin_m, families, area.environment)
+        skew = rng.uniform(0.0, config.load_skew_max)
+        return xy_m, _loads(rng, n_users, skew, total_load_bps, config), family
     if family == "mixture":
         mixture = families.mixture_families
         family = mixture[int(rng.integers(0, len(mixture)))]
@@ -410,9 +721,27 @@ def _label(family: str, drawn: str) -> str:
 
 
 def _check_family(family: object, name: str = "family") -> str:
-    if not isinstance(family, str) or family not in FAMILIES:
-        raise InputError(f"{name}: unknown family {family!r} (choose from {', '.join(FAMILIES)})")
+    if not isinstance(family, str) or family not in (*FAMILIES, *SITE_FAMILIES):
+        raise InputError(
+            f"{name}: unknown family {family!r} (choose from {', '.join(FAMILIES)}; on a site "
+            f"also {', '.join(SITE_FAMILIES)})"
+        )
     return family
+
+
+def _needs_site(family: str, environment: str, name: str = "family") -> str:
+    return (
+        f"{name}: {family!r} needs a site (environment site:PATH: its streets, squares and "
+        f"walkable ground), got environment {environment!r}"
+    )
+
+
+def check_family_area(family: str, area: AreaConfig, name: str = "family") -> None:
+    """InputError of one line naming ``name`` for an unknown family, or a site family
+    (:data:`SITE_FAMILIES`) asked for off a site."""
+    _check_family(family, name)
+    if family in SITE_FAMILIES and site_path(area.environment) is None:
+        raise InputError(_needs_site(family, area.environment, name))
 
 
 def _check_users(n_users: object, name: str = "n_users") -> int:
@@ -450,7 +779,7 @@ def generate_scenarios(
     family_config: FamilyConfig | None = None,
 ) -> list[Scenario]:
     """Draw ``n`` scenarios of ``n_users`` users (1..300) each from ``family`` (see
-    :data:`FAMILIES`).
+    :data:`FAMILIES`; on a site also :data:`SITE_FAMILIES`).
 
     Ids are ``s0000``, ``s0001``, ... for the ``exponential`` family (as they always were),
     ``s0000-<family>`` for the others, and ``s0000-mixture-<family drawn>`` for ``mixture``.
@@ -465,7 +794,7 @@ def generate_scenarios(
         raise InputError(f"n: must be >= 0, got {n}")
     n_users = _check_users(n_users)
     total_load_bps = _check_total_load(total_load_bps)
-    family = _check_family(family)
+    check_family_area(family, area)
     families = FamilyConfig() if family_config is None else family_config
     width = max(4, len(str(n - 1)))
     scenarios = []
@@ -494,7 +823,8 @@ class ScenarioSampler:
     ``generate_scenarios(1, n_users, seed, ..., family=family)[0]``. The id,
     ``<family>-<U>u-<seed>`` (``mixture-<drawn>-...`` for a mixture), says how to draw it again.
 
-    A family may be listed more than once to weight it. Bad fields raise :class:`InputError`
+    A family may be listed more than once to weight it; the site families
+    (:data:`SITE_FAMILIES`) only with a site's area. Bad fields raise :class:`InputError`
     naming the field.
     """
 
@@ -530,6 +860,8 @@ class ScenarioSampler:
             raise InputError(f"users: min {lo} is above max {hi}")
         if not isinstance(self.area, AreaConfig):
             raise InputError(f"area: must be an AreaConfig, got {type(self.area).__name__}")
+        for family in families:
+            check_family_area(family, self.area, "families")
         if not isinstance(self.config, GeneratorConfig):
             raise InputError(f"config: must be a GeneratorConfig, got {type(self.config).__name__}")
         if not isinstance(self.family_config, FamilyConfig):
