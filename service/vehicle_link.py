@@ -17,8 +17,10 @@ What this module owns:
   ArduPilot, OFFBOARD on PX4 once the stream has run ``px4_stream_lead_s``, during
   ``mode_request_window_s`` after a new target only, so that a pilot who took over keeps the
   vehicle), the envelope (:mod:`service.routing`: legal targets and the routes to them), the
-  vehicle's STATUSTEXTs, and the arm-and-takeoff sequence the real autopilots need
-  (:meth:`VehicleLinkBase.arm_and_takeoff` has its steps).
+  vehicle's STATUSTEXTs. Two mixins of it hold the rest, each in its own module: the
+  arm-and-takeoff sequence the real autopilots need (:mod:`service.link_takeoff`;
+  :meth:`~service.link_takeoff.TakeoffMixin.arm_and_takeoff` has its steps), and the speed
+  limit, the autopilot's fence and the battery reserve (:mod:`service.link_safety`).
 
 A backend (:mod:`service.mavlink_link` on pymavlink, :mod:`service.mavsdk_link` on MAVSDK)
 implements the hooks listed on :class:`VehicleLinkBase`: open, poll and close its transport,
@@ -32,62 +34,36 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
-import os
 import threading
 import time
 from abc import ABC, abstractmethod
 from collections import Counter, deque
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Literal, Self
 
 from service import control as vehicle_control
-from service import mavlink_commands
-from service.battery import BatteryConfig, DrainEstimate, reserve_reached, return_needs_pct
+from service.battery import BatteryConfig, DrainEstimate
 from service.control import Control, ControlHolder
-from service.fence import FenceError, FencePlan, fence_compatible, fence_plan
-from service.frames import FrameConfig, GeoPoint, area_to_ned, ned_to_area, ned_to_global
-from service.mission_protocol import MissionError
-from service.modes import GUIDED_MODE_NAME, Flavour, flavour_of, mode_name, set_mode_numbers
+from service.fence import FenceError, FencePlan, fence_compatible
+from service.frames import FrameConfig, GeoPoint, area_to_ned, ned_to_area
+from service.link_safety import SafetyMixin
+from service.link_takeoff import (
+    POSITION_FRESH_S,
+    TAKEOFF_TIMEOUT_S,
+    TakeoffMixin,
+)
+from service.modes import GUIDED_MODE_NAME, Flavour, flavour_of, mode_name
 from service.routing import LinkRoute, RouteView
+from service.vehicle_mavlink import mavlink
 from sim.config import AreaConfig
 from sim.envelope import Envelope
-
-# MAVLink 2 is needed for signing; pymavlink picks the wire version from this variable when its
-# dialect module is first loaded (it would also switch on the first MAVLink 2 packet it sees).
-os.environ.setdefault("MAVLINK20", "1")
-from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 log = logging.getLogger(__name__)
 
 LinkHealth = Literal["connecting", "up", "link_lost"]
 
-TAKEOFF_TIMEOUT_S = 300.0
-"""How long the take-off sequence keeps trying by default: a real autopilot needs a GPS lock and
-its pre-arm checks first (ArduCopter SITL ~40 s from boot, a real vehicle minutes)."""
-STEP_TIMEOUT_S = 10.0
-"""How long one step of an attempt (an ACK, a mode seen in HEARTBEAT, armed) may take."""
-MODE_SETTLE_S = 1.0
-"""ArduPilot: GUIDED must hold this long in HEARTBEAT before the vehicle is armed (a mode switch
-read at start-up changed it back 0.2 s after it was granted on a real ArduCopter SITL)."""
-CLIMB_START_S = 10.0
-"""After an accepted take-off the vehicle must leave the ground within this (PX4 accepts a
-take-off it then does not fly, and disarms it ~10 s later)."""
-CLIMB_MIN_MPS = 0.5
-"""Slowest average climb accepted on the way to the take-off altitude."""
-IN_AIR_ALT_M = 1.0
-"""Armed and this high above home: flying (a vehicle found flying is taken over, not armed)."""
-LIFTOFF_ALT_M = 0.3
-LIFTOFF_WAIT_S = 3.0
-"""A refused take-off is still a take-off if the vehicle is this high within this time."""
-RETRY_MIN_S = 1.0
-RETRY_MAX_S = 10.0
-"""Backoff between take-off attempts: doubles from min to max."""
-POSITION_FRESH_S = 2.0
-"""LOCAL_POSITION_NED older than this does not count as a position estimate."""
-REFUSAL_TEXT_WAIT_S = 0.5
-"""How long a refusal waits for the vehicle's STATUSTEXT that explains it."""
 STATUS_TEXTS_KEPT = 8
 """How many of the vehicle's latest STATUSTEXTs :meth:`VehicleLinkBase.state` shows."""
 IDLE_WAIT_S = 0.05
@@ -96,40 +72,8 @@ HEARTBEAT_PERIOD_S = 1.0
 """Our own HEARTBEAT's period (where the backend sends it)."""
 TELEMETRY_REQUEST_PERIOD_S = 2.0
 """How often ``_request_telemetry`` is called while the vehicle is up."""
-FENCE_RETRY_S = 10.0
-"""After a failed fence upload, how long until the next try (nothing streams meanwhile)."""
-HOME_REQUEST_PERIOD_S = 2.0
-"""How often HOME_POSITION is asked for while the fence waits for it."""
 BATTERY_CHECK_PERIOD_S = 1.0
 """How often the battery reserve is checked (:mod:`service.battery`)."""
-SPEED_RETRY_S = 5.0
-"""After an unanswered or refused speed limit, how long until it is asked for again."""
-SPEED_AFTER_STREAM_S = 1.0
-"""How long the stream runs in GUIDED before the speed limit is sent: ArduCopter resets GUIDED's
-speed to WPNAV_SPEED when the first position target moves it into its position sub-mode (from
-the take-off's), so a limit sent before that is lost (seen on its SITL)."""
-SPEED_REASSERT_S = 10.0
-"""The limit is sent again this often while the vehicle stays in GUIDED: any later switch of
-GUIDED's sub-mode resets it the same way."""
-RETURN_ATTEMPTS = 3
-"""How many times the return home is asked for before the link gives up (and says so)."""
-
-EKF_POSITION_FLAGS = mavlink.EKF_POS_HORIZ_ABS | mavlink.EKF_PRED_POS_HORIZ_ABS
-
-
-def ekf_position_ok(flags: int) -> bool:
-    """ArduPilot's EKF_STATUS_REPORT.flags allow arming in GUIDED: an absolute horizontal position
-    (or its prediction, which is what ArduCopter checks while disarmed) and no constant-position
-    mode (the EKF's "no GPS yet" state)."""
-    return bool(flags & EKF_POSITION_FLAGS) and not flags & mavlink.EKF_CONST_POS_MODE
-
-
-def result_name(result: int | None) -> str:
-    """``ACCEPTED``, ``FAILED``, ... for a MAV_RESULT; ``no answer`` for None."""
-    if result is None:
-        return "no answer"
-    entry = mavlink.enums["MAV_RESULT"].get(result)
-    return entry.name.removeprefix("MAV_RESULT_") if entry is not None else f"result {result}"
 
 
 def signing_key_from_passphrase(passphrase: str) -> bytes:
@@ -139,10 +83,6 @@ def signing_key_from_passphrase(passphrase: str) -> bytes:
 
 class ControlRefused(Exception):  # noqa: N818 (a refusal, not a programming error)
     """The vehicle cannot be handed back to the service now (the message says why)."""
-
-
-class TakeoffRefused(Exception):  # noqa: N818 (a refusal, not a programming error)
-    """One take-off attempt failed (a refusal, a mode change, no climb): the sequence restarts."""
 
 
 @dataclass(frozen=True)
@@ -369,7 +309,7 @@ class _LoopTimes:
     """How long the next poll may wait for input (until the next thing due)."""
 
 
-class VehicleLinkBase(VehicleLink):
+class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
     """What both MAVLink backends share (see the module docstring): the I/O loop, heartbeat
     supervision, setpoint scheduling, the geofence, the vehicle state it exposes and the
     take-off sequence.
@@ -681,54 +621,6 @@ class VehicleLinkBase(VehicleLink):
             vehicle_control.MAV_STATE_EMERGENCY,
         )
 
-    def arm_and_takeoff(
-        self, z_m: float | None = None, timeout_s: float = TAKEOFF_TIMEOUT_S
-    ) -> Future[None]:
-        """Arm and climb to ``z_m`` (area frame; default the area's ``z_min_m``), in a worker.
-
-        The sequence the real autopilots need, started again with backoff after any refusal
-        until ``timeout_s`` (a real GPS lock takes minutes, not seconds):
-
-        1. the vehicle's HEARTBEAT; a vehicle already armed and in the air is taken over as it
-           is (a restart), without arming;
-        2. a usable position estimate: LOCAL_POSITION_NED arriving, and on ArduPilot its
-           EKF_STATUS_REPORT showing an absolute horizontal position out of constant-position
-           mode (ArduCopter refuses to arm in GUIDED before that, "Need Position Estimate");
-        3. ArduPilot: GUIDED asked for and *seen in HEARTBEAT*, held for ``MODE_SETTLE_S``; the
-           vehicle is never armed in another mode (an RC mode switch can change it at any time);
-        4. arm, then MAV_CMD_NAV_TAKEOFF at once (both autopilots disarm a vehicle left armed on
-           the ground for ~10 s): altitude above home on ArduPilot, AMSL on PX4, position and yaw
-           NaN (:mod:`service.mavlink_commands`);
-        5. the climb confirmed: the vehicle leaves the ground within ``CLIMB_START_S`` and reaches
-           90 % of the altitude; disarming or (ArduPilot) leaving GUIDED on the way is a failure.
-
-        Position setpoints are held back until the vehicle is airborne (on ArduPilot a setpoint
-        while the take-off is still on the ground cancels it). Progress, the attempt count, the
-        last refusal and the vehicle's STATUSTEXTs are in :meth:`state`. The Future completes when
-        airborne, or with the reason it gave up.
-        """
-        if not (math.isfinite(timeout_s) and timeout_s > 0):
-            raise ValueError(f"timeout_s: must be a positive number, got {timeout_s!r}")
-        area = self.config.area
-        z_m = area.z_min_m if z_m is None else min(max(float(z_m), area.z_min_m), area.z_max_m)
-        future: Future[None] = Future()
-        worker = threading.Thread(
-            target=self._takeoff_worker,
-            args=(z_m, timeout_s, future),
-            name=f"{self._thread_name}-takeoff",
-            daemon=True,
-        )
-        with self._cond:
-            self._takeoff = "running"
-            self._takeoff_phase = "starting"
-            self._takeoff_attempts = 0
-            self._takeoff_last_refusal = None
-            self._hold_setpoints = True
-            self._set_control(Control("service", "its take-off sequence", time.monotonic()))
-        self._workers.append(worker)
-        worker.start()
-        return future
-
     # ------------------------------------------------------------------ the I/O loop
 
     def _run(self) -> None:
@@ -832,207 +724,6 @@ class VehicleLinkBase(VehicleLink):
             if self._target_dirty:  # set_target notifies self._cond: a new target wakes a poll
                 wake_at = min(wake_at, times.last_setpoint + config.setpoint_min_gap_s)
         times.wait_s = min(max(wake_at - time.monotonic(), 0.001), IDLE_WAIT_S)
-
-    # ------------------------------------------------------------------ the speed limit
-
-    def _speed_limit_step(self, now: float) -> None:
-        """ArduPilot: the envelope's ``max_speed_mps`` as the guided mode's horizontal speed
-        (MAV_CMD_DO_CHANGE_SPEED, ground speed), once the stream has run
-        ``SPEED_AFTER_STREAM_S`` in GUIDED, again every ``SPEED_REASSERT_S`` while it stays and
-        at once for a new envelope's; asked on a worker (the I/O loop never waits for an
-        answer), again after ``SPEED_RETRY_S`` when unanswered or refused. PX4 is
-        not asked: its offboard mode ignores the command (its position controller flies at
-        ``MPC_XY_VEL_MAX``)."""
-        with self._cond:
-            wanted_mps = self._routing.envelope.max_speed_mps
-            if (
-                self._speed_busy
-                or self._flavour != "ardupilot"
-                or not self._streaming_now()
-                or self._stream_since is None
-                or now - self._stream_since < SPEED_AFTER_STREAM_S
-                or self._mode_locked() != GUIDED_MODE_NAME["ardupilot"]
-                or (
-                    self._speed_limit_mps == wanted_mps
-                    and now - self._speed_set_at < SPEED_REASSERT_S
-                )
-            ):
-                return
-            self._speed_busy = True
-            self._speed_next_try = now + SPEED_RETRY_S
-        worker = threading.Thread(
-            target=self._speed_limit_worker,
-            args=(wanted_mps,),
-            name=f"{self._thread_name}-speed",
-            daemon=True,
-        )
-        self._workers.append(worker)
-        worker.start()
-
-    def _speed_limit_worker(self, speed_mps: float) -> None:
-        result = self._ask(
-            mavlink.MAV_CMD_DO_CHANGE_SPEED, mavlink_commands.change_speed(speed_mps), 3.0
-        )
-        new = False
-        with self._cond:
-            self._speed_busy = False
-            if result == mavlink.MAV_RESULT_ACCEPTED:
-                new = self._speed_limit_mps != speed_mps
-                self.counters["speed_limits_set"] += new
-                self._speed_limit_mps = speed_mps
-                self._speed_set_at = time.monotonic()
-            else:
-                self.counters["speed_limit_failures"] += 1
-        if new:
-            log.info("the guided mode's speed is now the envelope's %g m/s", speed_mps)
-        elif result != mavlink.MAV_RESULT_ACCEPTED:
-            log.warning("the vehicle did not take the envelope's speed limit (%s)", result)
-
-    # ------------------------------------------------------------------ the autopilot's fence
-
-    def _fence_step(self, now: float) -> None:
-        """Put the envelope on the autopilot as its fence once its home is known (in the I/O
-        thread: the upload borrows the connection for a fraction of a second); on failure, say
-        why and try again after ``FENCE_RETRY_S``."""
-        with self._cond:
-            if self._fence == "uploaded" or self._flavour is None:
-                return
-            flavour, origin, envelope = self._flavour, self._origin, self._fence_envelope
-            if origin is None:
-                self._fence = "waiting for the vehicle's home"
-                self._fence_next_try = now + HOME_REQUEST_PERIOD_S
-        if origin is None:
-            self._request_home()
-            return
-        try:
-            plan = fence_plan(
-                envelope, origin, self.config.frames, flavour, action=self.config.fence_action
-            )
-            report = self._upload_fence(plan)
-        except (FenceError, MissionError) as exc:
-            with self._cond:
-                self._fence = f"failed: {exc}"
-                self._fence_next_try = time.monotonic() + FENCE_RETRY_S
-                self.counters["fence_failures"] += 1
-            log.error("the autopilot's fence could not be put on the vehicle: %s", exc)
-            return
-        with self._cond:
-            if self._fence_envelope is envelope:
-                self._fence = "uploaded"
-                self.counters["fence_uploads"] += 1
-                self._cond.notify_all()
-        log.info("the autopilot's fence is on the vehicle: %s", report)
-
-    def _note_home(self, home: GeoPoint, local_ned_m: tuple[float, float, float]) -> None:
-        """HOME_POSITION (call under ``self._cond``): home's position and where it lies in the
-        local frame give the local frame's origin, which the area frame hangs off."""
-        self._origin = ned_to_global(home, *(-v for v in local_ned_m))
-        if self._fence.startswith("waiting for the vehicle's home"):
-            self._fence_next_try = 0.0
-
-    # ------------------------------------------------------------------ the battery reserve
-
-    def _note_battery(
-        self, now: float, remaining_pct: float | None, voltage_v: float | None
-    ) -> None:
-        """A battery reading (call under ``self._cond``): ``remaining_pct`` None or negative when
-        the vehicle does not know it. Readings while flying feed the drain estimate."""
-        known = remaining_pct is not None and 0 <= remaining_pct <= 100
-        self._battery_pct = float(remaining_pct) if known else None  # type: ignore[arg-type]
-        self._battery_voltage_v = voltage_v
-        if known and self._in_air():
-            self._drain.add(now, float(remaining_pct))  # type: ignore[arg-type]
-
-    def _home_leg_m(self) -> tuple[float, float] | None:
-        """(horizontal distance, height) from home, metres (call under ``self._cond``)."""
-        if self._ned is None:
-            return None
-        north_m, east_m, down_m = self._ned
-        return math.hypot(north_m, east_m), max(0.0, -down_m)
-
-    def _return_at_pct(self) -> float | None:
-        """The charge at which the vehicle is sent home from here (under ``self._cond``)."""
-        cfg = self.config.battery
-        leg = self._home_leg_m()
-        if cfg.reserve_pct is None or leg is None or not self._control.service_has_it:
-            return None
-        return cfg.reserve_pct + return_needs_pct(self._drain.pct_per_s, *leg, cfg)
-
-    def _check_battery_reserve(self, now: float) -> None:
-        """Send the vehicle home at its reserve (:mod:`service.battery`), in a worker
-        (:meth:`_return_worker`)."""
-        with self._cond:
-            pct, leg = self._battery_pct, self._home_leg_m()
-            if (
-                pct is None
-                or leg is None
-                or self._return_pending is not None
-                or not self._control.service_has_it
-                or self._takeoff == "running"
-                or not self._in_air()
-            ):
-                return
-            why = reserve_reached(pct, self._drain.pct_per_s, *leg, self.config.battery)
-            if why is None:
-                return
-            self._return_pending = why
-            self.counters["battery_returns"] += 1
-        log.warning("%s: sending the vehicle home", why)
-        worker = threading.Thread(
-            target=self._return_worker, args=(why,), name=f"{self._thread_name}-return", daemon=True
-        )
-        self._workers.append(worker)
-        worker.start()
-
-    def _return_worker(self, why: str) -> None:
-        """Let go of the vehicle and command MAV_CMD_NAV_RETURN_TO_LAUNCH, unless the autopilot
-        acts already. It first waits for a HEARTBEAT heard after the reserve was reached (the
-        stream goes on meanwhile, so that PX4's offboard-loss hold does not start): if that
-        shows a return or landing mode, or a failsafe (flagged, or announced in the last few
-        seconds), the service only lets go, so that it never overrides the autopilot's own
-        failsafe (its LAND, say, with an RTL). Otherwise it lets go (nothing streams) and asks
-        for the return until accepted, :data:`RETURN_ATTEMPTS` times at most."""
-        try:
-            began = time.monotonic()
-            with self._cond:
-                heard = self._cond.wait_for(
-                    lambda: self._stop.is_set() or (self._last_hb or -math.inf) > began,
-                    timeout=STEP_TIMEOUT_S / 2,
-                )
-                if self._stop.is_set():
-                    return
-                texts = self._failsafe_text
-                acting = heard and (
-                    vehicle_control.is_return_or_land(self._flavour, self._mode_locked())
-                    or self._failsafe_flagged()
-                    or (
-                        texts is not None and began - texts[0] < vehicle_control.FAILSAFE_EVIDENCE_S
-                    )
-                )
-                if self._control.service_has_it:
-                    action = "the autopilot acts already" if acting else "returning home (RTL)"
-                    self._set_control(Control("autopilot", f"{why}: {action}", time.monotonic()))
-            if acting:
-                log.info("the autopilot returns or lands on its own: no return command sent")
-                return
-            for _ in range(RETURN_ATTEMPTS):
-                result = self._ask(
-                    mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH,
-                    mavlink_commands.return_to_launch(),
-                    STEP_TIMEOUT_S / 2,
-                )
-                if result == mavlink.MAV_RESULT_ACCEPTED:
-                    log.info("the vehicle accepted the return home")
-                    return
-                if self._stop.is_set():
-                    return
-                log.warning("return home not accepted (%s): asking again", result_name(result))
-            with self._cond:
-                self.counters["battery_return_failures"] += 1
-            log.error("the vehicle did not accept the return home: its own failsafe must act")
-        finally:
-            with self._cond:
-                self._return_pending = None
 
     def _check_heartbeat(self, now: float) -> LinkHealth:
         """Declare the link lost after ``heartbeat_timeout_s`` without a vehicle HEARTBEAT."""
@@ -1271,43 +962,7 @@ class VehicleLinkBase(VehicleLink):
         level = logging.WARNING if severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO
         log.log(level, "vehicle says: %s", text)
 
-    # ------------------------------------------------------------------ the take-off sequence
-
-    def _texts_since(self, since: float) -> str:
-        """The vehicle's STATUSTEXTs since ``since`` (monotonic), for a refusal's reason; waits
-        up to ``REFUSAL_TEXT_WAIT_S`` for one (a refusal's text may come just after its ACK)."""
-        until = time.monotonic() + REFUSAL_TEXT_WAIT_S
-        with self._cond:
-            while True:
-                texts = [text for at, text in self._status_texts if at >= since]
-                remaining = until - time.monotonic()
-                if texts or remaining <= 0 or self._stop.is_set():
-                    break
-                self._cond.wait(remaining)
-        return "; vehicle said: " + " | ".join(texts) if texts else ""
-
-    def _set_phase(self, phase: str) -> None:
-        with self._cond:
-            self._takeoff_phase = phase
-        log.info("take-off: %s", phase)
-
-    def _in_air(self) -> bool:
-        """Armed and at least ``IN_AIR_ALT_M`` above home (call under ``self._cond``)."""
-        return self._armed and (self._relative_alt_m or 0.0) >= IN_AIR_ALT_M
-
-    def _position_estimate_ok(self) -> bool:
-        """A usable position estimate (call under ``self._cond``): LOCAL_POSITION_NED arriving
-        (neither autopilot sends it without a local origin), a home altitude, and, where the
-        vehicle sends EKF_STATUS_REPORT (ArduPilot), its flags as ArduCopter needs them to arm in
-        GUIDED: an absolute horizontal position (or its prediction), not constant-position mode."""
-        now = time.monotonic()
-        if self._position_at is None or now - self._position_at > POSITION_FRESH_S:
-            return False
-        if self._home_amsl_m is None:
-            return False
-        if self._flavour == "ardupilot" and self._ekf_flags is not None:
-            return ekf_position_ok(self._ekf_flags)
-        return True
+    # ------------------------------------------------------------------ modes
 
     def _mode_locked(self) -> str | None:
         """The mode the vehicle's HEARTBEAT shows, None before one (call under ``self._cond``)."""
@@ -1322,204 +977,3 @@ class VehicleLinkBase(VehicleLink):
     def _mode_now(self) -> str:
         with self._cond:
             return self._mode_locked() or "unknown"
-
-    def _wait_for(self, condition: Callable[[], bool], deadline: float, what: str) -> None:
-        """Wait (under ``self._cond``) until ``condition()``; TimeoutError at ``deadline``."""
-        with self._cond:
-            while not condition():
-                remaining = deadline - time.monotonic()
-                if self._stop.is_set():
-                    raise RuntimeError("link closed")
-                if remaining <= 0:
-                    raise TimeoutError(f"timed out waiting for {what}")
-                self._cond.wait(min(remaining, 0.2))
-
-    def _step(self, condition: Callable[[], bool], deadline: float, what: str) -> None:
-        """Wait for one step of an attempt: up to ``STEP_TIMEOUT_S`` (a failed attempt), never
-        past the sequence's ``deadline`` (the end)."""
-        step_deadline = min(deadline, time.monotonic() + STEP_TIMEOUT_S)
-        try:
-            self._wait_for(condition, step_deadline, what)
-        except TimeoutError:
-            if time.monotonic() >= deadline:
-                raise
-            raise TakeoffRefused(f"timed out waiting for {what}") from None
-
-    def _takeoff_worker(self, z_m: float, timeout_s: float, future: Future[None]) -> None:
-        deadline = time.monotonic() + timeout_s
-        alt_rel_m = z_m - self.config.frames.area_origin_down_m
-        backoff_s = RETRY_MIN_S
-        try:
-            while True:
-                try:
-                    self._takeoff_attempt(alt_rel_m, deadline)
-                    break
-                except TakeoffRefused as refusal:
-                    reason = str(refusal)
-                    with self._cond:
-                        self._takeoff_last_refusal = reason
-                        self.counters["takeoff_refusals"] += 1
-                    log.warning("take-off attempt failed: %s", reason)
-                    if time.monotonic() + backoff_s >= deadline:
-                        raise TimeoutError(
-                            f"not airborne after {timeout_s:.0f} s; last refusal: {reason}"
-                        ) from None
-                    self._set_phase(f"retrying in {backoff_s:.0f} s")
-                    if self._stop.wait(backoff_s):
-                        raise RuntimeError("link closed") from None
-                    backoff_s = min(backoff_s * 2, RETRY_MAX_S)
-            with self._cond:
-                self._takeoff = "airborne"
-                self._takeoff_phase = None
-                self._hold_setpoints = False
-                self._mode_wanted_until = time.monotonic() + self.config.mode_request_window_s
-                alt_now_m = self._relative_alt_m or 0.0
-                mode = self._mode_locked()
-                if vehicle_control.is_return_or_land(self._flavour, mode):
-                    self._set_control(
-                        Control("autopilot", f"the vehicle is in {mode}", time.monotonic())
-                    )
-            log.info("airborne at %.1f m above home", alt_now_m)
-            future.set_result(None)
-        except Exception as exc:
-            with self._cond:
-                self._takeoff = f"failed: {exc}"
-                self._takeoff_phase = None
-                self._hold_setpoints = False
-            log.warning("arm and takeoff failed: %s", exc)
-            future.set_exception(exc)
-
-    def _takeoff_attempt(self, alt_rel_m: float, deadline: float) -> None:
-        """One pass of the sequence (see :meth:`arm_and_takeoff`); TakeoffRefused to retry."""
-        with self._cond:
-            self._takeoff_attempts += 1
-        self._set_phase("waiting for the vehicle")
-        self._wait_for(lambda: self._health == "up", deadline, "the vehicle's HEARTBEAT")
-        with self._cond:
-            if self._in_air():
-                log.info("the vehicle is already flying: taken over without arming")
-                return
-        self._set_phase("waiting for a position estimate")
-        self._wait_for(self._position_estimate_ok, deadline, "a position estimate")
-        if self.config.autopilot_fence:
-            self._set_phase("putting the envelope on the autopilot as its fence")
-            self._wait_for(
-                lambda: self._fence == "uploaded" or self._fence.startswith("failed"),
-                deadline,
-                "the autopilot's fence",
-            )
-            with self._cond:
-                if self._fence != "uploaded":
-                    raise TakeoffRefused(
-                        f"the autopilot's fence is not on the vehicle: {self._fence}"
-                    )
-        with self._cond:
-            flavour = self._flavour
-        if flavour == "ardupilot":
-            self._ensure_mode("ardupilot", "GUIDED", deadline)
-        with self._cond:
-            armed = self._armed
-        if not armed:
-            if flavour == "ardupilot" and not self._mode_stays("GUIDED", 0.0):
-                raise TakeoffRefused(f"left GUIDED before arming (now {self._mode_now()})")
-            self._set_phase("arming")
-            asked_at = time.monotonic()
-            result = self._ask_arm(STEP_TIMEOUT_S)
-            if result != mavlink.MAV_RESULT_ACCEPTED:
-                raise TakeoffRefused(
-                    f"arming refused ({result_name(result)}){self._texts_since(asked_at)}"
-                )
-            self._step(lambda: self._armed, deadline, "the vehicle to report armed")
-        if flavour == "ardupilot" and not self._mode_stays("GUIDED", 0.0):
-            raise TakeoffRefused(f"left GUIDED before the take-off (now {self._mode_now()})")
-        with self._cond:
-            if self._in_air():
-                return  # armed in the air: the setpoints take it from here
-            home_amsl_m = self._home_amsl_m or 0.0
-        alt_param = alt_rel_m + home_amsl_m if flavour == "px4" else alt_rel_m
-        self._set_phase("taking off")
-        asked_at = time.monotonic()
-        result = self._ask(
-            mavlink.MAV_CMD_NAV_TAKEOFF, mavlink_commands.takeoff(alt_param), STEP_TIMEOUT_S
-        )
-        if result != mavlink.MAV_RESULT_ACCEPTED and not self._leaving_the_ground():
-            raise TakeoffRefused(
-                f"take-off refused ({result_name(result)}){self._texts_since(asked_at)}"
-            )
-        self._confirm_climb(flavour, alt_rel_m, deadline, asked_at)
-
-    def _leaving_the_ground(self) -> bool:
-        """Armed and climbing within ``LIFTOFF_WAIT_S``: a take-off whose ACCEPTED was lost is
-        refused when sent again (ArduCopter takes off only from the ground), yet it flies."""
-        try:
-            self._wait_for(
-                lambda: self._armed and (self._relative_alt_m or 0.0) >= LIFTOFF_ALT_M,
-                time.monotonic() + LIFTOFF_WAIT_S,
-                "lift-off",
-            )
-        except TimeoutError:
-            return False
-        return True
-
-    def _ensure_mode(self, flavour: Flavour, name: str, deadline: float) -> None:
-        """Ask for mode ``name`` until HEARTBEAT shows it, held for ``MODE_SETTLE_S``."""
-        with self._cond:
-            already = self._mode_is(name)
-        if not already:
-            self._set_phase(f"asking for {name}")
-            asked_at = time.monotonic()
-            params = mavlink_commands.set_mode(*set_mode_numbers(flavour, name))
-            result = self._ask(mavlink.MAV_CMD_DO_SET_MODE, params, STEP_TIMEOUT_S)
-            if result != mavlink.MAV_RESULT_ACCEPTED:
-                raise TakeoffRefused(
-                    f"{name} refused ({result_name(result)}){self._texts_since(asked_at)}"
-                )
-            self._step(lambda: self._mode_is(name), deadline, f"HEARTBEAT to show {name}")
-        self._set_phase(f"confirming {name}")
-        if not self._mode_stays(name, MODE_SETTLE_S):
-            raise TakeoffRefused(f"{name} did not hold (now {self._mode_now()})")
-
-    def _mode_stays(self, name: str, hold_s: float) -> bool:
-        """The vehicle is in mode ``name`` and still is ``hold_s`` later."""
-        until = time.monotonic() + hold_s
-        with self._cond:
-            while True:
-                if not self._mode_is(name) or self._health != "up":
-                    return False
-                remaining = until - time.monotonic()
-                if remaining <= 0 or self._stop.is_set():
-                    return True
-                self._cond.wait(min(remaining, 0.2))
-
-    def _confirm_climb(
-        self, flavour: Flavour | None, alt_rel_m: float, deadline: float, asked_at: float
-    ) -> None:
-        """Wait until 90 % of ``alt_rel_m``: leaving the ground within ``CLIMB_START_S``, at no
-        less than ``CLIMB_MIN_MPS`` on average, armed (and in GUIDED on ArduPilot) all along."""
-        self._set_phase("climbing")
-        airborne_alt_m = max(alt_rel_m * 0.9, alt_rel_m - 1.0)
-        started = time.monotonic()
-        climb_by = min(deadline, started + CLIMB_START_S + alt_rel_m / CLIMB_MIN_MPS)
-        with self._cond:
-            while True:
-                alt_m = self._relative_alt_m or 0.0
-                if alt_m >= airborne_alt_m and self._armed:
-                    return
-                now = time.monotonic()
-                why = ""
-                if self._stop.is_set():
-                    raise RuntimeError("link closed")
-                if not self._armed:
-                    why = "disarmed during the take-off"
-                elif flavour == "ardupilot" and not self._mode_is("GUIDED"):
-                    why = "left GUIDED during the take-off"
-                elif now - started > CLIMB_START_S and alt_m < IN_AIR_ALT_M:
-                    why = f"on the ground {CLIMB_START_S:.0f} s after an accepted take-off"
-                elif now > climb_by:
-                    if now >= deadline:
-                        raise TimeoutError(f"timed out waiting for {airborne_alt_m:.1f} m")
-                    why = f"climb too slow: {alt_m:.1f} m after {now - started:.0f} s"
-                if why:
-                    break
-                self._cond.wait(0.2)
-        raise TakeoffRefused(why + self._texts_since(asked_at))

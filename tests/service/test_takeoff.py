@@ -15,7 +15,8 @@ import time
 
 import pytest
 
-from service.vehicle_link import ekf_position_ok, mavlink
+from service.link_takeoff import ekf_position_ok
+from service.vehicle_link import mavlink
 from tests.helpers import tcp_url, wait_for
 from tests.service.conftest import AREA, FAST_VEHICLE
 

@@ -1,0 +1,258 @@
+"""The link's flight-safety duties beyond the envelope's routes (:class:`SafetyMixin`), for both
+backends: the envelope's speed limit on the autopilot, the envelope as the autopilot's own fence,
+and the battery reserve with the service's return home.
+
+Each runs from the I/O loop of :class:`service.vehicle_link.VehicleLinkBase` (``_serve`` calls
+``_speed_limit_step``, ``_fence_step`` and ``_check_battery_reserve`` when they are due); what
+waits for the vehicle (a command's answer, the return) runs on a worker thread, never on the
+loop. A mixin of ``VehicleLinkBase``, whose ``__init__`` creates the state it uses.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from typing import TYPE_CHECKING
+
+from service import control as vehicle_control
+from service import mavlink_commands
+from service.battery import reserve_reached, return_needs_pct
+from service.control import Control
+from service.fence import FenceError, fence_plan
+from service.frames import GeoPoint, ned_to_global
+from service.link_takeoff import STEP_TIMEOUT_S
+from service.mission_protocol import MissionError
+from service.modes import GUIDED_MODE_NAME
+from service.vehicle_mavlink import mavlink, result_name
+
+if TYPE_CHECKING:
+    from service.vehicle_link import VehicleLinkBase
+
+    _Base = VehicleLinkBase
+else:
+    _Base = object
+
+log = logging.getLogger("service.vehicle_link")
+
+FENCE_RETRY_S = 10.0
+"""After a failed fence upload, how long until the next try (nothing streams meanwhile)."""
+HOME_REQUEST_PERIOD_S = 2.0
+"""How often HOME_POSITION is asked for while the fence waits for it."""
+SPEED_RETRY_S = 5.0
+"""After an unanswered or refused speed limit, how long until it is asked for again."""
+SPEED_AFTER_STREAM_S = 1.0
+"""How long the stream runs in GUIDED before the speed limit is sent: ArduCopter resets GUIDED's
+speed to WPNAV_SPEED when the first position target moves it into its position sub-mode (from
+the take-off's), so a limit sent before that is lost (seen on its SITL)."""
+SPEED_REASSERT_S = 10.0
+"""The limit is sent again this often while the vehicle stays in GUIDED: any later switch of
+GUIDED's sub-mode resets it the same way."""
+RETURN_ATTEMPTS = 3
+"""How many times the return home is asked for before the link gives up (and says so)."""
+
+
+class SafetyMixin(_Base):
+    """The speed limit, the autopilot's fence and the battery reserve (module doc)."""
+
+    # ------------------------------------------------------------------ the speed limit
+
+    def _speed_limit_step(self, now: float) -> None:
+        """ArduPilot: the envelope's ``max_speed_mps`` as the guided mode's horizontal speed
+        (MAV_CMD_DO_CHANGE_SPEED, ground speed), once the stream has run
+        ``SPEED_AFTER_STREAM_S`` in GUIDED, again every ``SPEED_REASSERT_S`` while it stays and
+        at once for a new envelope's; asked on a worker (the I/O loop never waits for an
+        answer), again after ``SPEED_RETRY_S`` when unanswered or refused. PX4 is
+        not asked: its offboard mode ignores the command (its position controller flies at
+        ``MPC_XY_VEL_MAX``)."""
+        with self._cond:
+            wanted_mps = self._routing.envelope.max_speed_mps
+            if (
+                self._speed_busy
+                or self._flavour != "ardupilot"
+                or not self._streaming_now()
+                or self._stream_since is None
+                or now - self._stream_since < SPEED_AFTER_STREAM_S
+                or self._mode_locked() != GUIDED_MODE_NAME["ardupilot"]
+                or (
+                    self._speed_limit_mps == wanted_mps
+                    and now - self._speed_set_at < SPEED_REASSERT_S
+                )
+            ):
+                return
+            self._speed_busy = True
+            self._speed_next_try = now + SPEED_RETRY_S
+        worker = threading.Thread(
+            target=self._speed_limit_worker,
+            args=(wanted_mps,),
+            name=f"{self._thread_name}-speed",
+            daemon=True,
+        )
+        self._workers.append(worker)
+        worker.start()
+
+    def _speed_limit_worker(self, speed_mps: float) -> None:
+        result = self._ask(
+            mavlink.MAV_CMD_DO_CHANGE_SPEED, mavlink_commands.change_speed(speed_mps), 3.0
+        )
+        new = False
+        with self._cond:
+            self._speed_busy = False
+            if result == mavlink.MAV_RESULT_ACCEPTED:
+                new = self._speed_limit_mps != speed_mps
+                self.counters["speed_limits_set"] += new
+                self._speed_limit_mps = speed_mps
+                self._speed_set_at = time.monotonic()
+            else:
+                self.counters["speed_limit_failures"] += 1
+        if new:
+            log.info("the guided mode's speed is now the envelope's %g m/s", speed_mps)
+        elif result != mavlink.MAV_RESULT_ACCEPTED:
+            log.warning("the vehicle did not take the envelope's speed limit (%s)", result)
+
+    # ------------------------------------------------------------------ the autopilot's fence
+
+    def _fence_step(self, now: float) -> None:
+        """Put the envelope on the autopilot as its fence once its home is known (in the I/O
+        thread: the upload borrows the connection for a fraction of a second); on failure, say
+        why and try again after ``FENCE_RETRY_S``."""
+        with self._cond:
+            if self._fence == "uploaded" or self._flavour is None:
+                return
+            flavour, origin, envelope = self._flavour, self._origin, self._fence_envelope
+            if origin is None:
+                self._fence = "waiting for the vehicle's home"
+                self._fence_next_try = now + HOME_REQUEST_PERIOD_S
+        if origin is None:
+            self._request_home()
+            return
+        try:
+            plan = fence_plan(
+                envelope, origin, self.config.frames, flavour, action=self.config.fence_action
+            )
+            report = self._upload_fence(plan)
+        except (FenceError, MissionError) as exc:
+            with self._cond:
+                self._fence = f"failed: {exc}"
+                self._fence_next_try = time.monotonic() + FENCE_RETRY_S
+                self.counters["fence_failures"] += 1
+            log.error("the autopilot's fence could not be put on the vehicle: %s", exc)
+            return
+        with self._cond:
+            if self._fence_envelope is envelope:
+                self._fence = "uploaded"
+                self.counters["fence_uploads"] += 1
+                self._cond.notify_all()
+        log.info("the autopilot's fence is on the vehicle: %s", report)
+
+    def _note_home(self, home: GeoPoint, local_ned_m: tuple[float, float, float]) -> None:
+        """HOME_POSITION (call under ``self._cond``): home's position and where it lies in the
+        local frame give the local frame's origin, which the area frame hangs off."""
+        self._origin = ned_to_global(home, *(-v for v in local_ned_m))
+        if self._fence.startswith("waiting for the vehicle's home"):
+            self._fence_next_try = 0.0
+
+    # ------------------------------------------------------------------ the battery reserve
+
+    def _note_battery(
+        self, now: float, remaining_pct: float | None, voltage_v: float | None
+    ) -> None:
+        """A battery reading (call under ``self._cond``): ``remaining_pct`` None or negative when
+        the vehicle does not know it. Readings while flying feed the drain estimate."""
+        known = remaining_pct is not None and 0 <= remaining_pct <= 100
+        self._battery_pct = float(remaining_pct) if known else None  # type: ignore[arg-type]
+        self._battery_voltage_v = voltage_v
+        if known and self._in_air():
+            self._drain.add(now, float(remaining_pct))  # type: ignore[arg-type]
+
+    def _home_leg_m(self) -> tuple[float, float] | None:
+        """(horizontal distance, height) from home, metres (call under ``self._cond``)."""
+        if self._ned is None:
+            return None
+        north_m, east_m, down_m = self._ned
+        return math.hypot(north_m, east_m), max(0.0, -down_m)
+
+    def _return_at_pct(self) -> float | None:
+        """The charge at which the vehicle is sent home from here (under ``self._cond``)."""
+        cfg = self.config.battery
+        leg = self._home_leg_m()
+        if cfg.reserve_pct is None or leg is None or not self._control.service_has_it:
+            return None
+        return cfg.reserve_pct + return_needs_pct(self._drain.pct_per_s, *leg, cfg)
+
+    def _check_battery_reserve(self, now: float) -> None:
+        """Send the vehicle home at its reserve (:mod:`service.battery`), in a worker
+        (:meth:`_return_worker`)."""
+        with self._cond:
+            pct, leg = self._battery_pct, self._home_leg_m()
+            if (
+                pct is None
+                or leg is None
+                or self._return_pending is not None
+                or not self._control.service_has_it
+                or self._takeoff == "running"
+                or not self._in_air()
+            ):
+                return
+            why = reserve_reached(pct, self._drain.pct_per_s, *leg, self.config.battery)
+            if why is None:
+                return
+            self._return_pending = why
+            self.counters["battery_returns"] += 1
+        log.warning("%s: sending the vehicle home", why)
+        worker = threading.Thread(
+            target=self._return_worker, args=(why,), name=f"{self._thread_name}-return", daemon=True
+        )
+        self._workers.append(worker)
+        worker.start()
+
+    def _return_worker(self, why: str) -> None:
+        """Let go of the vehicle and command MAV_CMD_NAV_RETURN_TO_LAUNCH, unless the autopilot
+        acts already. It first waits for a HEARTBEAT heard after the reserve was reached (the
+        stream goes on meanwhile, so that PX4's offboard-loss hold does not start): if that
+        shows a return or landing mode, or a failsafe (flagged, or announced in the last few
+        seconds), the service only lets go, so that it never overrides the autopilot's own
+        failsafe (its LAND, say, with an RTL). Otherwise it lets go (nothing streams) and asks
+        for the return until accepted, :data:`RETURN_ATTEMPTS` times at most."""
+        try:
+            began = time.monotonic()
+            with self._cond:
+                heard = self._cond.wait_for(
+                    lambda: self._stop.is_set() or (self._last_hb or -math.inf) > began,
+                    timeout=STEP_TIMEOUT_S / 2,
+                )
+                if self._stop.is_set():
+                    return
+                texts = self._failsafe_text
+                acting = heard and (
+                    vehicle_control.is_return_or_land(self._flavour, self._mode_locked())
+                    or self._failsafe_flagged()
+                    or (
+                        texts is not None and began - texts[0] < vehicle_control.FAILSAFE_EVIDENCE_S
+                    )
+                )
+                if self._control.service_has_it:
+                    action = "the autopilot acts already" if acting else "returning home (RTL)"
+                    self._set_control(Control("autopilot", f"{why}: {action}", time.monotonic()))
+            if acting:
+                log.info("the autopilot returns or lands on its own: no return command sent")
+                return
+            for _ in range(RETURN_ATTEMPTS):
+                result = self._ask(
+                    mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH,
+                    mavlink_commands.return_to_launch(),
+                    STEP_TIMEOUT_S / 2,
+                )
+                if result == mavlink.MAV_RESULT_ACCEPTED:
+                    log.info("the vehicle accepted the return home")
+                    return
+                if self._stop.is_set():
+                    return
+                log.warning("return home not accepted (%s): asking again", result_name(result))
+            with self._cond:
+                self.counters["battery_return_failures"] += 1
+            log.error("the vehicle did not accept the return home: its own failsafe must act")
+        finally:
+            with self._cond:
+                self._return_pending = None
