@@ -70,7 +70,9 @@ def load_policy(
     Raises :class:`InputError` ``policy: <problem>``, without paths or library text (it may go
     back to an HTTP client); the detail, naming the file, is logged as a warning. A spec that
     reads as a misspelt placement name (not a path: :func:`policies.registry.close_names`) is
-    refused as an unknown policy naming the close names. Nothing is
+    refused as an unknown policy naming the close names. A checkpoint marked ``not_for_serving``
+    in its metadata is refused when a client chose it (``allowed_dirs`` given), served with a
+    warning when the operator did (:func:`_check_servable`). Nothing is
     swapped in by this function, so a failure leaves the serving policy untouched.
     """
     from policies.checkpoints import CheckpointError
@@ -89,9 +91,27 @@ def load_policy(
         detail = str(exc).replace("\r", "\\r").replace("\n", "\\n")
         log.warning("policy %r refused: %s", spec, detail)
         raise InputError(_public_problem(exc, PLACEMENTS)) from None
+    _check_servable(policy, spec, chosen_by_client=allowed_dirs is not None)
     _warn_on_environment(policy, world)
     _dry_run(policy, world)
     return policy
+
+
+def _check_servable(policy: Policy, spec: str, chosen_by_client: bool) -> None:
+    """A checkpoint whose metadata says ``not_for_serving`` (why, measured) is refused when a
+    client chooses it (``PUT /v1/policy``, a state file): InputError ``policy: ...``; the
+    operator's own ``--policy`` still serves it, with that reason as a warning."""
+    from policies.adapters import CheckpointPolicy
+
+    if not isinstance(policy, CheckpointPolicy):
+        return
+    reason = policy.metadata.get("not_for_serving")
+    if not reason:
+        return
+    if chosen_by_client:
+        log.warning("policy %r refused: not for serving: %s", spec, reason)
+        raise InputError(f"policy: {policy.name} is not for serving: {reason}")
+    log.warning("serving %s, which is not for serving: %s", policy.name, reason)
 
 
 def _warn_on_environment(policy: Policy, world: World) -> None:

@@ -93,3 +93,21 @@ def test_shipped_ddpg_decides_near_the_load_weighted_placement(name: str, enviro
             prior = weighted.place(ReportedUsers.of(info["reports"]))
             assert np.all(np.abs(target[:2] - prior[:2]) <= radius_m + 1e-6)
             _, _, _, _, info = env.step_to(target)
+
+
+def test_ddqn_dr_is_refused_when_a_client_asks_to_serve_it_and_warned_about_otherwise(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Issue 42: the shipped DDQN dithers between zones on a real vehicle (its metadata says
+    so, measured): ``PUT /v1/policy`` (a client, ``allowed_dirs`` given) is refused naming the
+    reason; the operator's own ``--policy`` still serves it, with a warning."""
+    from service.errors import InputError
+    from service.policy_runtime import load_policy
+
+    path = str(SHIPPED / "ddqn-dr.zip")
+    with pytest.raises(InputError, match=r"^policy: ddqn-dr is not for serving: it dithers"):
+        load_policy(path, allowed_dirs=[SHIPPED])
+    with caplog.at_level("WARNING", logger="service.policy_runtime"):
+        assert load_policy(path).name == "ddqn-dr"
+    assert "which is not for serving: it dithers" in caplog.text
+    assert load_policy(str(SHIPPED / "ddpg-residual-dr.zip"), allowed_dirs=[SHIPPED])
