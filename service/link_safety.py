@@ -21,7 +21,7 @@ from service import mavlink_commands
 from service.battery import reserve_reached, return_needs_pct
 from service.control import Control
 from service.fence import FenceError, fence_plan
-from service.frames import GeoPoint, ned_to_global
+from service.frames import GeoPoint, global_to_ned
 from service.link_takeoff import STEP_TIMEOUT_S
 from service.mission_protocol import MissionError
 from service.modes import GUIDED_MODE_NAME
@@ -39,7 +39,9 @@ log = logging.getLogger("service.vehicle_link")
 FENCE_RETRY_S = 10.0
 """After a failed fence upload, how long until the next try (nothing streams meanwhile)."""
 HOME_REQUEST_PERIOD_S = 2.0
-"""How often HOME_POSITION is asked for while the fence waits for it."""
+"""How often GPS_GLOBAL_ORIGIN is asked for while the fence waits for it."""
+ORIGIN_MOVED_M = 0.05
+"""An origin that moves more than this after the fence was uploaded puts it on again."""
 SPEED_RETRY_S = 5.0
 """After an unanswered or refused speed limit, how long until it is asked for again."""
 SPEED_AFTER_STREAM_S = 1.0
@@ -114,7 +116,8 @@ class SafetyMixin(_Base):
     # ------------------------------------------------------------------ the autopilot's fence
 
     def _fence_step(self, now: float) -> None:
-        """Put the envelope on the autopilot as its fence once its home is known (in the I/O
+        """Put the envelope on the autopilot as its fence once its local origin is known
+        (GPS_GLOBAL_ORIGIN, the point local NED hangs off, in which the area frame sits) (in the I/O
         thread: the upload borrows the connection for a fraction of a second); on failure, say
         why and try again after ``FENCE_RETRY_S``."""
         with self._cond:
@@ -122,10 +125,10 @@ class SafetyMixin(_Base):
                 return
             flavour, origin, envelope = self._flavour, self._origin, self._fence_envelope
             if origin is None:
-                self._fence = "waiting for the vehicle's home"
+                self._fence = "waiting for the vehicle's origin (GPS_GLOBAL_ORIGIN)"
                 self._fence_next_try = now + HOME_REQUEST_PERIOD_S
         if origin is None:
-            self._request_home()
+            self._request_origin()
             return
         try:
             plan = fence_plan(
@@ -146,12 +149,24 @@ class SafetyMixin(_Base):
                 self._cond.notify_all()
         log.info("the autopilot's fence is on the vehicle: %s", report)
 
-    def _note_home(self, home: GeoPoint, local_ned_m: tuple[float, float, float]) -> None:
-        """HOME_POSITION (call under ``self._cond``): home's position and where it lies in the
-        local frame give the local frame's origin, which the area frame hangs off."""
-        self._origin = ned_to_global(home, *(-v for v in local_ned_m))
-        if self._fence.startswith("waiting for the vehicle's home"):
+    def _note_origin(self, origin: GeoPoint) -> None:
+        """GPS_GLOBAL_ORIGIN (call under ``self._cond``): the local frame's origin, which the
+        area frame hangs off and the fence is placed around. Not HOME_POSITION: a real PX4 SITL
+        announced homes from its raw GNSS fix for its first seconds, 0.26-0.5 m from the origin
+        its EKF then kept, and moves home at arming. An origin that moves after the fence is on
+        the vehicle puts it on again."""
+        previous = self._origin
+        self._origin = origin
+        if self._fence.startswith("waiting for the vehicle's origin"):
             self._fence_next_try = 0.0
+        elif (
+            previous is not None
+            and self._fence == "uploaded"
+            and _distance_m(previous, origin) > ORIGIN_MOVED_M
+        ):
+            self._fence = "uploading: the vehicle's origin moved"
+            self._fence_next_try = 0.0
+            log.warning("the vehicle's origin moved: its fence is put on again")
 
     # ------------------------------------------------------------------ the battery reserve
 
@@ -256,3 +271,9 @@ class SafetyMixin(_Base):
         finally:
             with self._cond:
                 self._return_pending = None
+
+
+def _distance_m(a: GeoPoint, b: GeoPoint) -> float:
+    """How far apart two origins are (m; flat-earth, as the frames are)."""
+    north_m, east_m, down_m = global_to_ned(a, b)
+    return math.hypot(north_m, east_m, down_m)

@@ -196,7 +196,15 @@ class TakeoffMixin(_Base):
                     with self._cond:
                         self._takeoff_last_refusal = reason
                         self.counters["takeoff_refusals"] += 1
+                        failsafe = self._failsafe_acting()
+                        if failsafe is not None:  # the autopilot's: never retried over it
+                            self._set_control(Control("autopilot", failsafe, time.monotonic()))
                     log.warning("take-off attempt failed: %s", reason)
+                    if failsafe is not None:
+                        raise RuntimeError(
+                            f"the autopilot's failsafe acted during the take-off ({failsafe}): "
+                            "not retried"
+                        ) from None
                     if time.monotonic() + backoff_s >= deadline:
                         raise TimeoutError(
                             f"not airborne after {timeout_s:.0f} s; last refusal: {reason}"
@@ -225,6 +233,24 @@ class TakeoffMixin(_Base):
                 self._hold_setpoints = False
             log.warning("arm and takeoff failed: %s", exc)
             future.set_exception(exc)
+
+    def _failsafe_acting(self) -> str | None:
+        """Why the autopilot's own failsafe has the vehicle now, or None (call under
+        ``self._cond``): a failsafe flagged in its HEARTBEAT, or a return or landing mode with a
+        failsafe STATUSTEXT in the last ``FAILSAFE_EVIDENCE_S`` (PX4's "Failsafe activated" and
+        AUTO.LAND while a take-off climbs). A take-off attempt that failed so is not retried:
+        arming again would fight the failsafe."""
+        mode = self._mode_locked()
+        if self._failsafe_flagged():
+            return f"failsafe flagged in HEARTBEAT, mode {mode}"
+        text = self._failsafe_text
+        if (
+            text is not None
+            and time.monotonic() - text[0] <= vehicle_control.FAILSAFE_EVIDENCE_S
+            and vehicle_control.is_return_or_land(self._flavour, mode)
+        ):
+            return f"{mode} after {text[1]!r}"
+        return None
 
     def _takeoff_attempt(self, alt_rel_m: float, deadline: float) -> None:
         """One pass of the sequence (see :meth:`arm_and_takeoff`); TakeoffRefused to retry."""

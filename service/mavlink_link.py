@@ -91,7 +91,7 @@ VEHICLE_MESSAGES = frozenset(
         "EXTENDED_SYS_STATE",
         "EKF_STATUS_REPORT",
         "SYS_STATUS",
-        "HOME_POSITION",
+        "GPS_GLOBAL_ORIGIN",
         "COMMAND_ACK",
         "STATUSTEXT",
     }
@@ -420,11 +420,9 @@ class MavlinkLink(VehicleLinkBase):
                 self._landed_state = message.landed_state
             elif kind == "EKF_STATUS_REPORT":
                 self._ekf_flags = message.flags
-            elif kind == "HOME_POSITION":
-                home = GeoPoint(
-                    message.latitude / 1e7, message.longitude / 1e7, message.altitude / 1e3
-                )
-                self._note_home(home, (message.x, message.y, message.z))
+            elif kind == "GPS_GLOBAL_ORIGIN":
+                m = message
+                self._note_origin(GeoPoint(m.latitude / 1e7, m.longitude / 1e7, m.altitude / 1e3))
             elif kind == "SYS_STATUS":
                 # battery_remaining: % (-1: unknown); voltage_battery: mV (UINT16_MAX: unknown).
                 self._note_battery(
@@ -517,10 +515,10 @@ class MavlinkLink(VehicleLinkBase):
                     )
                 )
 
-    def _request_home(self) -> None:
+    def _request_origin(self) -> None:
         self._send_command_long(
             mavlink.MAV_CMD_REQUEST_MESSAGE,
-            (float(mavlink.MAVLINK_MSG_ID_HOME_POSITION), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+            (float(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
         )
 
     def _upload_fence(self, plan: FencePlan) -> FenceReport:

@@ -46,7 +46,7 @@ The loop, heartbeat supervision, setpoint schedule, mode-request window and take
   heading the vehicle had when the stream started (it does not turn the vehicle).
 * the autopilot's fence (``autopilot_fence``): MAVSDK's Geofence plugin uploads the polygons
   and downloads them for comparison, its Param plugin sets and reads back the ceiling and the
-  breach action (:mod:`service.mavsdk_fence`); the vehicle's home comes from HOME_POSITION
+  breach action (:mod:`service.mavsdk_fence`); the vehicle's origin comes from GPS_GLOBAL_ORIGIN
   through MavlinkDirect, asked for with MAV_CMD_REQUEST_MESSAGE.
 * mode: ``Offboard.start`` (on ArduPilot MAVSDK maps it to GUIDED), when the base asks for it.
 * :meth:`~service.vehicle_link.VehicleLink.clear_target` stops the stream without a mode change,
@@ -218,7 +218,9 @@ class MavsdkLink(VehicleLinkBase):
                 return  # its HEARTBEAT's address is not known (yet): look again
             session.make_plugins(system)
             session.direct.subscribe_message("HEARTBEAT", self._on_heartbeat, session.system_id)
-            session.direct.subscribe_message("HOME_POSITION", self._on_home, session.system_id)
+            session.direct.subscribe_message(
+                "GPS_GLOBAL_ORIGIN", self._on_origin, session.system_id
+            )
             session.telemetry.subscribe_position_velocity_ned(self._on_position_ned)
             session.telemetry.subscribe_position(self._on_position)
             session.telemetry.subscribe_heading(self._on_heading)
@@ -285,19 +287,18 @@ class MavsdkLink(VehicleLinkBase):
                 component_id=message.component_id,
             )
 
-    def _on_home(self, message: Any, system_id: int) -> None:
+    def _on_origin(self, message: Any, system_id: int) -> None:
         if message.system_id != system_id or message.component_id != MAV_COMP_ID_AUTOPILOT1:
             return
         try:
             f = json.loads(message.fields_json)
-            home = GeoPoint(f["latitude"] / 1e7, f["longitude"] / 1e7, f["altitude"] / 1e3)
-            local_ned_m = (float(f["x"]), float(f["y"]), float(f["z"]))
+            origin = GeoPoint(f["latitude"] / 1e7, f["longitude"] / 1e7, f["altitude"] / 1e3)
         except (ValueError, KeyError, TypeError):
             with self._cond:
                 self.counters["bad_data"] += 1
             return
         with self._cond:
-            self._note_home(home, local_ned_m)
+            self._note_origin(origin)
 
     def _on_position_ned(self, position_velocity: Any, _user_data: Any) -> None:
         p = position_velocity.position
@@ -379,8 +380,8 @@ class MavsdkLink(VehicleLinkBase):
 
     # ------------------------------------------------------------------ the autopilot's fence
 
-    def _request_home(self) -> None:
-        """MAV_CMD_REQUEST_MESSAGE for HOME_POSITION (the answer comes to :meth:`_on_home`)."""
+    def _request_origin(self) -> None:
+        """MAV_CMD_REQUEST_MESSAGE for GPS_GLOBAL_ORIGIN (answered to :meth:`_on_origin`)."""
         from mavsdk.plugins.mavlink_direct import MavlinkMessage
 
         with self._sdk_lock:
@@ -392,7 +393,7 @@ class MavsdkLink(VehicleLinkBase):
                 "target_component": MAV_COMP_ID_AUTOPILOT1,
                 "command": mavlink.MAV_CMD_REQUEST_MESSAGE,
                 "confirmation": 0,
-                "param1": float(mavlink.MAVLINK_MSG_ID_HOME_POSITION),
+                "param1": float(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN),
                 **{f"param{i}": 0.0 for i in range(2, 8)},
             }
             message = MavlinkMessage(

@@ -371,13 +371,14 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
         self._target_m: tuple[float, float, float] | None = None
         envelope = config.envelope or Envelope.for_area(config.area)
         self._fence_envelope = envelope  # what goes on the autopilot (its fence)
-        self._fence = "waiting for the vehicle's home" if config.autopilot_fence else "off"
+        waiting = "waiting for the vehicle's origin (GPS_GLOBAL_ORIGIN)"
+        self._fence = waiting if config.autopilot_fence else "off"
         self._fence_next_try = 0.0
         self._speed_limit_mps: float | None = None  # set in this stay in GUIDED (ArduPilot)
         self._speed_set_at = -math.inf
         self._speed_next_try = 0.0
         self._speed_busy = False
-        self._origin: GeoPoint | None = None  # the local NED origin, from HOME_POSITION
+        self._origin: GeoPoint | None = None  # the local NED origin, from GPS_GLOBAL_ORIGIN
         self._routing = LinkRoute(
             fence_compatible(envelope) if config.autopilot_fence else envelope
         )
@@ -449,8 +450,8 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
         """The vehicle's HEARTBEAT is back (called under ``self._cond``): reset per-session
         bookkeeping."""
 
-    def _request_home(self) -> None:
-        """Ask for the vehicle's HOME_POSITION (for the fence's geography)."""
+    def _request_origin(self) -> None:
+        """Ask for the vehicle's GPS_GLOBAL_ORIGIN (for the fence's geography)."""
 
     def _upload_fence(self, plan: FencePlan) -> object:
         """Put ``plan`` on the autopilot and read it back (in the I/O thread); raises

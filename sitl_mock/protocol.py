@@ -814,6 +814,19 @@ class MavlinkProtocol:
             0.0,
         )
 
+    def _build_gps_global_origin(self) -> mavlink.MAVLink_message | None:
+        """The local frame's origin (the mock's home: its local NED hangs off it)."""
+        vehicle = self.vehicle
+        if not vehicle.ready:
+            return None
+        home = vehicle.home
+        return self._encoder.gps_global_origin_encode(
+            round(home.lat_deg * 1e7),
+            round(home.lon_deg * 1e7),
+            round(home.alt_amsl_m * 1000),
+            round(vehicle.time_s * 1e6),
+        )
+
     def _build_position_target_local_ned(self) -> mavlink.MAVLink_message | None:
         target = self.vehicle.echo_target()
         if target is None:

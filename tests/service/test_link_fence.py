@@ -96,3 +96,24 @@ def test_a_fence_the_autopilot_refuses_keeps_the_vehicle_down_and_says_why(
     link.set_target((30.0, 30.0, 10.0))
     assert not link.state().streaming
     assert mock.stats["setpoints_received"] == 0
+
+
+def test_the_fence_is_put_on_again_when_the_vehicles_origin_moves(
+    start_mock: Callable[..., MockAutopilot], open_link: Callable[..., Any]
+) -> None:
+    """The fence is placed around GPS_GLOBAL_ORIGIN (a real PX4's early homes were 0.26-0.5 m
+    off it); an origin that moves after the upload puts the fence on again around the new one."""
+    from service.frames import GeoPoint
+
+    mock = start_mock("px4", **FAST_VEHICLE)
+    envelope = Envelope.for_area(AREA, [BLOCK], clearance_m=2.0)
+    link = open_link(tcp_url(mock), envelope=envelope, autopilot_fence=True)
+    wait_for(lambda: link.state().fence == "uploaded", 15.0, message="the fence uploaded")
+    first = mock.with_vehicle(lambda v: v.autopilot_fence.items)
+    with link._cond:
+        origin = link._origin
+        link._note_origin(GeoPoint(origin.lat_deg + 1e-5, origin.lon_deg, origin.alt_amsl_m))
+        assert link._fence == "uploading: the vehicle's origin moved"
+    wait_for(lambda: mock.stats["fence_uploads"] == 2, 15.0, message="the fence put on again")
+    second = mock.with_vehicle(lambda v: v.autopilot_fence.items)
+    assert len(second) == len(first) and second != first  # 1.1 m north: other vertices

@@ -68,6 +68,31 @@ def test_a_mode_switch_during_the_climb_restarts_the_sequence_and_flies_on(start
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("flavour", ["px4", "ardupilot"])
+def test_a_failsafe_during_the_climb_ends_the_take_off_without_arming_again(
+    start_mock, open_link, flavour
+):
+    """A real PX4 SITL landed by its own failsafe during the climb ("Failsafe activated",
+    AUTO.LAND) was asked to arm again every 10 s: a take-off the autopilot's failsafe ended is
+    its, not retried, and the vehicle is the autopilot's."""
+    mock = start_mock(flavour, max_speed_up_mps=1.0, accel_v_mps2=2.0)
+    link = open_link(tcp_url(mock))
+    future = link.arm_and_takeoff(timeout_s=60.0)
+    wait_for(lambda: mock.state().alt_m > 1.5, 20.0, message="climbing")
+    mock.with_vehicle(lambda vehicle: vehicle.set_battery_remaining(5.0))  # under its failsafe
+    with pytest.raises(RuntimeError, match="failsafe acted during the take-off"):
+        future.result(timeout=30.0)
+    state = link.state()
+    assert state.control == "autopilot" and state.takeoff.startswith("failed")
+    arms = mock.stats["arms"]
+    assert arms == 1
+    deadline = time.monotonic() + 3.0
+    while time.monotonic() < deadline:  # watching that nothing is asked: no condition to await
+        time.sleep(0.1)
+    assert mock.stats["arms"] == arms and not link.state().streaming
+
+
+@pytest.mark.slow
 def test_refusals_are_retried_with_the_vehicles_words_until_it_arms(start_mock, open_link):
     mock = start_mock("ardupilot", **FAST_VEHICLE)
     refusal = "PreArm: Battery below minimum arming voltage"
