@@ -161,6 +161,29 @@ def test_a_lost_vehicle_is_covered_by_the_others_and_rejoins_when_it_returns(
     )
 
 
+def test_a_vehicle_sent_home_by_its_battery_is_covered_by_the_others_until_handed_back(
+    make_fleet: Callable[..., Fleet],
+) -> None:
+    """Issue 39: a vehicle whose link let go at its battery reserve (the autopilot has it,
+    returning home: service/link_safety.py) is out of the fleet's placement, as a lost one is,
+    and kept clear of; an operator's hand-back after the recharge takes it in again."""
+    service, links = make_fleet(3)
+    service.submit_report(hot_spot_report(time.time()))
+    returning_from = links["uav3"].state().position_m
+    links["uav3"].vehicle_leaves("autopilot", "battery reserve reached: returning home (RTL)")
+    service.submit_report(hot_spot_report(time.time()))
+    degraded = service.decisions()
+    assert list(degraded) == ["uav1", "uav2"]
+    assert all(
+        np.linalg.norm(np.subtract(d.target_m, returning_from)) >= 10.0 for d in degraded.values()
+    )
+    views = {v.id: v for v in service.vehicles()}
+    assert "battery reserve reached" in (views["uav3"].problem or "")
+    links["uav3"].hand_back()
+    service.submit_report(hot_spot_report(time.time()))
+    assert list(service.decisions()) == ["uav1", "uav2", "uav3"]
+
+
 def test_all_vehicles_lost_holds_and_the_report_is_decided_when_one_returns(
     make_fleet: Callable[..., Fleet],
 ) -> None:
