@@ -32,6 +32,9 @@ Scenarios:
   scenario it sends **no HEARTBEAT at all** (for the whole run): it only sets and reads
   parameters, asks for message intervals before the take-off, and reads. The service (system 255
   by default) is then the only GCS the vehicle hears.
+* ``rc-failsafe``: ``FS_THR_ENABLE`` 1 (the radio failsafe: RTL when the RC link is lost) set
+  before the take-off, the ground station's HEARTBEAT as in ``default``. The SITL's simulated RC
+  stays connected: what an RC failsafe does when only the service dies.
 
 Seconds are from the SITL's start; the samples' ``t`` from the kill. Writes DIR/result.json,
 DIR/autopilot.log, DIR/serve.log; with ``--json`` appends the run to a results file (a list of
@@ -73,6 +76,7 @@ READ_PARAMS = (
     "MAV_GCS_SYSID",  # older builds: SYSID_MYGCS
 )
 GCS_FAILSAFE_PARAMS = {"FS_GCS_ENABLE": 1.0, "FS_GCS_TIMEOUT": 5.0}
+RC_FAILSAFE_PARAMS = {"FS_THR_ENABLE": 1.0}  # radio (throttle) failsafe: RTL on RC loss
 STREAMS_US = {0: 200_000, 32: 200_000, 33: 200_000}  # HEARTBEAT, LOCAL_POSITION_NED, GLOBAL_POS
 
 
@@ -89,7 +93,9 @@ class QuietableGroundStation(GroundStation):
 
 def main() -> int:
     parser = argparse.ArgumentParser()
-    parser.add_argument("--scenario", choices=("default", "gcs-failsafe"), required=True)
+    parser.add_argument(
+        "--scenario", choices=("default", "gcs-failsafe", "rc-failsafe"), required=True
+    )
     parser.add_argument("--arducopter", type=Path, required=True, help="the SITL binary")
     parser.add_argument("--defaults", type=Path, required=True, help="copter.parm")
     parser.add_argument("--json", type=Path, help="append this run's result to this JSON list")
@@ -227,9 +233,10 @@ def main() -> int:
                 0,
             )
         note(f"ground station up (own HEARTBEAT: {not gcs.quiet}), vehicle mode {gcs.mode()}")
-        if args.scenario == "gcs-failsafe":
-            result["params_set"] = {n: gcs.set_param(n, v) for n, v in GCS_FAILSAFE_PARAMS.items()}
-            note(f"GCS failsafe set: {result['params_set']}")
+        if args.scenario in ("gcs-failsafe", "rc-failsafe"):
+            wanted = GCS_FAILSAFE_PARAMS if args.scenario == "gcs-failsafe" else RC_FAILSAFE_PARAMS
+            result["params_set"] = {n: gcs.set_param(n, v) for n, v in wanted.items()}
+            note(f"failsafe set: {result['params_set']}")
         result["params"] = {name: gcs.get_param(name) for name in READ_PARAMS}
         note(f"parameters: {result['params']}")
 
