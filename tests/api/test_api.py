@@ -327,8 +327,14 @@ def test_checkpoints_load_only_from_the_allowed_directories(
         assert response.status_code == 422, spec
         assert "outside the checkpoint directories" in response.json()["detail"][0]["msg"]
         assert client.get("/v1/policy", headers=AUTH).json()["name"] == "load-weighted"
-    shipped = client.put("/v1/policy", json={"policy": str(SHIPPED_DDQN)}, headers=AUTH)
-    assert shipped.status_code == 200 and shipped.json()["kind"] == "moves"
+    # Inside the allowed directories: served, unless its metadata says it is not for serving
+    # (the shipped DDQN dithers on a real vehicle: tests/policies/test_shipped.py).
+    refused = client.put("/v1/policy", json={"policy": str(SHIPPED_DDQN)}, headers=AUTH)
+    assert refused.status_code == 422
+    assert "is not for serving" in refused.json()["detail"][0]["msg"]
+    servable = SHIPPED_CHECKPOINTS / "ddpg-residual-dr.zip"
+    shipped = client.put("/v1/policy", json={"policy": str(servable)}, headers=AUTH)
+    assert shipped.status_code == 200 and shipped.json()["kind"] == "coordinates"
 
 
 def test_hot_swap_under_concurrent_reports(client: TestClient, clock: Clock) -> None:

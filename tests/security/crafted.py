@@ -79,5 +79,8 @@ def crafted_checkpoint(
     metadata = json.loads(source.with_suffix(".json").read_text())
     metadata["strategy"] = strategy
     metadata.pop("name", None)  # the shipped one's name; a copy is named ddqn-STRATEGY
+    # A copy stands for any servable checkpoint: the shipped DDQN's own refusal to be served
+    # (it dithers on a real vehicle) is tests/policies/test_shipped.py's.
+    metadata.pop("not_for_serving", None)
     dest.with_suffix(".json").write_text(json.dumps(metadata))
     return dest
