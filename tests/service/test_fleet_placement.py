@@ -489,3 +489,29 @@ def test_targets_moved_out_of_a_no_fly_volume_stay_apart(make_fleet: Callable[..
     assert np.linalg.norm(targets[0] - targets[1]) >= service.fleet.separation_m - 1e-9
     for target, link in zip(targets, links.values(), strict=True):
         assert link.envelope.violation(target) is None
+
+
+def test_a_vehicle_whose_flight_would_cross_anothers_holds_where_it_is(
+    make_fleet: Callable[..., Fleet],
+) -> None:
+    """Issue 39: the paths, not only the targets. uav2's flight would cross uav1's at the same
+    moment: it holds where it is (a legal point of its envelope) for this decision, and is
+    counted; targets whose flights keep apart go out as decided; and two vehicles that already
+    met closer than the separation are not held in place by each other (the guard's separated
+    targets go out: a clean-clone CI run caught that in tests/e2e/test_fleet_degraded.py)."""
+    service, _ = make_fleet(2)
+    none = np.zeros((0, 3))
+    positions = np.array([[200.0, 250.0, 30.0], [250.0, 200.0, 30.0]])
+    crossing = np.array([[300.0, 250.0, 30.0], [250.0, 300.0, 30.0]])
+    out = service._hold_crossing_paths(["uav1", "uav2"], positions, crossing, none)
+    assert out[0].tolist() == crossing[0].tolist() and out[1].tolist() == positions[1].tolist()
+    assert service.counters["path_holds"] == 1
+    apart = np.array([[150.0, 250.0, 30.0], [250.0, 150.0, 30.0]])
+    kept = service._hold_crossing_paths(["uav1", "uav2"], positions, apart, none)
+    assert kept.tolist() == apart.tolist() and service.counters["path_holds"] == 1
+    met = np.array([[250.0, 400.0, 25.0], [249.2, 409.2, 25.0]])  # 9.2 m apart
+    swapped = met[::-1] + np.array([[0.0, 5.0, 0.0], [0.0, -5.0, 0.0]])  # separated targets
+    assert np.linalg.norm(swapped[0] - swapped[1]) >= service.fleet.separation_m
+    out = service._hold_crossing_paths(["uav1", "uav2"], met, swapped, none)
+    assert out.tolist() == swapped.tolist()
+    assert service.counters["path_holds_skipped"] == 1 and service.counters["path_holds"] == 1
