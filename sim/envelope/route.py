@@ -7,11 +7,14 @@ is none. Contract:
 
 * The target streamed is :func:`~sim.envelope.paths.legal_target` of the decision's target; a
   target with no legal point near it gives a hold.
-* A waypoint is left for the next one when the vehicle is within ``accept_m`` of it **and**
-  the flight from where the vehicle actually is to the next waypoint is legal
+* A waypoint is left for the next one only when the vehicle is within ``accept_m`` of it
+  **and** the flight from where the vehicle actually is to the next waypoint is legal
   (:meth:`~sim.envelope.volume.Envelope.leg_violation`), so cutting a corner never cuts an
-  exclusion; or when it is within :data:`SETTLE_M` of it (it is there, up to the autopilot's
-  tracking error, which the path's :data:`~sim.envelope.paths.CORNER_MARGIN_M` covers).
+  exclusion. Within :data:`SETTLE_M` of it (there, up to the autopilot's tracking error) a
+  start a hair outside the altitude band is forgiven, never an exclusion on the way: a
+  climb-over's descent onto a target that lies closer to an exclusion than the tracking error
+  would otherwise clip the exclusion's edge. Until the flight on may go, the waypoint stays
+  streamed (the vehicle settles onto it; the leg from the waypoint itself is legal).
 * A vehicle outside its envelope (a new envelope it already violates, or a drift) is never sent
   anywhere else: the route holds where it is and says why. The exceptions are the autopilot's
   tracking error: a vehicle within ``recover_m`` of the leg it was flying is sent back onto
@@ -37,7 +40,7 @@ from sim.envelope.volume import Envelope, Vec3
 ACCEPT_M = 2.0
 """Within this distance of a waypoint the vehicle may go on to the next one."""
 SETTLE_M = 0.5
-"""Within this distance of a waypoint the vehicle is at it: it goes on to the next one."""
+"""Within this distance of a point the vehicle is at it, up to its autopilot's tracking error."""
 RECOVER_M = 3.0
 """A vehicle outside its envelope but this close to the leg it flies goes back onto the leg."""
 
@@ -144,6 +147,21 @@ def way_in(envelope: Envelope, position_m: Sequence[float], recover_m: float) ->
     return None if envelope.wall_crossing(position, nearest, clearance=False) else nearest
 
 
+def _may_go_on(envelope: Envelope, position: Vec3, gap_m: float, next_m: Vec3) -> bool:
+    """Whether a vehicle at ``position``, ``gap_m`` from its waypoint, may fly on to ``next_m``:
+    the leg from where it is is legal; or, within :data:`SETTLE_M` of the waypoint (there up to
+    the autopilot's tracking error), it crosses no exclusion however the autopilot flies it and
+    is legal from the same point moved into the altitude band (a hair below the floor after a
+    take-off is the autopilot's error, not a way into anything)."""
+    if envelope.leg_violation(position, next_m) is None:
+        return True
+    if gap_m > SETTLE_M or envelope.wall_crossing(position, next_m) is not None:
+        return False
+    x_m, y_m, z_m = position
+    banded = (x_m, y_m, min(max(z_m, envelope.floor_m), envelope.ceiling_m))
+    return envelope.leg_violation(banded, next_m) is None
+
+
 def advance(
     envelope: Envelope, route: Route, position_m: Sequence[float] | None, accept_m: float = ACCEPT_M
 ) -> Route:
@@ -155,7 +173,7 @@ def advance(
     position = _vec(position_m)
     waypoints = route.waypoints
     while len(waypoints) > 1 and (gap_m := math.dist(position, waypoints[0])) <= accept_m:
-        if gap_m > SETTLE_M and envelope.leg_violation(position, waypoints[1]) is not None:
+        if not _may_go_on(envelope, position, gap_m, waypoints[1]):
             break
         waypoints = waypoints[1:]
     return route if waypoints is route.waypoints else replace(route, waypoints=waypoints)

@@ -84,6 +84,20 @@ def test_what_is_flown_never_leaves_the_envelope(envelope, start, targets, inter
             assert position == pytest.approx(legal, abs=1e-6)
 
 
+def test_a_descent_onto_a_target_beside_an_exclusion_never_clips_its_edge():
+    """Found by the property test: the target lies 0.25 m beside a slab (no clearance), the
+    climb-over's corner above it is reached to within the tracking tolerance, and the descent
+    from there — not from the corner — would cut the slab's edge. The corner stays streamed
+    until the flight down is legal."""
+    slab = Exclusion(box(0.25, 0.0, 5.25, 37.0), 20.0, 30.0, "slab")
+    envelope = Envelope.for_area(AREA, [slab], clearance_m=0.0)
+    route = LinkRoute(envelope)
+    legal, _ = route.set_target((0.0, 36.0, 0.0))
+    flown = fly(route, (38.5, 12.0, 25.0), TICKS)
+    assert independent_violations(envelope, np.concatenate(flown)) == []
+    assert flown[-1][-1] == pytest.approx(legal)
+
+
 TOWER = Exclusion(box(80, 80, 120, 120), 0.0, 100.0, "tower")
 """Up to the ceiling: the only way past is around."""
 
