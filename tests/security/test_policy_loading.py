@@ -34,6 +34,9 @@ from tests.security.crafted import Call, crafted_checkpoint, shipped_or_skip
 TOKEN = "policy-loading-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 MiB = 1024 * 1024
+# A stalled service never answers (a FIFO read blocks until the test itself releases it); the
+# limit only tells a stall from a busy machine, so it is set for a loaded 2-core CI machine.
+PROBE_LIMIT_S = 5.0
 
 
 def _client(allowed: Path, **settings: Any) -> TestClient:
@@ -266,7 +269,8 @@ def test_probes_answer_while_many_puts_with_a_fifo_metadata_file_are_in_flight(
     dirs: tuple[Path, Path],
 ) -> None:
     """45 concurrent PUTs of a checkpoint whose metadata file is a FIFO (a read would block
-    forever): the probes, the metrics and ``GET /v1/policy`` answer within a second meanwhile,
+    forever): the probes, the metrics and ``GET /v1/policy`` answer meanwhile (within
+    :data:`PROBE_LIMIT_S`),
     and every PUT is refused (422: not a regular file; or 409: another load is running)."""
     allowed, _ = dirs
     spec = allowed / "fifo.zip"
@@ -286,7 +290,7 @@ def test_probes_answer_while_many_puts_with_a_fifo_metadata_file_are_in_flight(
                 thread.start()
             for _ in range(3):
                 for path in ("/healthz", "/readyz", "/metrics", "/v1/policy"):
-                    assert _answers_within(client, path, 1.0) is not None, path
+                    assert _answers_within(client, path, PROBE_LIMIT_S) is not None, path
             for thread in threads:
                 thread.join(10.0)
         finally:
@@ -298,14 +302,15 @@ def test_probes_answer_while_many_puts_with_a_fifo_metadata_file_are_in_flight(
 def test_policy_loads_run_one_at_a_time_and_probes_answer_meanwhile(
     tmp_path: Path, dirs: tuple[Path, Path]
 ) -> None:
-    """While a slow checkpoint loads (its pickle sleeps), a second PUT gets 409 at once and
-    the probes answer; then the first load completes."""
+    """While a checkpoint loads (its pickle blocks reading a FIFO until the test releases it),
+    a second PUT gets 409 at once and the probes answer; then the first load completes."""
     allowed, _ = dirs
-    started = tmp_path / "load-started"
+    started, gate = tmp_path / "load-started", tmp_path / "gate"
+    os.mkfifo(gate)
     slow = crafted_checkpoint(
         allowed / "slow.zip",
         strategy="slow",
-        calls=[Call(os.mkdir, str(started)), Call(time.sleep, 1.5)],
+        calls=[Call(os.mkdir, str(started)), Call(Path.read_bytes, gate)],
     )
     first: list[Any] = []
     with _client(allowed) as client:
@@ -317,10 +322,12 @@ def test_policy_loads_run_one_at_a_time_and_probes_answer_meanwhile(
             second = _put(client, "min-distance")
             assert second.status_code == 409, second.text
             assert "being loaded" in second.json()["detail"]
-            assert time.monotonic() - begun < 0.5
-            assert _answers_within(client, "/healthz", 1.0) == 200
-            assert _answers_within(client, "/readyz", 1.0) in (200, 503)
+            assert time.monotonic() - begun < PROBE_LIMIT_S
+            assert _answers_within(client, "/healthz", PROBE_LIMIT_S) == 200
+            assert _answers_within(client, "/readyz", PROBE_LIMIT_S) in (200, 503)
+            assert thread.is_alive(), "the first load ended before the probes were checked"
         finally:
+            _release_fifo_readers(gate, thread)
             thread.join(30.0)
         assert first[0].status_code == 200, first[0].text
         assert _served(client) == "ddqn-slow"
