@@ -3,8 +3,9 @@
 Numba caches each compiled kernel beside its source and re-checks only that file's own time
 stamp, so a kernel that calls a function from another module (``sim.network`` calls
 ``sim.queues``, ``sim.mac``, ``sim.phy`` ...) would keep running the old callee after that module
-changed. The cache therefore lives in a directory named by a hash of this package's sources:
-any change to any module compiles afresh. ``NUMBA_CACHE_DIR`` set by the caller wins.
+changed. The cache therefore lives in a directory named by a hash of this package's sources,
+subpackages included: any change to any module compiles afresh. ``NUMBA_CACHE_DIR`` set by the
+caller wins.
 """
 
 from __future__ import annotations
@@ -21,8 +22,8 @@ def _numba_cache_dir() -> None:
         return
     here = Path(__file__).resolve().parent
     digest = hashlib.sha256()
-    for source in sorted(here.glob("*.py")):
-        digest.update(source.name.encode())
+    for source in sorted(here.rglob("*.py")):
+        digest.update(source.relative_to(here).as_posix().encode())
         digest.update(source.read_bytes())
     name = f"numba-{digest.hexdigest()[:16]}"
     # Beside the sources as numba would, or (read-only install) in the user's temp directory.

@@ -47,7 +47,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numba import njit
 
-from sim.config import ENVIRONMENTS, AreaConfig, RadioConfig, site_path
+from sim.config import ENVIRONMENTS, AreaConfig, RadioConfig, site_directory, site_path
 from sim.errors import InputError
 
 if TYPE_CHECKING:
@@ -259,15 +259,16 @@ def rician_quadrature_db(k_db: float, n_points: int = 32) -> np.ndarray:
 
 
 def area_site(area: AreaConfig) -> Site | None:
-    """The area's site (None unless its environment is ``site:PATH``), loaded once per version
-    of its files; InputError naming ``environment`` for a missing or broken site, or one that
-    does not cover the area's ground and flight volume."""
-    path = site_path(area.environment)
-    if path is None:
+    """The area's site (None unless its environment is ``site:NAME``, a shipped site, or
+    ``site:PATH``: :func:`sim.config.site_directory`), loaded once per version of its files;
+    InputError naming ``environment`` for a missing or broken site, or one that does not cover
+    the area's ground and flight volume."""
+    found = site_directory(area.environment)
+    if found is None:
         return None
     from sim.sites.format import DATA_FILE, META_FILE
 
-    directory = Path(path).expanduser().resolve()
+    directory = found.resolve()
     try:
         stamp = tuple((directory / name).stat().st_mtime_ns for name in (META_FILE, DATA_FILE))
     except FileNotFoundError:

@@ -6,7 +6,9 @@ shared between environments, the oracle and the service without defensive copies
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
@@ -20,34 +22,80 @@ ENVIRONMENTS: tuple[str, ...] = ("open", "suburban", "urban", "dense-urban", "hi
 classes with the air-to-ground model of Al-Hourani et al. (2014)."""
 QUEUEING_CHOICES: tuple[str, ...] = ("fq-codel", "mac-only")
 SITE_PREFIX = "site:"
-"""``site:PATH``: a ray-traced district, a site directory (:mod:`sim.sites`), as the channel
-environment; :func:`sim.channel.area_site` loads and checks it."""
+"""``site:NAME`` (a site shipped in the package, :func:`shipped_sites`) or ``site:PATH`` (a site
+directory): a ray-traced district (:mod:`sim.sites`) as the channel environment;
+:func:`sim.channel.area_site` loads and checks it."""
+SHIPPED_SITES_DIR = Path(__file__).parent / "sites" / "data"
+"""Where the package's prebuilt sites live, one directory each (``sim/sites/data/NAME/``)."""
 
 
 def site_path(environment: str) -> str | None:
-    """PATH of a ``site:PATH`` environment; None for a named one (:data:`ENVIRONMENTS`)."""
+    """What follows ``site:`` (a shipped site's NAME or a PATH) in a site environment; None for
+    a named one (:data:`ENVIRONMENTS`). :func:`site_directory` says where the site is."""
     if isinstance(environment, str) and environment.startswith(SITE_PREFIX):
         return environment[len(SITE_PREFIX) :]
     return None
 
 
+@lru_cache(maxsize=1)
+def shipped_sites() -> tuple[str, ...]:
+    """The names of the sites shipped in the package (directories of :data:`SHIPPED_SITES_DIR`
+    holding a ``site.json``), sorted; ``site:NAME`` takes one of them."""
+    if not SHIPPED_SITES_DIR.is_dir():
+        return ()
+    return tuple(sorted(p.name for p in SHIPPED_SITES_DIR.iterdir() if (p / "site.json").is_file()))
+
+
+def is_site_name(text: str) -> bool:
+    """Whether ``site:TEXT`` names a shipped site rather than a directory: a bare name, with no
+    path separator, not ``.`` or ``..`` and not starting with ``~`` (a directory of your own in
+    the working directory is ``site:./NAME``)."""
+    separators = {"/", os.sep, *((os.altsep,) if os.altsep else ())}
+    return (
+        bool(text.strip())
+        and not any(sep in text for sep in separators)
+        and text not in (".", "..")
+        and not text.startswith("~")
+    )
+
+
+def site_directory(environment: str) -> Path | None:
+    """The directory of a site environment, not checked: a shipped site's for ``site:NAME``
+    (:func:`is_site_name`), PATH (``~`` expanded) for ``site:PATH``; None for a named
+    environment. :func:`environment_problem` says whether it is usable."""
+    path = site_path(environment)
+    if path is None:
+        return None
+    if is_site_name(path):
+        return SHIPPED_SITES_DIR / path
+    return Path(path).expanduser()
+
+
 def environment_problem(value: object, *, on_disk: bool = False) -> str | None:
     """What is wrong with ``value`` as a channel environment, None if nothing: it must be one of
-    :data:`ENVIRONMENTS` or ``site:PATH`` with a non-empty PATH; with ``on_disk`` (what a
-    command line asks before it starts), PATH must also hold a site's two files
-    (:mod:`sim.sites.format`). Loading the site, its hash and whether it covers the area are
-    checked where the channel takes it (:func:`sim.channel.area_site`)."""
+    :data:`ENVIRONMENTS`, ``site:NAME`` with NAME one of :func:`shipped_sites`, or ``site:PATH``
+    with a non-empty PATH (:func:`site_directory`); with ``on_disk`` (what a command line asks
+    before it starts), PATH must also hold a site's two files (:mod:`sim.sites.format`).
+    Loading the site, its hash and whether it covers the area are checked where the channel
+    takes it (:func:`sim.channel.area_site`)."""
     path = site_path(value) if isinstance(value, str) else None
     if path is None:
         if value in ENVIRONMENTS:
             return None
-        return f"must be one of {', '.join(ENVIRONMENTS)} or site:PATH, got {value!r}"
+        return f"must be one of {', '.join(ENVIRONMENTS)}, site:NAME or site:PATH, got {value!r}"
     if not path.strip():
         return "'site:' needs the site directory's path (site:PATH)"
+    if is_site_name(path) and path not in shipped_sites():
+        shipped = ", ".join(shipped_sites()) or "none"
+        return (
+            f"{value!r}: no shipped site {path!r} (shipped: {shipped}); a site directory of "
+            f"your own is site:PATH with a path separator, e.g. site:./{path}"
+        )
     if on_disk:
         from sim.sites.format import DATA_FILE, META_FILE
 
-        directory = Path(path).expanduser()
+        directory = site_directory(value)
+        assert directory is not None
         if not all((directory / name).is_file() for name in (META_FILE, DATA_FILE)):
             return f"{value!r}: no site there ({META_FILE} and {DATA_FILE})"
     return None

@@ -6,6 +6,9 @@
 (walkable ground: where users may stand and walk),
 :mod:`sim.sites.build` and :mod:`sim.sites.raytrace` (building one with Sionna RT, which only
 ``raytrace`` imports, inside its functions), :mod:`sim.sites.cli` (``tupa site build``).
+``sim/sites/data/NAME/`` holds the sites shipped in the package (``munich``), which
+``environment = site:NAME`` takes (:func:`sim.config.site_directory`); their map data's
+attribution and licence are in ``sim/sites/data/README.md`` and each ``site.json``.
 """
 
 from sim.sites.format import Site, load_site, save_site

@@ -10,7 +10,10 @@ transmitter; Dr.Jit uses every core for it: that is the build's parallelism — 
 worker processes would only compete for the same cores). Each finished batch is saved
 atomically under ``OUT/.parts/``; a build interrupted (Ctrl-C) and started again with the same
 settings continues from the batches saved; with other settings it is refused. The finished
-site is written with :func:`sim.sites.format.save_site` and ``.parts`` removed.
+site is written with :func:`sim.sites.format.save_site` and ``.parts`` removed. Losses are kept
+for walkable cells only (users stand nowhere else; a cell inside a building gets what rays
+refracted through its walls deposit at 1.5 m, which no user sees): the others are stored as no
+path, which halves the site's size in a dense district.
 
 Only :mod:`sim.sites.raytrace` touches the ray tracer, and only when a build runs.
 """
@@ -32,7 +35,7 @@ import numpy as np
 
 from sim.errors import InputError
 from sim.files import atomic_write_bytes, atomic_write_json
-from sim.sites.format import Site, quantise_loss_db, save_site
+from sim.sites.format import NO_PATH_CODE, Site, quantise_loss_db, save_site
 
 CLEARANCE_M = 2.0
 """A UAV grid point at most this far above a building top in its ground cell is not traced."""
@@ -54,8 +57,8 @@ class BuildSpec:
     center_xy_m: tuple[float, float] | None = None
     size_m: float = 500.0
     cell_m: float = 5.0
-    grid_xy_m: float = 50.0
-    grid_z_m: tuple[float, ...] = (25.0, 50.0, 75.0, 100.0)
+    grid_xy_m: float = 25.0
+    grid_z_m: tuple[float, ...] = (25.0, 37.5, 50.0, 62.5, 75.0, 87.5, 100.0)
     user_height_m: float = 1.5
     batch: int = 8
     solver: dict[str, Any] = field(default_factory=dict)
@@ -82,6 +85,31 @@ class BuildSpec:
             raise InputError(f"--batch: must be at least 1, got {self.batch}")
         if self.center_xy_m is not None and not all(map(math.isfinite, self.center_xy_m)):
             raise InputError(f"--center: must be two finite numbers, got {self.center_xy_m}")
+
+    def command(self, out: str | Path) -> str:
+        """The ``tupa site build`` command line that builds this spec into ``out`` (recorded in
+        the site's metadata, so that a site says how to build it again)."""
+        parts = ["tupa site build"]
+        if self.scene is not None:
+            parts.append(f"--scene {self.scene}")
+        else:
+            parts.append(f"--scene-file {self.scene_file}")
+        if self.center_xy_m is not None:
+            parts.append(f"--center {self.center_xy_m[0]:g},{self.center_xy_m[1]:g}")
+        from sim.sites.raytrace import SolverSettings  # a dataclass: no ray tracer imported
+
+        solver = SolverSettings(**self.solver)
+        parts += [
+            f"--size-m {self.size_m:g}",
+            f"--cell-m {self.cell_m:g}",
+            f"--grid-xy-m {self.grid_xy_m:g}",
+            f"--grid-z-m {','.join(f'{z:g}' for z in self.grid_z_m)}",
+            f"--samples {solver.samples_per_tx}",
+            f"--max-depth {solver.max_depth}",
+            f"--batch {self.batch}",
+            f"--out {out}",
+        ]
+        return " ".join(parts)
 
     def uav_axes_m(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The UAV grid's x, y and z in the area frame."""
@@ -220,9 +248,10 @@ def build_site(spec: BuildSpec, out: Path, stream: TextIO | None = None) -> Site
         buffer = _npy_bytes(quantise_loss_db(loss))
         atomic_write_bytes(path, buffer)
         progress.advance(positions.size)
-    codes = np.full((grid.shape[0], cells, cells), np.iinfo(np.uint16).max, dtype=np.uint16)
+    codes = np.full((grid.shape[0], cells, cells), NO_PATH_CODE, dtype=np.uint16)
     for k, positions in enumerate(batches):
         codes[positions] = np.load(parts / f"batch_{k:05d}.npy")
+    codes[:, ~walkable] = NO_PATH_CODE  # users stand on walkable ground only (module doc)
     site = Site(
         size_x_m=spec.size_m,
         size_y_m=spec.size_m,
@@ -258,6 +287,7 @@ def build_site(spec: BuildSpec, out: Path, stream: TextIO | None = None) -> Site
                 "positions": int(grid.shape[0]),
                 "traced": int(traced.size),
                 "batch": spec.batch,
+                "command": spec.command(out),
             },
         },
     )
@@ -270,3 +300,51 @@ def _npy_bytes(array: np.ndarray) -> bytes:
     buffer = io.BytesIO()
     np.save(buffer, array, allow_pickle=False)
     return buffer.getvalue()
+
+
+def direct_loss_db(
+    site: Site,
+    uav_xyz_m: np.ndarray,
+    samples_per_tx: int,
+    seed: int,
+    scene: Any | None = None,
+    batch: int = 2,
+) -> np.ndarray:
+    """What the ray tracer itself gives at UAV positions ``uav_xyz_m`` (N, 3), area frame, off
+    the grid or on it: path loss in dB from each position to each of the site's ground cells,
+    ``(N, cells_y, cells_x)``, ``+inf`` where no ray arrived, computed as the build computes a
+    grid point (the site's scene, origin, cells, user height and solver settings, from its
+    metadata) but with ``samples_per_tx`` rays and ``seed``, unquantised. ``scene`` is the
+    loaded scene (:func:`sim.sites.raytrace.load_scene`) or None to load the site's. For the
+    lookup's error against direct computation (``benchmarks/sites.py``, the build's test)."""
+    from sim.sites import raytrace
+
+    recorded = site.meta.get("scene", {})
+    if scene is None:
+        scene = raytrace.load_scene(recorded.get("name"), recorded.get("file"))
+    solver = {
+        k: v
+        for k, v in site.meta.get("solver", {}).items()
+        if k in raytrace.SolverSettings.__dataclass_fields__
+    }
+    settings = raytrace.SolverSettings(**{**solver, "samples_per_tx": samples_per_tx, "seed": seed})
+    origin = np.asarray(recorded["origin_m"], dtype=np.float64)
+    plane = (
+        float(origin[0] + site.size_x_m / 2),
+        float(origin[1] + site.size_y_m / 2),
+        float(origin[2] + site.user_height_m),
+    )
+    uav = np.atleast_2d(np.asarray(uav_xyz_m, dtype=np.float64))
+    out = np.empty((uav.shape[0], site.cells_y, site.cells_x))
+    for start in range(0, uav.shape[0], batch):
+        gain = raytrace.radio_maps(
+            scene,
+            uav[start : start + batch] + origin,
+            plane,
+            (site.size_x_m, site.size_y_m),
+            site.cell_m,
+            settings,
+        )
+        with np.errstate(divide="ignore"):
+            out[start : start + batch] = np.where(gain > 0, -10.0 * np.log10(gain), np.inf)
+    return out

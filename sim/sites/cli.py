@@ -32,11 +32,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     build.add_argument("--size-m", type=float, default=500.0, help="the square area's side")
     build.add_argument("--cell-m", type=float, default=5.0, help="ground cell side (≤ 5 m)")
-    build.add_argument("--grid-xy-m", type=float, default=50.0, help="UAV grid spacing in x and y")
     build.add_argument(
-        "--grid-z-m", default="25,50,75,100", help="UAV grid altitudes, comma-separated metres"
+        "--grid-xy-m", type=float, default=25.0, help="UAV grid spacing in x and y (default 25)"
     )
-    build.add_argument("--samples", type=int, default=1_000_000, help="rays per UAV grid point")
+    build.add_argument(
+        "--grid-z-m",
+        default="25,37.5,50,62.5,75,87.5,100",
+        help="UAV grid altitudes, comma-separated metres (default every 12.5 m from 25 to 100)",
+    )
+    build.add_argument(
+        "--samples", type=int, default=2_000_000, help="rays per UAV grid point (default 2e6)"
+    )
     build.add_argument("--max-depth", type=int, default=3, help="bounces per ray")
     build.add_argument("--batch", type=int, default=8, help="UAV grid points per ray-tracer call")
     build.add_argument("--out", type=Path, required=True, help="the site directory")

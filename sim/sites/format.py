@@ -76,8 +76,25 @@ class Site:
         return int(self.building_height_m.shape[0])
 
     def __post_init__(self) -> None:
+        codes = self.loss_code
+        if codes.ndim == 5 and not _cell_major(codes):
+            object.__setattr__(self, "loss_code", cell_major(codes))
         for name in _ARRAYS:
             getattr(self, name).setflags(write=False)
+
+
+def cell_major(codes: np.ndarray) -> np.ndarray:
+    """``codes`` (nz, ny, nx, cy, cx) with the same values, laid out in memory ground cell by
+    ground cell: the UAV grid points of one cell are next to each other, so the lookup's
+    eight corners of a link share a few cache lines (a layer-major array spreads them over
+    eight maps far apart). Indexing, shape and content hash are unchanged."""
+    stored = np.ascontiguousarray(np.moveaxis(codes, (3, 4), (0, 1)))
+    return np.moveaxis(stored, (0, 1), (3, 4))
+
+
+def _cell_major(codes: np.ndarray) -> bool:
+    base = np.moveaxis(codes, (3, 4), (0, 1))
+    return bool(base.flags.c_contiguous)
 
 
 def quantise_loss_db(loss_db: np.ndarray) -> np.ndarray:

@@ -13,14 +13,14 @@ per cell), so the map errs towards blocking.
 
 from __future__ import annotations
 
-import math
+import weakref
 
 import numpy as np
-from numba import njit
 
 from sim.errors import InputError
 from sim.sites.format import Site
-from sim.sites.lookup import check_uav, ground_cells, interpolate
+from sim.sites.kernels import BAD_UAV, clear_kernel, links_kernel
+from sim.sites.lookup import GAIN_OF_CODE, check_uav, exact_cells, ground_cells, outside_error
 
 
 def line_of_sight(site: Site, uav_xyz: np.ndarray, users_xy: np.ndarray) -> np.ndarray:
@@ -39,25 +39,72 @@ def site_links(
     site: Site, uav_xyz: np.ndarray, users_xy: np.ndarray, with_los: bool
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Every link's mean path loss (dB, ``+inf`` without a path: :func:`sim.sites.lookup.
-    path_loss_db`) and, ``with_los``, its line of sight (:func:`line_of_sight`; else None), the
-    users' ground cells found once: ``(N, M)`` each for ``uav_xyz`` (N, 3) and ``users_xy``
-    (M, 2), every position the same users, or (N, M, 2), each position its own (a vectorised
-    environment's cells; a fleet's links to their own APs as N positions of one user each).
+    path_loss_db`) and, ``with_los``, its line of sight (:func:`line_of_sight`; else None):
+    ``(N, M)`` each for ``uav_xyz`` (N, 3) and ``users_xy`` (M, 2), every position the same
+    users, or (N, M, 2), each position its own (a vectorised environment's cells; a fleet's
+    links to their own APs as N positions of one user each). One compiled pass over the links
+    (the network model calls it every step), the same values as those two functions give.
     InputError naming the argument for a wrong shape or a user off the site."""
-    uav = check_uav(np.asarray(uav_xyz, dtype=np.float64))
+    uav = np.asarray(uav_xyz, dtype=np.float64)
+    if uav.ndim == 1:
+        uav = uav[None]
+    if uav.ndim != 2 or uav.shape[1] != 3:
+        check_uav(uav)  # raises, naming uav_xyz
     users = np.asarray(users_xy, dtype=np.float64)
     if users.ndim == 3:
         if users.shape[0] != uav.shape[0] or users.shape[2] != 2:
             raise InputError(
                 f"users_xy: must have shape (M, 2) or ({uav.shape[0]}, M, 2), got {users.shape}"
             )
-        row, column = ground_cells(site, users.reshape(-1, 2))
-        row, column = row.reshape(users.shape[:2]), column.reshape(users.shape[:2])
+    elif users.ndim != 2 or users.shape[1] != 2:
+        raise InputError(f"users_xy: must have shape (M, 2), got {users.shape}")
     else:
-        row, column = ground_cells(site, users)
-        users, row, column = users[None], row[None, :], column[None, :]
-    loss = interpolate(site, uav, row, column)
-    return loss, _clear(site, uav, users, row, column) if with_los else None
+        users = users[None]
+    shape = (uav.shape[0], users.shape[1])
+    loss = np.empty(shape)
+    los = np.empty(shape, dtype=np.bool_) if with_los else _NO_LOS
+    top_m, cell_m, exact, size_x_m, size_y_m, user_height_m = _constants(site)
+    bad = links_kernel(
+        site.loss_code, GAIN_OF_CODE, site.uav_x_m, site.uav_y_m, site.uav_z_m,
+        site.building_height_m, top_m, cell_m, exact, size_x_m, size_y_m, user_height_m,
+        uav if uav.flags.c_contiguous else np.ascontiguousarray(uav),
+        users if users.flags.c_contiguous else np.ascontiguousarray(users), loss, los,
+    )  # fmt: skip
+    if bad == BAD_UAV:
+        check_uav(uav)  # raises, naming uav_xyz
+    if bad >= 0:
+        raise outside_error(site, users.reshape(-1, 2)[bad], bad)
+    return loss, los if with_los else None
+
+
+_NO_LOS = np.empty((0, 0), dtype=np.bool_)
+"""The kernel's ``los`` when line of sight is not asked for (never written)."""
+
+
+_CONSTANTS: dict[int, tuple[weakref.ref, tuple[float, float, bool, float, float, float]]] = {}
+
+
+def _constants(site: Site) -> tuple[float, float, bool, float, float, float]:
+    """What the kernels take of a site besides its arrays, worked out once per site (the
+    model calls :func:`site_links` every step): the tallest cell, the cell side, whether
+    :func:`sim.sites.lookup.cell_index` may take its fast path, the area's size, the users'
+    height."""
+    known = _CONSTANTS.get(id(site))
+    if known is not None and known[0]() is site:
+        return known[1]
+    heights = site.building_height_m
+    values = (
+        float(heights.max()) if heights.size else 0.0,
+        float(site.cell_m),
+        exact_cells(site.cell_m),
+        float(site.size_x_m),
+        float(site.size_y_m),
+        float(site.user_height_m),
+    )
+    if len(_CONSTANTS) >= 16:
+        _CONSTANTS.clear()
+    _CONSTANTS[id(site)] = (weakref.ref(site), values)  # a weak one: sites are large
+    return values
 
 
 def _clear(
@@ -67,52 +114,11 @@ def _clear(
     their ground cells (1 or N, M) → (N, M) bool; each link on its own (the same answer in any
     batch)."""
     out = np.empty((uav.shape[0], users.shape[1]), dtype=np.bool_)
-    heights = site.building_height_m
-    _clear_kernel(
-        heights, float(heights.max()) if heights.size else 0.0, float(site.cell_m),
-        float(site.user_height_m), np.ascontiguousarray(uav), np.ascontiguousarray(users),
+    top_m, cell_m, exact, _, _, user_height_m = _constants(site)
+    clear_kernel(
+        site.building_height_m, top_m, cell_m, exact, user_height_m,
+        np.ascontiguousarray(uav), np.ascontiguousarray(users),
         np.ascontiguousarray(row0, dtype=np.intp), np.ascontiguousarray(column0, dtype=np.intp),
         out,
     )  # fmt: skip
     return out
-
-
-@njit(cache=True, nogil=True)
-def _clear_kernel(
-    heights: np.ndarray,
-    top_m: float,
-    cell_m: float,
-    user_height_m: float,
-    uav: np.ndarray,
-    users: np.ndarray,
-    row0: np.ndarray,
-    column0: np.ndarray,
-    out: np.ndarray,
-) -> None:
-    """Each link's line of sight into ``out`` (N, M): the segment from the user to the UAV at
-    evenly spaced fractions of the way, at most half a cell apart along the ground (the user's
-    end left out), clear while above every cell it crosses but the user's own. A rising
-    segment that is above ``top_m``, the tallest cell, stays clear: the march stops there."""
-    shared = users.shape[0] == 1
-    last_x, last_y = heights.shape[1] - 1, heights.shape[0] - 1
-    for n in range(uav.shape[0]):
-        s = 0 if shared else n
-        dz = uav[n, 2] - user_height_m
-        for m in range(users.shape[1]):
-            x0, y0 = users[s, m, 0], users[s, m, 1]
-            dx = uav[n, 0] - x0
-            dy = uav[n, 1] - y0
-            intervals = max(1, math.ceil(math.sqrt(dx * dx + dy * dy) / (0.5 * cell_m)))
-            clear = True
-            for i in range(1, intervals + 1):
-                t = i / intervals
-                if dz >= 0.0 and user_height_m + t * dz >= top_m:
-                    break  # above every building from here on
-                column = min(max(int((x0 + t * dx) // cell_m), 0), last_x)
-                row = min(max(int((y0 + t * dy) // cell_m), 0), last_y)
-                if row == row0[s, m] and column == column0[s, m]:
-                    continue  # the user's own cell
-                if user_height_m + t * dz < heights[row, column]:
-                    clear = False
-                    break
-            out[n, m] = clear

@@ -46,7 +46,7 @@ class SolverSettings:
     Sionna's radio maps model it at a large cost and the street-level error it fixes is in the
     deep-shadow cells that are out of coverage for Wi-Fi anyway."""
 
-    samples_per_tx: int = 1_000_000
+    samples_per_tx: int = 2_000_000
     max_depth: int = 3
     los: bool = True
     specular_reflection: bool = True

@@ -29,8 +29,8 @@ def _cache_dir(env: dict[str, str]) -> str:
 
 def test_cache_directory_is_named_by_the_hash_of_every_sim_source():
     digest = hashlib.sha256()
-    for source in sorted(SIM.glob("*.py")):
-        digest.update(source.name.encode())
+    for source in sorted(SIM.rglob("*.py")):
+        digest.update(source.relative_to(SIM).as_posix().encode())
         digest.update(source.read_bytes())
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
     path = Path(_cache_dir(env))

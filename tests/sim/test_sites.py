@@ -12,6 +12,7 @@ import pytest
 
 import sim.sites
 from service.cli import main
+from sim.channel import friis_path_loss_db
 from sim.errors import InputError
 from sim.sites import Site, load_site, path_loss_db, raytrace, save_site
 from sim.sites.build import BuildSpec, Progress, _parts_dir, build_site, ground_maps
@@ -169,15 +170,75 @@ def test_lookup_is_exact_at_grid_points_for_every_cell() -> None:
                 assert np.array_equal(got, stored[iz, iy, ix].ravel())
 
 
-def test_lookup_is_linear_between_grid_points() -> None:
-    site = _linear_site()
+def _free_space_site(excess_db: float = 0.0) -> Site:
+    """Friis at 5.18 GHz from each grid point to each cell's centre (at 1.5 m), plus
+    ``excess_db``: what an open field's site stores."""
+    site = _site()
+    centres = (np.arange(4) + 0.5) * 5.0
+    Z, Y, X, CY, CX = np.meshgrid(
+        site.uav_z_m, site.uav_y_m, site.uav_x_m, centres, centres, indexing="ij"
+    )
+    distance = np.sqrt((X - CX) ** 2 + (Y - CY) ** 2 + (Z - 1.5) ** 2)
+    return Site(
+        **{
+            **site.__dict__,
+            "loss_code": quantise_loss_db(friis_path_loss_db(distance, 5.18e9) + excess_db),
+        }
+    )
+
+
+def _interpolated_squared_distance(uav: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """Σ w·d² over the eight corners for ``_site``'s grid (steps 10, 10 and 25 m): the squared
+    distance plus f(1 − f)·h² on each axis (trilinear interpolation of a quadratic)."""
+    squared = ((uav[:, None, :2] - centres[None]) ** 2).sum(axis=2) + (uav[:, None, 2] - 1.5) ** 2
+    bend = 0.0
+    for axis, step, low in ((0, 10.0, 0.0), (1, 10.0, 0.0), (2, 25.0, 25.0)):
+        f = np.mod(uav[:, axis] - low, step) / step
+        bend = bend + f * (1 - f) * step**2
+    return squared + bend[:, None]
+
+
+@pytest.mark.parametrize("excess_db", [0.0, 23.4])
+def test_lookup_follows_free_space_between_grid_points(excess_db: float) -> None:
+    """Power relative to free-space spreading is interpolated and spread over the interpolated
+    squared distance: a site that stores Friis (plus a constant) gives Friis (plus it) at the
+    interpolated squared distance — exact at the grid points, within the module doc's bound
+    between them — to the 0.1 dB steps."""
+    site = _free_space_site(excess_db)
     rng = np.random.default_rng(0)
     uav = rng.uniform([0, 0, 25], [20, 20, 50], (200, 3))
     users = rng.uniform(0, 20, (7, 2))
     got = path_loss_db(site, uav, users)
-    want = 80 + 0.5 * uav[:, 0] + 0.2 * uav[:, 1] + 0.4 * (uav[:, 2] - 25)
+    centres = (np.floor(users / 5.0) + 0.5) * 5.0  # the users' cells' centres
+    spread = _interpolated_squared_distance(uav, centres)
     assert got.shape == (200, 7)
-    assert np.allclose(got, want[:, None], atol=1e-9)
+    assert np.allclose(got, friis_path_loss_db(np.sqrt(spread), 5.18e9) + excess_db, atol=0.051)
+
+
+def test_a_constant_loss_stays_constant_between_grid_points() -> None:
+    site = _site(np.full((2, 3, 3, 4, 4), 97.3))
+    rng = np.random.default_rng(1)
+    got = path_loss_db(site, rng.uniform([0, 0, 25], [20, 20, 50], (100, 3)), [[3, 3], [17, 9]])
+    assert np.allclose(got, 97.3, atol=1e-9)
+
+
+def test_lookup_averages_power_not_decibels() -> None:
+    """Half-way between two grid points, 10 dB and 30 dB above free space, the loss is Friis'
+    at the interpolated squared distance plus the mean excess *power*, −10·log10((10⁻¹ +
+    10⁻³) / 2) = 12.96 dB, not the mean of the decibels, 20 dB (to the 0.1 dB steps)."""
+    site = _free_space_site()
+    codes = site.loss_code.copy()
+    codes[:, :, 0] += 100  # +10 dB from every grid point at x = 0
+    codes[:, :, 1] += 300  # +30 dB at x = 10
+    site = Site(**{**site.__dict__, "loss_code": codes})
+    user = np.array([[7.5, 12.5]])  # the cell centred at (7.5, 12.5)
+    at_0, at_10 = path_loss_db(site, [[0.0, 10.0, 25.0], [10.0, 10.0, 25.0]], user)[:, 0]
+    mid = path_loss_db(site, [5.0, 10.0, 25.0], user)[0]
+    d0, d1 = 7.5**2 + 2.5**2 + 23.5**2, 2.5**2 + 2.5**2 + 23.5**2
+    spread = (d0 + d1) / 2
+    want = friis_path_loss_db(np.sqrt(spread), 5.18e9) - 10 * np.log10((10**-1.0 + 10**-3.0) / 2)
+    assert mid == pytest.approx(want, abs=0.06)
+    assert mid < (at_0 + at_10) / 2  # the stronger corner weighs more than in decibels
 
 
 def test_lookup_uses_the_users_ground_cell_and_clamps_the_uav_to_the_grid() -> None:
@@ -192,7 +253,7 @@ def test_lookup_uses_the_users_ground_cell_and_clamps_the_uav_to_the_grid() -> N
 
 
 def test_no_path_is_infinite_loss_and_wins_only_with_most_of_the_weight() -> None:
-    site = _linear_site()
+    site = _free_space_site()
     codes = site.loss_code.copy()
     codes[1, 2, 2] = NO_PATH_CODE  # no path from (20, 20, 50) to any cell
     site = Site(**{**site.__dict__, "loss_code": codes})
@@ -200,9 +261,12 @@ def test_no_path_is_infinite_loss_and_wins_only_with_most_of_the_weight() -> Non
     assert np.isinf(path_loss_db(site, [20, 20, 50], users)[0])
     # Three quarters of the way to the no-path corner along x: its weight is 0.75.
     assert np.isinf(path_loss_db(site, [17.5, 20, 50], users)[0])
-    # A quarter of the way: the covered corner alone, at its own value.
+    # A quarter of the way: the covered corner's power, with a zero for the other's quarter.
     near = path_loss_db(site, [12.5, 20, 50], users)[0]
-    assert near == pytest.approx(80 + 0.5 * 10 + 0.2 * 20 + 0.4 * 25)
+    d1, d2 = 10**2 + 17.5**2 + 48.5**2, 20**2 + 17.5**2 + 48.5**2  # to x = 10 and x = 20
+    gain = 10 ** (-friis_path_loss_db(np.sqrt(d1), 5.18e9) / 10)
+    want = -10 * np.log10(0.75 * d1 * gain / (0.75 * d1 + 0.25 * d2))
+    assert near == pytest.approx(want, abs=0.06)
     # Half-way: weight 0.5 with a path, so a path.
     assert np.isfinite(path_loss_db(site, [15, 20, 50], users)[0])
 
@@ -238,19 +302,9 @@ def test_an_interrupted_build_with_other_settings_is_refused(tmp_path: Path) -> 
     assert _parts_dir(tmp_path, record) == parts
     with pytest.raises(InputError, match=r"--out: .* interrupted build with other settings"):
         _parts_dir(tmp_path, {**record, "size_m": 400.0})
-    assert spec.uav_axes_m()[0].tolist() == [
-        0.0,
-        50.0,
-        100.0,
-        150.0,
-        200.0,
-        250.0,
-        300.0,
-        350.0,
-        400.0,
-        450.0,
-        500.0,
-    ]
+    xs, ys, zs = spec.uav_axes_m()  # the default grid: every 25 m, 12.5 m up from 25 to 100
+    assert xs.tolist() == ys.tolist() == [25.0 * i for i in range(21)]
+    assert zs.tolist() == [25.0, 37.5, 50.0, 62.5, 75.0, 87.5, 100.0]
 
 
 def test_progress_says_the_time_left() -> None:
@@ -349,6 +403,13 @@ def test_the_build_skips_blocked_points_saves_batches_and_resumes(tmp_path, monk
     assert not (tmp_path / "s" / ".parts").exists()
     assert load_site(tmp_path / "s").meta["scene"]["licence"] == "CC0"
     loss = dequantise_loss_db(site.loss_code)
-    assert np.isinf(loss[0, 1:, 1:]).all() and np.isfinite(loss[0, 0]).all()
-    assert np.allclose(loss[1], 90.0) and np.allclose(loss[0, 0], 70.0)
+    walk = site.walkable
+    assert np.isinf(loss[0, 1:, 1:]).all() and np.isfinite(loss[0, 0][:, walk]).all()
+    assert np.allclose(loss[1][..., walk], 90.0) and np.allclose(loss[0, 0][:, walk], 70.0)
     assert site.walkable.sum() == 48 and site.building_height_m.max() == 20.0
+    # Losses are kept on walkable ground only: inside the block, no path from anywhere.
+    assert np.isinf(loss[..., ~walk]).all()
+    assert site.meta["build"]["command"] == (
+        f"tupa site build --scene fake --size-m 40 --cell-m 5 --grid-xy-m 20 --grid-z-m 10,30 "
+        f"--samples 2000000 --max-depth 3 --batch 4 --out {tmp_path / 's'}"
+    )
