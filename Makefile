@@ -17,9 +17,10 @@ $(STAMP): $(BIN)/python pyproject.toml
 	$(BIN)/pip install -e '.[dev,ray]'
 	touch $(STAMP)
 
-# The closed loop: sitl-mock + tupa serve (default policy) + the simulated network controller.
+# The closed loop over a real district (the shipped ray-traced site munich): sitl-mock +
+# tupa serve (default policy) + the simulated network controller.
 run: $(STAMP)
-	$(BIN)/tupa demo --out runs/demo
+	$(BIN)/tupa demo --environment site:munich --out runs/demo
 
 # The operator view's browser test (tests/e2e/test_operator_view.py) drives Debian's chromium
 # through Playwright (a dev extra; Playwright's own browser download is not reachable here).
