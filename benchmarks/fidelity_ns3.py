@@ -36,6 +36,12 @@ The figures:
   the frames that fade under it and the model's connection is all or nothing) apart from the
   *inner* ones.
 
+* ``per_site`` (issue 38): the same figures on each site's calibration set (``site:munich``:
+  ``sim/calibration/cases_site_munich.json``, ns-3 results ``ns3_site_munich_*.json``), where
+  ns-3 is given the site's ray-traced per-user loss at the UAV's exact position (the fast
+  model's expected-mode loss there; no path: out of coverage in both) and the fast model runs
+  on the site in expected mode.
+
 * ``per_regime`` (issue 19): the held-out target figures by queueing variant × station count
   (1–3, 4–8, 9–20) × congested / uncongested users, each beside ns-3's seed-to-seed figure, on
   the open set's held-out part and on the few-station set (``sim/calibration/
@@ -63,13 +69,14 @@ import numpy as np
 
 from sim.calibration.build import (
     FEW_STATIONS_PATH,
+    SITE_ENVIRONMENTS,
     cases_path,
     few_stations_results_path,
     load_meta,
     results_path,
 )
 from sim.calibration.fit import HAND_SET, load_fitted, make_config
-from sim.channel import mean_path_loss_db
+from sim.channel import NO_LINK_LOSS_DB, area_site, mean_path_loss_db, site_link_channel
 from sim.config import ENVIRONMENTS, AreaConfig, NetworkConfig, RadioConfig
 from sim.evaluate import CaseMetrics, evaluate_case
 from sim.files import load_cases
@@ -565,8 +572,16 @@ EDGE_MARGIN_DB = 3.0  # "edge" users: mean RSSI within this of the -90 dBm pream
 
 def mean_rssi_dbm(case: Case, area: AreaConfig, radio: RadioConfig | None = None) -> np.ndarray:
     """Each user's mean received power (dBm) in the area's environment: the transmit power less
-    :func:`sim.channel.mean_path_loss_db`, the loss both backends use (default radio)."""
+    :func:`sim.channel.mean_path_loss_db` (on a site: the site's loss at the UAV's position,
+    no path counting as :data:`~sim.channel.NO_LINK_LOSS_DB`), the loss both backends use
+    (default radio)."""
     radio = radio or RadioConfig()
+    site = area_site(area)
+    if site is not None:
+        loss, _ = site_link_channel(
+            site, case.uav_xyz_m[None, :], case.users_xy_m, radio.rician_k_db, None, 0
+        )
+        return radio.tx_power_dbm - np.minimum(loss[0], NO_LINK_LOSS_DB)
     ground_m = np.hypot(*(case.users_xy_m - case.uav_xyz_m[:2]).T)
     height_m = max(float(case.uav_xyz_m[2]) - area.user_height_m, 0.0)
     loss_db = mean_path_loss_db(area.environment, ground_m, height_m, radio.frequency_hz)
@@ -635,8 +650,19 @@ def per_environment(config: NetworkConfig) -> dict[str, Any]:
     """Held-out (and all-case) target figures per channel environment and queueing variant,
     the fast model with ``config`` in the environment's expected mode vs the committed ns-3
     results of that environment's calibration set."""
+    return _environment_blocks(config, ENVIRONMENTS)
+
+
+def per_site(config: NetworkConfig) -> dict[str, Any]:
+    """:func:`per_environment`'s figures for each site with a calibration set
+    (:data:`sim.calibration.build.SITE_ENVIRONMENTS`), keyed by its environment
+    (``site:munich``)."""
+    return _environment_blocks(config, SITE_ENVIRONMENTS)
+
+
+def _environment_blocks(config: NetworkConfig, environments: tuple[str, ...]) -> dict[str, Any]:
     out: dict[str, Any] = {}
-    for environment in ENVIRONMENTS:
+    for environment in environments:
         source = cases_path(environment)
         if not source.exists():
             continue
@@ -1393,7 +1419,9 @@ def main(argv: list[str] | None = None) -> int:
                 f"default (fitted) {entry['default']} (target {entry['target']})"
             )
     result["per_environment"] = per_environment(NetworkConfig())
-    for environment, block in result["per_environment"].items():
+    result["per_site"] = per_site(NetworkConfig())
+    blocks = {**result["per_environment"], **result["per_site"]}
+    for environment, block in blocks.items():
         for variant, figures in block["variants"].items():
             h = figures["held_out"]
             print(

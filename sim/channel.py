@@ -258,12 +258,12 @@ def rician_quadrature_db(k_db: float, n_points: int = 32) -> np.ndarray:
     return gains_db
 
 
-def area_site(area: AreaConfig) -> Site | None:
-    """The area's site (None unless its environment is ``site:NAME``, a shipped site, or
+def environment_site(environment: str) -> Site | None:
+    """The site an environment names (None unless it is ``site:NAME``, a shipped site, or
     ``site:PATH``: :func:`sim.config.site_directory`), loaded once per version of its files;
-    InputError naming ``environment`` for a missing or broken site, or one that does not cover
-    the area's ground and flight volume."""
-    found = site_directory(area.environment)
+    InputError naming ``environment`` for a missing or broken site. Whether it covers an area
+    is :func:`area_site`'s check."""
+    found = site_directory(environment)
     if found is None:
         return None
     from sim.sites.format import DATA_FILE, META_FILE
@@ -273,9 +273,19 @@ def area_site(area: AreaConfig) -> Site | None:
         stamp = tuple((directory / name).stat().st_mtime_ns for name in (META_FILE, DATA_FILE))
     except FileNotFoundError:
         raise InputError(
-            f"environment: {area.environment!r}: no site there ({META_FILE} and {DATA_FILE})"
+            f"environment: {environment!r}: no site there ({META_FILE} and {DATA_FILE})"
         ) from None
-    site = _load_site(str(directory), stamp, area.environment)
+    return _load_site(str(directory), stamp, environment)
+
+
+def area_site(area: AreaConfig) -> Site | None:
+    """The area's site (None unless its environment is ``site:NAME``, a shipped site, or
+    ``site:PATH``: :func:`sim.config.site_directory`), loaded once per version of its files;
+    InputError naming ``environment`` for a missing or broken site, or one that does not cover
+    the area's ground and flight volume."""
+    site = environment_site(area.environment)
+    if site is None:
+        return None
     short = [
         f"{name} {have:g} m < {need:g} m"
         for name, have, need in (

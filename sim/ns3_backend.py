@@ -34,6 +34,17 @@ other's transmissions for carrier sense and collisions) the loss stays free spac
 them to ns-3 alone. The LoS state itself is not drawn in ns-3 (nor in the expected mode): what
 the comparison checks is the MAC on a given mean channel, not the Al-Hourani model.
 
+On a site (``environment`` ``site:NAME`` or ``site:PATH``, issue 38) the per-user loss is the
+site's ray-traced mean loss at the UAV's exact position, :func:`sim.channel.site_link_channel`
+in expected mode (the numbers :class:`sim.network.NetworkModel` uses there), set per pair the
+same way and followed by the same Nakagami fading (the fast model's Rician/Rayleigh split by
+line of sight is a stochastic-mode matter; the expected mode, and so ns-3, takes the mean loss
+only). A user with no path at all gets :data:`NO_PATH_LOSS_DB` (JSON has no ``inf``): received
+at about −980 dBm, under every threshold, so it never associates and loses all it sends — the
+fast model's "no path = out of coverage". User to user stays free space, as in the towns: the
+fast model has no hidden stations, and blocking ground-to-ground links by the site's buildings
+would add them to ns-3 alone.
+
 ``interval_s`` splits the window into equal intervals (e.g. 1 s over a 10 s window, to follow
 how FqCoDel delays grow). A user that sends but receives nothing in a window gets the fast
 model's ``unserved_delay_s`` (1 s) as its delay.
@@ -45,8 +56,8 @@ on channel 36 + 4k, each on its own ns-3 channel object, so cells are independen
 ``shared`` (all on channel 36, one channel object: cells contend and interfere as ns-3's PHY
 and MAC make them). :meth:`Ns3Runner.run_fleet` simulates it with the same protocol and
 counters; K = 1 gives :meth:`Ns3Runner.run`'s numbers exactly (same nodes, objects and random
-streams in the same order; tested). In an urban environment each AP gets its users' mean path
-loss as above, and AP to AP is free space (UAVs see each other in the air).
+streams in the same order; tested). In an urban environment or on a site each AP gets its users'
+mean path loss as above, and AP to AP is free space (UAVs see each other in the air).
 
 Randomness: ns-3's ``RngSeedManager`` seed is ``seed + 1`` (ns-3 wants >= 1) and its run number
 ``index + 1`` for the case at position ``index`` of a file, and every random stream is pinned
@@ -73,16 +84,21 @@ from typing import Any
 
 import numpy as np
 
-from sim.channel import friis_path_loss_db, mean_path_loss_db
+from sim.channel import (
+    NO_LINK_LOSS_DB,
+    environment_site,
+    friis_path_loss_db,
+    mean_path_loss_db,
+    site_link_channel,
+)
 from sim.config import (
-    ENVIRONMENTS,
     AreaConfig,
     QueueConfig,
     Queueing,
     RadioConfig,
     TrafficConfig,
     UtilityConfig,
-    site_path,
+    environment_problem,
 )
 from sim.errors import InputError
 from sim.evaluate import RESULTS_FORMAT, CaseMetrics
@@ -92,6 +108,11 @@ from sim.scenarios import Case
 from sim.utility import network_utility
 
 INSTALL_HINT = "--backend ns3: ns-3 is not installed; pip install 'tupa[ns3]'"
+NO_PATH_LOSS_DB = NO_LINK_LOSS_DB
+"""The loss ns-3 is given for a site's link with no path (``+inf`` in the lookup; JSON has no
+inf): the fast model's own stand-in, :data:`sim.channel.NO_LINK_LOSS_DB` (1000 dB: received at
+about −980 dBm, far under ns-3's −82 dBm CCA and −90 dBm preamble thresholds: out of
+coverage)."""
 
 # Counters (cumulative in the worker) whose window difference is a packet lost.
 DROP_FIELDS: tuple[str, ...] = (
@@ -143,8 +164,10 @@ def nakagami_m_for_rician(k_db: float) -> float:
 class Ns3Settings:
     """How a case is simulated in ns-3 (defaults: the protocol of ``tupa sim evaluate``).
 
-    ``environment``: the channel (module doc): ``open`` (ns-3's Friis) or an urban class of
-    :data:`sim.config.ENVIRONMENTS` (per-user loss from :func:`sim.channel.mean_path_loss_db`).
+    ``environment``: the channel (module doc): ``open`` (ns-3's Friis), an urban class of
+    :data:`sim.config.ENVIRONMENTS` (per-user loss from :func:`sim.channel.mean_path_loss_db`)
+    or a site, ``site:NAME`` / ``site:PATH`` (per-user loss from the site, loaded and checked
+    here: InputError naming ``environment`` for an unknown, missing or broken one).
     """
 
     queueing: Queueing = "fq-codel"
@@ -160,15 +183,10 @@ class Ns3Settings:
     environment: str = "open"
 
     def __post_init__(self) -> None:
-        if site_path(self.environment) is not None:
-            raise InputError(
-                f"environment: {self.environment!r}: the ns-3 backend does not take a site yet "
-                "(use the fast model, --backend fast)"
-            )
-        if self.environment not in ENVIRONMENTS:
-            raise InputError(
-                f"environment: must be one of {', '.join(ENVIRONMENTS)}, got {self.environment!r}"
-            )
+        problem = environment_problem(self.environment, on_disk=True)
+        if problem is not None:
+            raise InputError(f"environment: {problem}")
+        environment_site(self.environment)  # a site: there and sound ("environment: ...")
         if self.queueing not in ("fq-codel", "mac-only"):
             raise InputError(f"queueing: must be fq-codel or mac-only, got {self.queueing!r}")
         if not (math.isfinite(self.warmup_s) and self.warmup_s >= 0):
@@ -286,15 +304,24 @@ def _metrics(
 
 
 def link_losses_db(case: Case, settings: Ns3Settings) -> tuple[np.ndarray, np.ndarray]:
-    """The losses the worker sets in an urban environment: each user's mean path loss to the UAV
-    (U,), exactly what the fast model's expected mode uses (:func:`sim.channel.mean_path_loss_db`
-    at the ground distance and the UAV's height above the user, floored at 0 as the model
-    does), and the free-space loss between users (U, U)."""
+    """The losses the worker sets in an urban environment or on a site: each user's mean path
+    loss to the UAV (U,), exactly what the fast model's expected mode uses — in a town
+    :func:`sim.channel.mean_path_loss_db` at the ground distance and the UAV's height above the
+    user (floored at 0 as the model does), on a site the site's loss at the UAV's exact
+    position (:func:`sim.channel.site_link_channel`, no path: :data:`NO_PATH_LOSS_DB`) — and
+    the free-space loss between users (U, U)."""
     users = case.users_xy_m
-    ground_m = np.hypot(users[:, 0] - case.uav_xyz_m[0], users[:, 1] - case.uav_xyz_m[1])
-    height_m = max(float(case.uav_xyz_m[2]) - settings.user_height_m, 0.0)
     frequency_hz = settings.radio.frequency_hz
-    to_uav = mean_path_loss_db(settings.environment, ground_m, height_m, frequency_hz)
+    site = environment_site(settings.environment)
+    if site is not None:
+        loss, _ = site_link_channel(
+            site, case.uav_xyz_m[None, :], users, settings.radio.rician_k_db, None, 0
+        )
+        to_uav = np.minimum(loss[0], NO_PATH_LOSS_DB)
+    else:
+        ground_m = np.hypot(users[:, 0] - case.uav_xyz_m[0], users[:, 1] - case.uav_xyz_m[1])
+        height_m = max(float(case.uav_xyz_m[2]) - settings.user_height_m, 0.0)
+        to_uav = mean_path_loss_db(settings.environment, ground_m, height_m, frequency_hz)
     between = np.hypot(users[:, None, 0] - users[None, :, 0], users[:, None, 1] - users[None, :, 1])
     return np.asarray(to_uav, dtype=float), friis_path_loss_db(between, frequency_hz)
 
@@ -411,7 +438,7 @@ class FleetCase:
 def fleet_link_losses_db(
     case: FleetCase, settings: Ns3Settings
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The losses the worker sets for a fleet case in an urban environment, as
+    """The losses the worker sets for a fleet case in an urban environment or on a site, as
     :func:`link_losses_db` per AP: each AP to each user (K, U), the mean path loss of the fast
     model's expected mode; AP to AP (K, K) and user to user (U, U), free space (3-D distance
     between the UAVs: they see each other in the air, as :class:`sim.fleet.FleetModel`
@@ -740,7 +767,7 @@ def evaluate_cases_file_ns3(
     output; the others are written all the same). InputError if ns-3 is not installed.
     """
     area, cases = load_cases(cases_path)  # InputError naming a bad environment
-    settings = Ns3Settings(  # InputError for a site, which ns-3 does not take yet
+    settings = Ns3Settings(  # InputError naming a bad environment
         queueing=queueing,
         warmup_s=warmup_s,
         measure_s=measure_s,

@@ -52,6 +52,32 @@ The MAC constants are not refitted on them (``fit.py`` reads ``cases.json`` only
 fidelity benchmark reports their errors per environment. ns-3 gets the fast model's per-user
 mean path loss (:mod:`sim.ns3_backend`), so these cases check the MAC on the urban channel.
 
+**Site cases** (issue 38): ``site-cases`` writes ``cases_site_munich.json`` (its top-level
+``environment`` ``site:munich``, the shipped ray-traced district; :func:`make_site_cases`), 52
+cases, every user on the site's walkable ground (the scenario generator's rule on a site) and
+every UAV at least :data:`SITE_ROOF_CLEARANCE_M` above the roof under it:
+
+* ``ssingle-*`` (12): one user about 60, 150 or 300 m (``t60`` ...) from the UAV's ground
+  point (the walkable cell farthest from any building, at least 100 m inside the area), on a
+  walkable cell in line of sight of the UAV at 100 m and on one *behind a building* (out of
+  sight even from 100 m: a reflected or transmitted ray-traced path), with a path at both
+  altitudes where the site has such a cell, at 25 and 100 m altitude, 40 Mbit/s (saturated:
+  the rate ladder on the site's loss);
+* ``sgrp*-c*`` (6 groups × 6 candidates = 36): a scenario of 3 or 8 users from the site
+  families ``streets``, ``squares`` and the paper's ``exponential`` on walkable ground,
+  Λ = 10 to 40 Mbit/s, at the six candidate positions of the urban groups (the users' centroid
+  at 25, 50 and 100 m, the load-weighted centroid at 75 m, above the heaviest user at 50 m, a
+  random grid point; each lifted above its roof where it would be inside a building);
+* ``scrowd-*`` (4): 12 or 20 users of the ``crowd`` family (most at one place), 40 Mbit/s, the
+  UAV over their centroid at 50 and 100 m: contention on the site's channel.
+
+Held out: ``ssingle`` cases 3, 6, 9 and 12 (every 3rd), the odd groups (``sgrp1``, ``sgrp3``,
+``sgrp5``) and the 100 m ``scrowd`` cases. Nothing is fitted on this set (``fit.py`` reads
+``cases.json`` only); the fidelity benchmark reports its held-out figures (``per_site``).
+``run --environments site:munich`` simulates it (``ns3_site_munich_<queueing>.json``): ns-3 is
+given the site's per-user loss (:mod:`sim.ns3_backend`). Seeds 3800–3806, 3812 and 3820 are
+this set's own.
+
 **Few-station cases** (issue 19): ``few-stations-cases`` writes ``cases_few_stations.json``
 (:func:`make_few_station_cases`: 1–4 stations, heavy users 250–500 m from the UAV, light ones
 near or, ``fmid``, 150–400 m away; 152 cases, all held out, never fitted) and
@@ -72,7 +98,8 @@ seeds (throughput, delay, loss) and ``utility`` the mean of the per-seed utiliti
 ``backend``, ``ns3_version``, the ns-3 settings, ``per_seed`` results and a few ns-3 counters
 per user (drops by cause, PPDUs, MCS, backoffs; see :data:`sim.ns3_worker.FIELDS`).
 ``ns3_long_<queueing>.json`` holds the 10 s runs; the urban results are
-``ns3_<environment>_<queueing>.json``.
+``ns3_<environment>_<queueing>.json``, the site's ``ns3_site_<name>_<queueing>.json``
+(``site:NAME`` → ``site_NAME``: no ``:`` in file names).
 """
 
 from __future__ import annotations
@@ -88,16 +115,20 @@ from typing import Any
 
 import numpy as np
 
-from sim.channel import mean_path_loss_db
-from sim.config import ENVIRONMENTS, AreaConfig, RadioConfig
+from sim.channel import area_site, mean_path_loss_db
+from sim.config import ENVIRONMENTS, AreaConfig, RadioConfig, site_path
 from sim.files import atomic_write_json, cases_document, load_cases
-from sim.scenarios import Case, GeneratorConfig, generate_scenarios
+from sim.scenarios import Case, GeneratorConfig, generate_scenarios, site_ground
 
 HERE = Path(__file__).resolve().parent
 CASES_PATH = HERE / "cases.json"
 AREA = AreaConfig()
 MBPS = 1e6
 URBAN_ENVIRONMENTS: tuple[str, ...] = tuple(e for e in ENVIRONMENTS if e != "open")
+SITE_ENVIRONMENTS: tuple[str, ...] = ("site:munich",)
+"""The sites with a calibration set (:func:`make_site_cases`): the shipped district only."""
+SITE_ROOF_CLEARANCE_M = 5.0
+"""How far above the roof under it a site case's UAV flies at least (module doc)."""
 # Town-sized scenarios: users within a few hundred metres of each other.
 COVERAGE_RSSI_DBM = -85.0
 
@@ -242,16 +273,24 @@ def make_cases() -> tuple[list[Case], dict[str, Any]]:
     return cases, meta
 
 
+def file_label(environment: str) -> str:
+    """An environment as a file-name part: ``site:munich`` → ``site_munich`` (no ``:``)."""
+    name = site_path(environment)
+    return environment if name is None else f"site_{name}"
+
+
 def cases_path(environment: str = "open") -> Path:
     """The calibration case file of an environment (``open``: the original ``cases.json``)."""
-    return CASES_PATH if environment == "open" else HERE / f"cases_{environment}.json"
+    if environment == "open":
+        return CASES_PATH
+    return HERE / f"cases_{file_label(environment)}.json"
 
 
 def results_path(environment: str, queueing: str) -> Path:
     """The committed ns-3 results of an environment and queueing variant."""
     if environment == "open":
         return HERE / f"ns3_{queueing}.json"
-    return HERE / f"ns3_{environment}_{queueing}.json"
+    return HERE / f"ns3_{file_label(environment)}_{queueing}.json"
 
 
 def coverage_radius_m(environment: str, area: AreaConfig = AREA) -> float:
@@ -347,6 +386,133 @@ def make_urban_cases(environment: str) -> tuple[list[Case], dict[str, Any]]:
         "long_runs": [],
     }
     return cases, meta
+
+
+def _above_roof(site: Any, xyz_m: np.ndarray, area: AreaConfig) -> np.ndarray:
+    """``xyz_m`` lifted to :data:`SITE_ROOF_CLEARANCE_M` above the roof of its ground cell
+    when it is lower (at most the area's ceiling), kept inside the area."""
+    x = float(np.clip(xyz_m[0], 0.0, area.size_x_m))
+    y = float(np.clip(xyz_m[1], 0.0, area.size_y_m))
+    column = min(int(x // site.cell_m), site.cells_x - 1)
+    row = min(int(y // site.cell_m), site.cells_y - 1)
+    roof_m = float(site.building_height_m[row, column])
+    z = min(max(float(xyz_m[2]), roof_m + SITE_ROOF_CLEARANCE_M), area.z_max_m)
+    return np.array([x, y, z])
+
+
+def make_site_cases(environment: str = "site:munich") -> tuple[list[Case], dict[str, Any]]:
+    """The calibration cases of a site and their metadata (module doc). Fixed seeds
+    (3800–3806, 3812, 3820: used nowhere else); the users stand on the site's walkable ground."""
+    from sim.scenarios import FamilyConfig
+    from sim.sites.lookup import path_loss_db
+    from sim.sites.los import line_of_sight
+
+    area = AreaConfig(environment=environment)
+    site = area_site(area)
+    if site is None:
+        raise ValueError(f"environment: must be a site (site:NAME or site:PATH), got {environment}")
+    ground = site_ground(site, area, FamilyConfig())
+    cell_m = float(site.cell_m)
+    rows, columns = np.nonzero(ground.walkable)
+    centres = np.stack([(columns + 0.5) * cell_m, (rows + 0.5) * cell_m], axis=1)
+    cases: list[Case] = []
+    family: dict[str, str] = {}
+    # Singles: the UAV's ground point is the walkable cell farthest from any building among
+    # those at least 100 m inside the area (its edge is no wall: the clearance ignores it).
+    inner = (np.minimum(centres, [area.size_x_m, area.size_y_m] - centres) >= 100.0).all(axis=1)
+    best = int(np.argmax(np.where(inner, ground.clearance_m[rows, columns], -1.0)))
+    hub = centres[best]
+    distance_m = np.hypot(*(centres - hub).T)
+    # Line of sight from the UAV at 100 m (at 25 m almost nothing beyond 120 m is in sight);
+    # a path at both altitudes where there is such a cell, else at 100 m.
+    seen = line_of_sight(site, np.array([hub[0], hub[1], 100.0]), centres)
+    uavs = np.array([[hub[0], hub[1], 25.0], [hub[0], hub[1], 100.0]])
+    has_path = np.isfinite(path_loss_db(site, uavs, centres))
+    singles: list[tuple[str, np.ndarray]] = []
+    single_distance_m: dict[str, float] = {}
+    for target_m in (60, 150, 300):
+        for label, wanted in (("los", True), ("blocked", False)):
+            pool = np.flatnonzero((seen == wanted) & has_path.all(axis=0))
+            if pool.size == 0:
+                pool = np.flatnonzero((seen == wanted) & has_path[1])
+            if pool.size == 0:
+                raise ValueError(f"{environment}: no walkable {label} cell with a path")
+            pick = pool[int(np.argmin(np.abs(distance_m[pool] - target_m)))]
+            singles.append((f"t{target_m}-{label}", centres[pick]))
+            single_distance_m[f"t{target_m}-{label}"] = round(float(distance_m[pick]), 1)
+    for z_m in (25.0, 100.0):
+        for name, xy in singles:
+            case = Case(f"ssingle-{name}-z{z_m:.0f}-L40", [hub[0], hub[1], z_m], [xy], [40 * MBPS])
+            cases.append(case)
+            family[case.id] = "ssingle"
+    rng = np.random.default_rng(3800)
+    groups: dict[str, list[str]] = {}
+    shapes = [
+        ("streets", 3, 40),
+        ("squares", 8, 20),
+        ("exponential", 3, 20),
+        ("streets", 8, 30),
+        ("squares", 3, 10),
+        ("exponential", 8, 40),
+    ]
+    for g, (kind, n_users, total_mbps) in enumerate(shapes):
+        (s,) = generate_scenarios(
+            1, n_users, seed=3801 + g, area=area, total_load_bps=total_mbps * MBPS, family=kind
+        )
+        heavy = s.users_xy_m[int(np.argmax(s.load_bps))]
+        candidates = [
+            _centroid(s.users_xy_m, None, 25.0),
+            _centroid(s.users_xy_m, None, 50.0),
+            _centroid(s.users_xy_m, None, 100.0),
+            _centroid(s.users_xy_m, s.load_bps, 75.0),
+            np.array([heavy[0], heavy[1], 50.0]),
+            _grid_point(rng),
+        ]
+        ids = []
+        for c, uav in enumerate(candidates):
+            case = Case(f"sgrp{g}-c{c}", _above_roof(site, uav, area), s.users_xy_m, s.load_bps)
+            cases.append(case)
+            family[case.id] = "sgroup"
+            ids.append(case.id)
+        groups[f"sgrp{g}"] = ids
+    for n_users in (12, 20):
+        (s,) = generate_scenarios(
+            1, n_users, seed=3800 + n_users, area=area, total_load_bps=40 * MBPS, family="crowd"
+        )
+        for z_m in (50.0, 100.0):
+            uav = _above_roof(site, _centroid(s.users_xy_m, None, z_m), area)
+            case = Case(f"scrowd-u{n_users}-z{z_m:.0f}", uav, s.users_xy_m, s.load_bps)
+            cases.append(case)
+            family[case.id] = "scrowd"
+    single_ids = [c.id for c in cases if family[c.id] == "ssingle"]
+    held_out = [case_id for i, case_id in enumerate(single_ids) if i % 3 == 2]
+    crowds = [c.id for c in cases if family[c.id] == "scrowd"]
+    held_out += [case_id for i, case_id in enumerate(crowds) if i % 2 == 1]
+    held_out += [case_id for g, ids in groups.items() if int(g[4:]) % 2 == 1 for case_id in ids]
+    meta = {
+        "description": f"ns-3 calibration set, {environment} (issue 38); see "
+        "sim/calibration/build.py",
+        "single_ground_point_m": [float(hub[0]), float(hub[1])],
+        "single_distance_m": single_distance_m,
+        "family": family,
+        "held_out": held_out,
+        "groups": groups,
+        "long_runs": [],
+    }
+    return cases, meta
+
+
+def write_site_cases(environments: tuple[str, ...] = SITE_ENVIRONMENTS) -> None:
+    """Write ``cases_site_<name>.json`` per site of ``environments`` (:func:`make_site_cases`)."""
+    for environment in environments:
+        cases, meta = make_site_cases(environment)
+        doc = cases_document(AreaConfig(environment=environment), cases)
+        doc.update(meta)
+        target = cases_path(environment)
+        atomic_write_json(target, doc)
+        area, _ = load_cases(target)  # validates: users on walkable ground, the site covers
+        assert area.environment == environment
+        print(f"wrote {len(cases)} cases ({len(meta['held_out'])} held out) to {target}")
 
 
 FEW_STATIONS_PATH = HERE / "cases_few_stations.json"
@@ -737,6 +903,11 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("cases", help="write sim/calibration/cases.json", allow_abbrev=False)
     sub.add_parser(
+        "site-cases",
+        help="write sim/calibration/cases_site_munich.json (the site set)",
+        allow_abbrev=False,
+    )
+    sub.add_parser(
         "few-stations-cases",
         help="write sim/calibration/cases_few_stations.json",
         allow_abbrev=False,
@@ -754,13 +925,16 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument(
         "--environments",
         nargs="+",
-        choices=ENVIRONMENTS,
+        choices=ENVIRONMENTS + SITE_ENVIRONMENTS,
         default=list(ENVIRONMENTS),
-        help="which calibration sets (default: all; open is cases.json)",
+        help="which calibration sets (default: the five classes; open is cases.json; "
+        "site:munich, the site set, only when named)",
     )
     args = parser.parse_args(argv)
     if args.command == "cases":
         write_cases()
+    elif args.command == "site-cases":
+        write_site_cases()
     elif args.command == "few-stations-cases":
         write_few_station_cases()
     elif args.command == "run-few-stations":
