@@ -151,6 +151,7 @@ class _FapEnv(gym.Env, ABC):
         self.users: UserDynamics | None = None
         self.uav_xyz_m = np.zeros(3)
         self.target_xyz_m = np.zeros(3)
+        self.uav_velocity_mps = np.zeros(3)  # carried across periods when the flight accelerates
         self._route: Route | None = None  # with an envelope: the route flown (kept across steps)
         self._queues: QueueState | None = None
         self._reports: deque[UserReports] = deque(maxlen=1)
@@ -193,6 +194,7 @@ class _FapEnv(gym.Env, ABC):
             else self._place_start(world.home_position(rng))
         )
         self.target_xyz_m = self.uav_xyz_m.copy()
+        self.uav_velocity_mps = np.zeros(3)
         self._route = None
         self._moved()
         result = self._simulate()
@@ -219,8 +221,14 @@ class _FapEnv(gym.Env, ABC):
         self, target_m: np.ndarray
     ) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self.world.envelope is None:
+            if self.world.flight.stateless:
+                self.uav_xyz_m = self.world.fly(self.uav_xyz_m, target_m)
+            else:  # acceleration and latency: toward the previous target first
+                flown, velocity = self.world.fly_period(
+                    self.uav_xyz_m, self.uav_velocity_mps, self.target_xyz_m, target_m
+                )
+                self.uav_xyz_m, self.uav_velocity_mps = flown[0], velocity[0]
             self.target_xyz_m = target_m
-            self.uav_xyz_m = self.world.fly(self.uav_xyz_m, self.target_xyz_m)
         else:  # the route the vehicle link would stream, to the legal target
             self.uav_xyz_m, self._route = self.world.fly_route(
                 self.uav_xyz_m, target_m, self._route

@@ -246,6 +246,7 @@ class FleetParallelEnv(ParallelEnv):
         self.users: UserDynamics | None = None
         self.uav_xyz_m = np.zeros((fleet.n_uavs, 3))
         self.target_xyz_m = np.zeros((fleet.n_uavs, 3))
+        self.uav_velocity_mps = np.zeros((fleet.n_uavs, 3))  # when the flight accelerates
         self._routes: list[Route | None] = [None] * fleet.n_uavs  # with an envelope
         self.held = np.zeros(fleet.n_uavs, dtype=bool)
         """With an envelope: which vehicles held in the last step for the separation."""
@@ -311,6 +312,7 @@ class FleetParallelEnv(ParallelEnv):
                 world.flight_envelope, start, self.fleet.separation_m, self.area, search=True
             )
         self.uav_xyz_m = start
+        self.uav_velocity_mps = np.zeros((self.n_uavs, 3))
         self._routes = [None] * self.n_uavs
         self.held = np.zeros(self.n_uavs, dtype=bool)
         self.target_xyz_m = start.copy()
@@ -399,12 +401,20 @@ class FleetParallelEnv(ParallelEnv):
     def _step_toward(self, targets: np.ndarray) -> tuple[dict, dict, dict, dict, dict]:
         world = self.world
         sep = self.fleet.separation_m
+        previous_targets = self.target_xyz_m
         if world.envelope is None:
             self.target_xyz_m = enforce_separation(targets, sep, self.area)
             # The single environment's flight, every vehicle at once (the same floats as
-            # world.fly).
-            flown = fly_many(self.uav_xyz_m, self.target_xyz_m, world.flight, world.step_s)
+            # world.fly; with acceleration or latency, world.fly_period's).
+            if world.flight.stateless:
+                flown = fly_many(self.uav_xyz_m, self.target_xyz_m, world.flight, world.step_s)
+            else:
+                flown, self.uav_velocity_mps = world.fly_period(
+                    self.uav_xyz_m, self.uav_velocity_mps, previous_targets, self.target_xyz_m
+                )
             self.uav_xyz_m = hold_separation(self.uav_xyz_m, flown, sep, self.area)
+            # A vehicle held or sent round another stops there (a stand-in, as the hold is).
+            self.uav_velocity_mps[np.any(self.uav_xyz_m != flown, axis=1)] = 0.0
         else:
             self._fly_routes(targets)
         self._moved()

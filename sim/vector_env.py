@@ -154,6 +154,7 @@ class FapVectorEnv(VectorEnv):
         self.users: list[UserDynamics] = []
         self.uav_xyz_m = np.zeros((n, 3))
         self.target_xyz_m = np.zeros((n, 3))
+        self.uav_velocity_mps = np.zeros((n, 3))  # carried when the flight accelerates
         self._routes: list[Route | None] = [None] * n  # with an envelope: each one's route
         self._rngs: list[np.random.Generator] = []
         self._users_rngs: list[np.random.Generator] = []
@@ -187,6 +188,7 @@ class FapVectorEnv(VectorEnv):
         if not self._started:
             raise RuntimeError("step() called before reset()")
         world = self.world
+        previous_targets = self.target_xyz_m
         if self.kind == "discrete":
             moves = self._check_moves(actions)
             self.target_xyz_m, self._refused = move_targets(
@@ -194,7 +196,12 @@ class FapVectorEnv(VectorEnv):
             )
         else:
             self.target_xyz_m = unit_to_m_many(self._check_coordinates(actions), self.area)
-        if world.envelope is not None:  # the routes the vehicle link would stream
+        if world.envelope is None and not world.flight.stateless:
+            # Acceleration and latency: toward the previous targets first, velocities carried.
+            self.uav_xyz_m, self.uav_velocity_mps = world.fly_period(
+                self.uav_xyz_m, self.uav_velocity_mps, previous_targets, self.target_xyz_m
+            )
+        elif world.envelope is not None:  # the routes the vehicle link would stream
             self.uav_xyz_m, self._routes = world.fly_routes(
                 self.uav_xyz_m, self.target_xyz_m, self._routes
             )
@@ -270,6 +277,7 @@ class FapVectorEnv(VectorEnv):
         if world.envelope is not None:  # legal starts, as the single environment's
             starts = np.array([world.legal_start(start) for start in starts])
         self.uav_xyz_m = starts
+        self.uav_velocity_mps = np.zeros((n, 3))
         self._routes = [None] * n
         self.target_xyz_m = starts.copy()
         self._refused = np.zeros(n, dtype=bool)

@@ -7,11 +7,14 @@ take a :class:`World`, so a policy is trained in the world it serves in. Two pre
                  step (no flight), users and loads fixed for the episode, the decision sees the
                  report of the step that just ended, a static policy starts at its placement.
                  It reproduces the paper's figures and stays as it is.
-``closed-loop``  what the service meets: the vehicle flies at most 10 m/s horizontally and
-                 3 m/s vertically (a small multirotor in GUIDED / OFFBOARD), every policy starts
-                 at home (the area's centre, lowest level) and the decision sees the report of
-                 the previous step (the network controller reports what it measured; the
-                 vehicle has moved on since).
+``closed-loop``  what the service meets: the vehicle flies as the loop's autopilot does — at
+                 most 10 m/s horizontally and 3 m/s vertically, accelerating and braking at
+                 2.5 m/s² (a small multirotor in GUIDED / OFFBOARD; :mod:`sim.dynamics`), a new
+                 target reaching it 0.05 s into the period (:data:`LOOP_LATENCY_S`) — every
+                 policy starts at home (the area's centre, lowest level) and the decision sees
+                 the report of the period that just ended, measured where the vehicle is (the
+                 loop of ``tupa demo``: the network controller reports once a period, the
+                 service decides on each report).
 ``closed-loop-moving`` the same with users walking (random waypoint, 0.5–1.5 m/s) and their
                  demand changing (a user's load stepping up or down, users going quiet and
                  coming back).
@@ -69,20 +72,57 @@ HOMES: tuple[str, ...] = ("centre", "random")
 
 @dataclass(frozen=True)
 class Flight:
-    """How fast the vehicle reaches a target: ``None`` speeds mean it is there at once."""
+    """How fast the vehicle reaches a target: ``None`` speeds mean it is there at once.
+
+    Without an acceleration limit the vehicle flies at its speed caps from the first instant
+    (:func:`fly`). With one (``accel_mps2``, horizontally and vertically alike, as the loop's
+    autopilots' defaults; both speeds needed) it flies as the loop's autopilot does: a point mass
+    under that limit, steered by a square-root position controller, its velocity carried from
+    period to period (:mod:`sim.dynamics`). ``latency_s``: for that long after a decision the
+    vehicle still flies toward the previous target (from the report to the new setpoint on the
+    autopilot; at most the decision period: a decision reaches the vehicle within its own
+    period).
+
+    Inside a flight-safety envelope (:attr:`World.envelope`) the routes are flown at the speed
+    caps, without acceleration or latency (:mod:`sim.envelope.flight`)."""
 
     horizontal_mps: float | None = 10.0
     vertical_mps: float | None = 3.0
+    accel_mps2: float | None = None
+    latency_s: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("horizontal_mps", "vertical_mps"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise InputError(f"flight.{name}: must be > 0 (or none: no flight), got {value}")
+        value = self.accel_mps2
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise InputError(
+                f"flight.accel_mps2: must be > 0 (or none: no acceleration limit), got {value}"
+            )
+        if value is not None and (self.horizontal_mps is None or self.vertical_mps is None):
+            raise InputError(
+                "flight.accel_mps2: an acceleration limit needs both speed caps "
+                "(flight.horizontal_mps and flight.vertical_mps; or set flight.accel_mps2=none)"
+            )
+        if not (math.isfinite(self.latency_s) and self.latency_s >= 0):
+            raise InputError(f"flight.latency_s: must be >= 0, got {self.latency_s}")
 
     @property
     def teleports(self) -> bool:
         return self.horizontal_mps is None and self.vertical_mps is None
+
+    @property
+    def accelerates(self) -> bool:
+        """Whether the flight has an acceleration limit (and carries a velocity)."""
+        return self.accel_mps2 is not None
+
+    @property
+    def stateless(self) -> bool:
+        """Whether a period's flight depends only on the position and the new target (no
+        acceleration limits, no latency): :func:`fly`."""
+        return not self.accelerates and self.latency_s == 0.0
 
 
 @dataclass(frozen=True)
@@ -265,6 +305,47 @@ class World:
             return fly(position_m, target_m, self.flight, self.step_s)
         return self.fly_route(position_m, target_m)[0]
 
+    def fly_period(
+        self,
+        positions_m: np.ndarray,
+        velocities_mps: np.ndarray,
+        previous_targets_m: np.ndarray,
+        targets_m: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One decision period of flight without an envelope, for each row (E, 3) of
+        independent vehicles: (positions, velocities) at its end. Toward the previous target for
+        the flight's ``latency_s`` (at most the period), then toward the new one; with
+        acceleration limits as the loop's autopilot flies (:mod:`sim.dynamics`, the velocity
+        carried in and out), else at the speed caps (:func:`fly_many`; velocities returned
+        zero). With neither latency nor acceleration, exactly :func:`fly_many` of the new
+        targets."""
+        positions = np.asarray(positions_m, dtype=float).reshape(-1, 3)
+        targets = np.asarray(targets_m, dtype=float).reshape(-1, 3)
+        flight, step_s = self.flight, self.step_s
+        latency_s = min(flight.latency_s, step_s)  # a decision reaches the vehicle in its period
+        if flight.accelerates:
+            from sim.dynamics import fly_accelerating
+
+            assert flight.horizontal_mps is not None and flight.vertical_mps is not None
+            assert flight.accel_mps2 is not None
+            flown, velocities = fly_accelerating(
+                positions, velocities_mps, previous_targets_m, targets,
+                duration_s=step_s, latency_s=latency_s,
+                max_h_mps=flight.horizontal_mps, max_v_mps=flight.vertical_mps,
+                accel_h_mps2=flight.accel_mps2, accel_v_mps2=flight.accel_mps2,
+            )  # fmt: skip
+            area = self.area
+            lower = (0.0, 0.0, area.z_min_m)
+            upper = (area.size_x_m, area.size_y_m, area.z_max_m)
+            return np.clip(flown, lower, upper), velocities
+        if latency_s > 0:
+            previous = np.asarray(previous_targets_m, dtype=float).reshape(-1, 3)
+            positions = fly_many(positions, previous, flight, latency_s)
+            flown = fly_many(positions, targets, flight, step_s - latency_s)
+        else:
+            flown = fly_many(positions, targets, flight, step_s)
+        return flown, np.zeros_like(flown)
+
     def fly_route(
         self, position_m: np.ndarray, target_m: np.ndarray, route: Route | None = None
     ) -> tuple[np.ndarray, Route]:
@@ -396,11 +477,18 @@ def fly_many(
 # Presets and overrides
 
 PAPER = World()
+LOOP_ACCEL_MPS2 = 2.5
+"""The loop's autopilots' acceleration limit, horizontal and vertical (ArduCopter's
+``WPNAV_ACCEL``/``PILOT_ACCEL_Z`` defaults, the autopilot simulator's)."""
+LOOP_LATENCY_S = 0.05
+"""From a report to the new setpoint on the autopilot, in the loop with decisions on each report
+(``TUPA_DECISION_MODE=on-report``; ``tupa demo``): fitted to a demo track by
+``benchmarks/loop_latency.py``."""
 CLOSED_LOOP = World(
     name="closed-loop",
     static_start="home",
-    flight=Flight(10.0, 3.0),
-    reports=ReportModel(age_steps=1),
+    flight=Flight(10.0, 3.0, LOOP_ACCEL_MPS2, LOOP_LATENCY_S),
+    reports=ReportModel(age_steps=0),
 )
 CLOSED_LOOP_MOVING = replace(
     CLOSED_LOOP,

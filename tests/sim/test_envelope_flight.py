@@ -284,8 +284,9 @@ def test_a_world_carries_its_envelope_as_a_document(tmp_path: Path) -> None:
     assert world.flight_envelope is world.flight_envelope  # parsed once
     assert [e.name for e in world.flight_envelope.exclusions] == ["tower", "hall"]
     saved = json.loads(json.dumps(world.to_dict()))
-    assert saved["envelope"] == TOWER and saved["flight"] == {"horizontal_mps": 10.0,
-                                                              "vertical_mps": 3.0}  # fmt: skip
+    assert saved["envelope"] == TOWER and saved["flight"] == {
+        "horizontal_mps": 10.0, "vertical_mps": 3.0, "accel_mps2": 2.5, "latency_s": 0.05
+    }  # fmt: skip
     assert CLOSED_LOOP.to_dict()["envelope"] is None
     path = tmp_path / "town.json"
     path.write_text(json.dumps(TOWER))

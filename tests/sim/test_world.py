@@ -34,8 +34,9 @@ def test_presets() -> None:
     paper, loop, moving = (get_world(n) for n in ("paper", "closed-loop", "closed-loop-moving"))
     assert paper.flight.teleports and paper.reports.age_steps == 0 and not paper.users_change
     assert paper.static_start == "placement"
-    assert (loop.flight.horizontal_mps, loop.flight.vertical_mps) == (10.0, 3.0)
-    assert loop.reports.age_steps == 1 and loop.static_start == "home" and not loop.users_change
+    # The loop's autopilot: speed caps, 2.5 m/s² both ways, a decision 0.05 s on the way.
+    assert loop.flight == Flight(10.0, 3.0, 2.5, 0.05)
+    assert loop.reports.age_steps == 0 and loop.static_start == "home" and not loop.users_change
     assert moving.users_change and moving.mobility.model == "random-waypoint"
     with pytest.raises(InputError, match="world: must be one of paper, closed-loop"):
         get_world("mars")
@@ -45,6 +46,8 @@ def test_settings_parse_and_bad_ones_name_the_field() -> None:
     world = world_with(
         get_world("closed-loop"),
         [
+            "flight.accel_mps2=none",
+            "flight.latency_s=0",
             "flight.horizontal_mps=5",
             "flight.vertical_mps=none",
             "mobility.model=group",
@@ -118,7 +121,8 @@ def test_moves_apply_to_the_zone_the_vehicle_is_in() -> None:
 
 
 def test_a_vehicle_that_keeps_moving_east_flies_east_at_full_speed() -> None:
-    env = FapDiscreteEnv(generate_scenarios(2, 3, seed=1), world=get_world("closed-loop"))
+    world = replace(get_world("closed-loop"), flight=Flight(10.0, 3.0))  # no acceleration limit
+    env = FapDiscreteEnv(generate_scenarios(2, 3, seed=1), world=world)
     _, info = env.reset(seed=0, options={"uav_xyz_m": [12.5, 250.0, 25.0]})
     start = info["uav_xyz_m"]
     for _ in range(10):
@@ -126,9 +130,39 @@ def test_a_vehicle_that_keeps_moving_east_flies_east_at_full_speed() -> None:
     np.testing.assert_allclose(info["uav_xyz_m"] - start, [100.0, 0.0, 0.0])
 
 
-def test_the_closed_loop_decision_sees_the_previous_steps_report() -> None:
+def test_an_accelerating_vehicle_that_keeps_moving_east_speeds_up_and_keeps_going() -> None:
+    """With the loop's acceleration a move one zone on each period speeds up by about 2.5 m/s a
+    period and then keeps going east, braking for a target never more than two zones ahead."""
+    env = FapDiscreteEnv(generate_scenarios(2, 3, seed=1), world=get_world("closed-loop"))
+    _, info = env.reset(seed=0, options={"uav_xyz_m": [12.5, 250.0, 25.0]})
+    start = info["uav_xyz_m"]
+    east = [float(start[0])]
+    for _ in range(14):
+        _, _, _, _, info = env.step(1)  # east 1, every step
+        east.append(float(info["uav_xyz_m"][0]))
+        assert info["uav_xyz_m"][1:] == pytest.approx(start[1:])
+    steps = np.diff(east)
+    assert steps[0] < 1.25  # from rest at 2.5 m/s², the first 0.05 s still holding
+    np.testing.assert_allclose(np.diff(steps[:3]), 2.5, atol=0.01)
+    assert np.all(steps <= 10.0 + 1e-9) and np.mean(steps[-8:]) > 7.0
+
+
+def test_the_closed_loop_decision_sees_the_report_of_the_period_that_just_ended() -> None:
     scenarios = generate_scenarios(2, 3, seed=2)
     env = FapContinuousEnv(scenarios, world=replace(get_world("closed-loop"), stochastic=False))
+    _, first = env.reset(seed=0)
+    observation, _, _, _, info = env.step(np.array([1.0, 1.0, 0.0], dtype=np.float32))
+    np.testing.assert_array_equal(info["reports"].delay_s, info["delay_s"])
+    assert not np.array_equal(info["delay_s"], first["delay_s"])
+    np.testing.assert_array_equal(
+        observation, build_observation(info["uav_xyz_m"], info["reports"], AREA)
+    )
+
+
+def test_an_older_report_is_shown_when_the_world_says_so() -> None:
+    scenarios = generate_scenarios(2, 3, seed=2)
+    world = world_with(replace(get_world("closed-loop"), stochastic=False), ["reports.age_steps=1"])
+    env = FapContinuousEnv(scenarios, world=world)
     _, first = env.reset(seed=0)
     observation, _, _, _, info = env.step(np.array([1.0, 1.0, 0.0], dtype=np.float32))
     # The report shown is the reset step's (its delays at the start position), while the
