@@ -1,4 +1,4 @@
-"""The site shipped in the package (``sim/sites/data/munich``) and ``site:NAME``: it loads and
+"""The sites shipped in the package (``sim/sites/data/NAME``) and ``site:NAME``: each loads and
 its hash checks, its grid covers the default area's flight volume, it carries the map data's
 attribution and licence, it is package data, and ``site:munich`` works in the area, the
 network model and the command lines; an unknown name is refused in one line (sim/config.py,
@@ -42,35 +42,50 @@ def munich():
     return load_site(MUNICH)  # checks the shapes and the content hash
 
 
-def test_munich_is_shipped_and_its_hash_checks(munich) -> None:
-    assert "munich" in shipped_sites()
-    meta = json.loads((MUNICH / META_FILE).read_text())
+SHIPPED = ("munich", "etoile")
+"""The sites the package ships (docs/sites.md): each is checked alike."""
+MAX_SITE_BYTES = 25e6
+"""The most one shipped site may take (quantised to 0.1 dB, compressed: docs/sites.md)."""
+
+
+@pytest.fixture(scope="module", params=SHIPPED)
+def shipped(request: pytest.FixtureRequest):
+    return request.param, load_site(SHIPPED_SITES_DIR / request.param)  # shapes and hash checked
+
+
+def test_every_shipped_site_is_listed_and_its_hash_checks(shipped) -> None:
+    name, site = shipped
+    assert set(SHIPPED) == set(shipped_sites())
+    directory = SHIPPED_SITES_DIR / name
+    meta = json.loads((directory / META_FILE).read_text())
     assert meta["format"] == "tupa-site/1"
-    assert meta["content_sha256"] == content_hash(munich)  # load_site checked it too
-    size = sum((MUNICH / name).stat().st_size for name in (DATA_FILE, META_FILE))
-    assert size <= 15e6, f"the shipped site is {size / 1e6:.1f} MB"
-    assert munich.meta["scene"]["name"] == "munich"
+    assert meta["content_sha256"] == content_hash(site)  # load_site checked it too
+    size = sum((directory / file).stat().st_size for file in (DATA_FILE, META_FILE))
+    assert size <= MAX_SITE_BYTES, f"the shipped site {name} is {size / 1e6:.1f} MB"
+    assert site.meta["scene"]["name"] == name
 
 
-def test_munich_covers_the_default_area_and_flight_volume(munich) -> None:
+def test_every_shipped_site_covers_the_default_area_and_flight_volume(shipped) -> None:
+    name, site = shipped
     area = AreaConfig()
-    assert (munich.size_x_m, munich.size_y_m, munich.cell_m) == (500.0, 500.0, 5.0)
-    assert munich.uav_x_m[0] == munich.uav_y_m[0] == 0.0
-    assert munich.uav_x_m[-1] == area.size_x_m and munich.uav_y_m[-1] == area.size_y_m
-    assert munich.uav_z_m[0] <= area.z_min_m == 25.0 and munich.uav_z_m[-1] >= area.z_max_m
-    assert np.diff(munich.uav_x_m).max() <= 25.0 and np.diff(munich.uav_z_m).max() <= 12.5
-    assert area_site(AreaConfig(environment="site:munich")) is not None  # the area's checks
+    assert (site.size_x_m, site.size_y_m, site.cell_m) == (500.0, 500.0, 5.0)
+    assert site.uav_x_m[0] == site.uav_y_m[0] == 0.0
+    assert site.uav_x_m[-1] == area.size_x_m and site.uav_y_m[-1] == area.size_y_m
+    assert site.uav_z_m[0] <= area.z_min_m == 25.0 and site.uav_z_m[-1] >= area.z_max_m
+    assert np.diff(site.uav_x_m).max() <= 25.0 and np.diff(site.uav_z_m).max() <= 12.5
+    assert area_site(AreaConfig(environment=f"site:{name}")) is not None  # the area's checks
     # Buildings and streets: some ground is walkable, not all of it.
-    assert 0.1 < munich.walkable.mean() < 0.9 and munich.building_height_m.max() > 20
+    assert 0.1 < site.walkable.mean() < 0.9 and site.building_height_m.max() > 20
 
 
-def test_munich_carries_the_map_datas_attribution_and_licence(munich) -> None:
-    scene = munich.meta["scene"]
+def test_every_shipped_site_carries_the_map_datas_attribution_and_licence(shipped) -> None:
+    name, site = shipped
+    scene = site.meta["scene"]
     assert "OpenStreetMap" in scene["attribution"] and scene["licence"].startswith("ODbL")
     notice = (SHIPPED_SITES_DIR / "README.md").read_text()
-    assert "OpenStreetMap" in notice and "ODbL" in notice
-    assert "build" in munich.meta and munich.meta["build"]["command"].startswith(
-        "tupa site build --scene munich"
+    assert "OpenStreetMap" in notice and "ODbL" in notice and f"`{name}`" in notice
+    assert "build" in site.meta and site.meta["build"]["command"].startswith(
+        f"tupa site build --scene {name}"
     )
 
 
