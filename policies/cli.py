@@ -76,8 +76,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help=(
             "policy to evaluate, repeat for several: min-distance (the paper's baseline), "
             "load-weighted, min-distance-env (min-distance at the altitude of best mean SNR in "
-            "the area's environment), oracle (best static position found with the model: the "
-            "upper bound), or a trained checkpoint (a model.zip or a tupa train output directory)"
+            "the area's environment), oracle (best static position found with the model, "
+            "re-placed every decision: the tracking oracle), planning-oracle (a receding-horizon "
+            "planner over flown trajectories: the closed loop's reference), or a trained "
+            "checkpoint (a model.zip or a tupa train output directory)"
         ),
     )
     evaluate.add_argument(
@@ -228,7 +230,7 @@ def check_scenarios_in(world: Any, scenarios: Sequence[Any], path: Path) -> None
 
 def _eval(args: argparse.Namespace) -> int:
     from policies.evaluation import evaluate_policy, format_results
-    from policies.registry import PLACEMENTS, close_names, resolve_policy, unknown_name
+    from policies.registry import POLICY_NAMES, close_names, resolve_policy, unknown_name
     from sim.errors import InputError
     from sim.files import atomic_write_json, load_scenarios
 
@@ -238,12 +240,12 @@ def _eval(args: argparse.Namespace) -> int:
         raise InputError("--replan-every: only with --uavs (fleet placements)")
     names = list(dict.fromkeys(_latest_of_interrupted(n) for n in args.policy))
     for name in names:
-        if name not in PLACEMENTS and not Path(name).exists():
-            close = close_names(name, PLACEMENTS)
+        if name not in POLICY_NAMES and not Path(name).exists():
+            close = close_names(name, POLICY_NAMES)
             if close:
-                raise InputError(unknown_name(name, close, PLACEMENTS, "--policy"))
+                raise InputError(unknown_name(name, close, POLICY_NAMES, "--policy"))
             raise InputError(
-                f"--policy: {name!r} is neither a policy ({', '.join(PLACEMENTS)}) "
+                f"--policy: {name!r} is neither a policy ({', '.join(POLICY_NAMES)}) "
                 "nor an existing checkpoint"
             )
     if args.seed < 0:
@@ -298,9 +300,9 @@ def _latest_of_interrupted(spec: str) -> str:
     import sys
 
     from policies.checkpoints import training_run
-    from policies.registry import PLACEMENTS
+    from policies.registry import POLICY_NAMES
 
-    if spec in PLACEMENTS:
+    if spec in POLICY_NAMES:
         return spec
     run = training_run(spec)
     if run is None or not run.interrupted or run.latest is None:

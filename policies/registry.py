@@ -4,10 +4,14 @@
   ``load-weighted``, ``min-distance-env`` (:mod:`policies.baselines`) and ``oracle``
   (:mod:`policies.oracle`: the model's own exhaustive search). :func:`make_placement` builds
   one for a world.
+* :data:`NAMED_POLICIES`: policies by name that are not placements (they decide from where the
+  vehicle is, not only from the users) — ``planning-oracle`` (:mod:`policies.planning`: the
+  receding-horizon planner over flown trajectories). :data:`POLICY_NAMES` is every name
+  ``--policy`` may say, placements first: what the error messages list.
 * :func:`resolve_policy`: a :class:`~policies.interface.Policy` from a spec — a placement's name
-  (re-placed every decision: :class:`~policies.adapters.StaticPolicy`) or a checkpoint path
-  (:class:`~policies.adapters.CheckpointPolicy`). ``tupa eval``, the benchmarks, the demo and
-  the service all resolve through it.
+  (re-placed every decision: :class:`~policies.adapters.StaticPolicy`), a named policy, or a
+  checkpoint path (:class:`~policies.adapters.CheckpointPolicy`). ``tupa eval``, the
+  benchmarks, the demo and the service all resolve through it.
 """
 
 from __future__ import annotations
@@ -38,6 +42,19 @@ PLACEMENTS: dict[str, Callable[[World], Placement]] = {
     "oracle": _oracle,
 }
 """Each placement's name and its factory (from the world it will place in)."""
+
+
+def _planning_oracle(world: World) -> Policy:
+    from policies.planning import PlanningPolicy
+
+    return PlanningPolicy(world)
+
+
+NAMED_POLICIES: dict[str, Callable[[World], Policy]] = {"planning-oracle": _planning_oracle}
+"""Each named policy that is not a placement, and its factory (from the world it decides in)."""
+
+POLICY_NAMES: tuple[str, ...] = (*PLACEMENTS, *NAMED_POLICIES)
+"""Every policy name ``--policy`` may say (besides a checkpoint path), placements first."""
 
 
 def make_placement(name: str, world: World = PAPER) -> Placement:
@@ -83,7 +100,8 @@ def resolve_policy(
     allowed_dirs: Sequence[Path] | None = None,
     max_bytes: int | None = None,
 ) -> Policy:
-    """The policy ``spec`` names: a key of :data:`PLACEMENTS`, else a checkpoint path.
+    """The policy ``spec`` names: a key of :data:`PLACEMENTS` or :data:`NAMED_POLICIES`, else a
+    checkpoint path.
 
     A checkpoint that cannot be used raises :class:`~policies.checkpoints.CheckpointError` (an
     ``InputError`` naming the file and the problem); ``allowed_dirs`` and ``max_bytes`` restrict
@@ -92,6 +110,8 @@ def resolve_policy(
     text = str(spec)
     if text in PLACEMENTS:
         return StaticPolicy(make_placement(text, world), text)
+    if text in NAMED_POLICIES:
+        return NAMED_POLICIES[text](world)
     return CheckpointPolicy.load(
         Path(text), world, device=device, allowed_dirs=allowed_dirs, max_bytes=max_bytes
     )

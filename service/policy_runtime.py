@@ -76,21 +76,21 @@ def load_policy(
     swapped in by this function, so a failure leaves the serving policy untouched.
     """
     from policies.checkpoints import CheckpointError
-    from policies.registry import PLACEMENTS, close_names, resolve_policy, unknown_name
+    from policies.registry import POLICY_NAMES, close_names, resolve_policy, unknown_name
 
     spec = str(spec).strip()
     if not spec:
-        raise InputError("policy: must be a checkpoint path or one of " + ", ".join(PLACEMENTS))
-    close = [] if spec in PLACEMENTS else close_names(spec, PLACEMENTS)
+        raise InputError("policy: must be a checkpoint path or one of " + ", ".join(POLICY_NAMES))
+    close = [] if spec in POLICY_NAMES else close_names(spec, POLICY_NAMES)
     if close:  # a misspelt name, not a path: said as such (the text only, no file looked at)
-        raise InputError(unknown_name(spec, close, PLACEMENTS, "policy"))
+        raise InputError(unknown_name(spec, close, POLICY_NAMES, "policy"))
     try:
         policy = resolve_policy(spec, world, allowed_dirs=allowed_dirs, max_bytes=max_bytes)
     except CheckpointError as exc:
         # One log line whatever the path holds (a client chose it).
         detail = str(exc).replace("\r", "\\r").replace("\n", "\\n")
         log.warning("policy %r refused: %s", spec, detail)
-        raise InputError(_public_problem(exc, PLACEMENTS)) from None
+        raise InputError(_public_problem(exc, POLICY_NAMES)) from None
     _check_servable(policy, spec, chosen_by_client=allowed_dirs is not None)
     _warn_on_environment(policy, world)
     _dry_run(policy, world)

@@ -34,13 +34,28 @@ def _refusal(client: TestClient, spec: str, auth: dict[str, str] = AUTH) -> str:
 
 @pytest.mark.parametrize(
     ("spec", "meant"),
-    [("min-distnace", "min-distance"), ("Oracle", "oracle"), ("load_weighted", "load-weighted")],
+    [
+        ("min-distnace", "min-distance"),
+        ("Oracle", "oracle"),
+        ("load_weighted", "load-weighted"),
+        ("planing-oracle", "planning-oracle"),
+    ],
 )
 def test_a_misspelt_baseline_is_named_with_the_close_name(client, spec, meant):
     message = _refusal(client, spec)
     assert message.startswith(f"policy: unknown policy {spec!r}: did you mean {meant!r}?")
     assert "outside the checkpoint directories" not in message
     assert client.get("/v1/policy", headers=AUTH).json()["name"] == "load-weighted"
+
+
+def test_the_planning_oracle_is_served_by_name(client):
+    response = client.put("/v1/policy", json={"policy": "planning-oracle"}, headers=AUTH)
+    assert response.status_code == 200, response.text
+    try:
+        assert client.get("/v1/policy", headers=AUTH).json()["name"] == "planning-oracle"
+    finally:
+        restored = client.put("/v1/policy", json={"policy": "load-weighted"}, headers=AUTH)
+        assert restored.status_code == 200, restored.text
 
 
 def test_paths_keep_their_checks(client, tmp_path):
