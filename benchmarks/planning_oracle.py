@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import json
 import os
 import platform
 import sys
@@ -365,8 +366,41 @@ def markdown(document: dict[str, Any]) -> str:
 # ----------------------------------------------------------------------------------------------
 
 
+def environment_means(document: dict[str, Any]) -> dict[str, dict[str, float]]:
+    """Each environment's mean utility per step per policy over all its closed-loop sets (both
+    worlds, every user count, every scenario alike): what the served-defaults table ranks."""
+    out: dict[str, dict[str, list[float]]] = {}
+    for row in document["closed_loop"]["rows"]:
+        out.setdefault(row["environment"], {}).setdefault(row["policy"], []).extend(
+            row["utilities"]
+        )
+    return {env: {p: float(np.mean(u)) for p, u in by.items()} for env, by in out.items()}
+
+
+def write_defaults(document: dict[str, Any], source: Path) -> None:
+    """The served-defaults table (:mod:`policies.defaults`) from a results document."""
+    from policies.defaults import write_table
+
+    means = environment_means(document)
+    path = write_table(means, f"{document['command']} -> {source.relative_to(ROOT)}")
+    for environment, by in sorted(means.items()):
+        best = max(by, key=by.get)
+        _say(f"{environment}: best {best} {by[best]:.4f}")
+    _say(f"wrote {path}")
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--write-defaults",
+        action="store_true",
+        help="also write policies/served_defaults.json (the served default per environment)",
+    )
+    parser.add_argument(
+        "--defaults-from",
+        type=Path,
+        help="write policies/served_defaults.json from this results file, and run nothing",
+    )
     parser.add_argument(
         "--quick", action="store_true", help="a smoke run: 3 users only, 1 scenario a set (minutes)"
     )
@@ -379,6 +413,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     parser.add_argument("--out", type=Path, default=RESULTS / "planning_oracle.json")
     args = parser.parse_args(argv)
+    if args.defaults_from is not None:
+        try:
+            document = json.loads(args.defaults_from.read_text())
+        except (OSError, ValueError) as exc:
+            parser.error(f"--defaults-from: {args.defaults_from}: cannot read it ({exc})")
+        write_defaults(document, args.defaults_from.resolve())
+        return
     if args.quick:
         args.scenarios, args.cases, args.cases_h3 = 1, 2, 1
         args.latency_scenarios, args.latency_steps = 1, 5
@@ -477,6 +518,8 @@ def main(argv: list[str] | None = None) -> None:
     atomic_write_json(args.out, document)
     atomic_write_text(args.out.with_suffix(".md"), markdown(document))
     _say(f"wrote {args.out} and {args.out.with_suffix('.md')} ({document['wall_s']:.0f} s)")
+    if args.write_defaults:
+        write_defaults(document, args.out.resolve())
     print(markdown(document))
 
 

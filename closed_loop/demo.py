@@ -62,7 +62,7 @@ class DemoConfig:
     """The channel environment (None: the scenario file's, else ``open``)."""
 
 
-COMPARED = ("min-distance", "load-weighted", "oracle")
+COMPARED = ("min-distance", "load-weighted", "oracle", "planning-oracle")
 
 
 def pick_scenarios(n: int, seed: int, area: AreaConfig) -> list[Scenario]:
@@ -128,9 +128,9 @@ def demo_world(index: int, count: int, cfg: DemoConfig) -> World:
 def compare(
     scenario: Scenario, start_m: np.ndarray, world: World, seed: int, users_seed: int
 ) -> dict[str, Any]:
-    """The baselines, the tracking oracle and the shipped checkpoints, each flown in ``world``
-    from ``start_m`` by the simulator, with the users the loop had (same motion and demand):
-    mean utility, and each one's last target."""
+    """The baselines, the tracking and planning oracles and the shipped checkpoints, each flown
+    in ``world`` from ``start_m`` by the simulator, with the users the loop had (same motion and
+    demand): mean utility, and each one's last target."""
     from policies.evaluation import run_episode
     from policies.registry import resolve_policy
     from service.policy_runtime import SHIPPED_CHECKPOINTS
@@ -365,6 +365,7 @@ def format_table(results: Sequence[dict[str, Any]], policy_name: str) -> str:
         ("min-distance", "min-distance (loop)"),
         ("load-weighted", "load-weighted (loop)"),
         ("oracle", "tracking oracle (sim)"),
+        ("planning-oracle", "planning oracle (sim)"),
         *((c, f"{c} (sim)") for c in checkpoints),
     ]
     header = f"{'scenario':>8} {'world':>18} {'H':>5} | {mine:>22} " + " ".join(

@@ -4,6 +4,7 @@ matplotlib and friends load in handlers."""
 from __future__ import annotations
 
 import argparse
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -78,8 +79,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             "load-weighted, min-distance-env (min-distance at the altitude of best mean SNR in "
             "the area's environment), oracle (best static position found with the model, "
             "re-placed every decision: the tracking oracle), planning-oracle (a receding-horizon "
-            "planner over flown trajectories: the closed loop's reference), or a trained "
-            "checkpoint (a model.zip or a tupa train output directory)"
+            "planner over flown trajectories: the closed loop's reference), default (what tupa "
+            "serve serves over the environment evaluated: policies/served_defaults.json), or a "
+            "trained checkpoint (a model.zip or a tupa train output directory)"
         ),
     )
     evaluate.add_argument(
@@ -238,9 +240,11 @@ def _eval(args: argparse.Namespace) -> int:
         return _eval_fleet(args)
     if args.replan_every is not None:
         raise InputError("--replan-every: only with --uavs (fleet placements)")
+    from policies.defaults import DEFAULT, served_default
+
     names = list(dict.fromkeys(_latest_of_interrupted(n) for n in args.policy))
     for name in names:
-        if name not in POLICY_NAMES and not Path(name).exists():
+        if name != DEFAULT and name not in POLICY_NAMES and not Path(name).exists():
             close = close_names(name, POLICY_NAMES)
             if close:
                 raise InputError(unknown_name(name, close, POLICY_NAMES, "--policy"))
@@ -258,6 +262,10 @@ def _eval(args: argparse.Namespace) -> int:
         raise InputError(f"{args.scenarios}: scenarios: empty (nothing to evaluate)")
     world = world_from_args(args, "paper", area)
     check_scenarios_in(world, scenarios, args.scenarios)
+    if DEFAULT in names:  # what tupa serve would serve over this environment
+        served = served_default(world.environment)
+        print(f"--policy default: {served.policy} ({served.why})", file=sys.stderr)
+        names = list(dict.fromkeys(served.policy if n == DEFAULT else n for n in names))
     policies = [resolve_policy(name, world) for name in names]
     results = []
     if args.backend is not None:  # fanned out in slices (policies/sweep/fanout.py)
@@ -297,12 +305,10 @@ def _eval(args: argparse.Namespace) -> int:
 def _latest_of_interrupted(spec: str) -> str:
     """``spec``, or for the directory of an interrupted training run (no ``model.zip``) its
     latest checkpoint, said on standard error."""
-    import sys
-
     from policies.checkpoints import training_run
     from policies.registry import POLICY_NAMES
 
-    if spec in POLICY_NAMES:
+    if spec in POLICY_NAMES or spec == "default":
         return spec
     run = training_run(spec)
     if run is None or not run.interrupted or run.latest is None:

@@ -319,8 +319,10 @@ class PlacementService:
 
             return FleetPlacementService.from_settings(settings)
         world = settings.policy_world()
-        # The operator's own choice: from any directory, within the size limit.
-        policy = load_policy(settings.policy, world, max_bytes=settings.checkpoint_max_bytes)
+        # The operator's own choice (or the served default for the environment): from any
+        # directory, within the size limit.
+        spec = settings.served_policy_spec()
+        policy = load_policy(spec, world, max_bytes=settings.checkpoint_max_bytes)
         (vehicle,) = settings.fleet_spec().vehicles
         link_config = LinkConfig(
             url=settings.mavlink,
@@ -940,5 +942,7 @@ class PlacementService:
             self._policy = policy
             self.counters["policy_restored"] += 1
         log.info(
-            "restored the persisted policy %s (configured: %s)", policy.name, self.settings.policy
+            "restored the persisted policy %s (configured: %s)",
+            policy.name,
+            self.settings.served_policy_spec(),
         )

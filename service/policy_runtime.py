@@ -39,17 +39,17 @@ SHIPPED_FLEET = SHIPPED_CHECKPOINTS / "fleet" / "fleet-ddpg-residual-scored.zip"
 """The shipped shared-parameter fleet checkpoint (any K; docs/results.md, "Fleets"): served with
 ``tupa serve --fleet-file F --policy`` and this path; a fleet's default stays ``kmeans-scored``."""
 DEFAULT_POLICY = "oracle"
-"""What the service serves unless told otherwise: the tracking oracle, the only policy that
-meets every closed-loop target of ``benchmarks/closed_loop.py`` (issue 13: within 0.97 of the
-loop's upper bound, at least min-distance and load-weighted in every set and H bin, rarely worse
-than min-distance). The shipped checkpoints do not yet (docs/results.md has the numbers), and
-are one ``--policy`` away. The oracle re-optimises every period with the network model from the
-latest report: about 2 ms a decision with 3 users, 20 ms with 12 when users move little, a full
-search every tenth (8 and 56 ms; 0.5 s with 100 users)."""
+"""The ``policy`` setting's default, and what is served where the closed-loop benchmark has
+measured nothing: the tracking oracle, which meets every closed-loop target of
+``benchmarks/closed_loop.py`` in the open field (issue 13). Without ``--policy`` the service
+serves the served default for its environment (:meth:`ServiceSettings.served_policy_spec`,
+``policies/served_defaults.json``, written by ``benchmarks/planning_oracle.py``): the planning
+oracle over the towns and sites it was measured on, the tracking oracle in the open field, where
+the two tie and the tracking oracle decides in milliseconds."""
 
 
 def default_policy_spec() -> str:
-    """The policy ``tupa serve`` and ``make run`` use by default (:data:`DEFAULT_POLICY`)."""
+    """The ``policy`` setting's default (:data:`DEFAULT_POLICY`)."""
     return DEFAULT_POLICY
 
 

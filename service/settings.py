@@ -50,7 +50,8 @@ class ServiceSettings(BaseSettings):
     mavlink_signing_key: SecretStr | None = None
     """MAVLink 2 signing key, 64 hex characters (32 bytes), the same as the vehicle's."""
     policy: str = Field(default_factory=default_policy_spec)
-    """A checkpoint path, or ``min-distance``, ``load-weighted``, ``oracle``."""
+    """A checkpoint path or a policy's name (``oracle``, ``planning-oracle``, ``min-distance``,
+    ...). Not given: the served default for ``environment`` (:meth:`served_policy_spec`)."""
     arm_and_takeoff: bool = False
     """Arm and take off to the minimum altitude before the first placement (never by default)."""
     autopilot_fence: bool = False
@@ -168,6 +169,16 @@ class ServiceSettings(BaseSettings):
         from sim.world import get_world
 
         return get_world(self.world).step_s
+
+    def served_policy_spec(self) -> str:
+        """The single vehicle's policy: :attr:`policy` when it was given (option or
+        ``TUPA_POLICY``), else the served default for :attr:`environment`, the policy the
+        closed-loop benchmark ranks first there (:func:`policies.defaults.served_default`)."""
+        if "policy" in self.model_fields_set:
+            return self.policy
+        from policies.defaults import served_default
+
+        return served_default(self.environment).policy
 
     def policy_world(self) -> World:
         """The world the served policy decides in: :attr:`world` with the service's queueing
