@@ -118,7 +118,7 @@ import numpy as np
 from sim.channel import area_site, mean_path_loss_db
 from sim.config import ENVIRONMENTS, AreaConfig, RadioConfig, site_path
 from sim.files import atomic_write_json, cases_document, load_cases
-from sim.scenarios import Case, GeneratorConfig, generate_scenarios, site_ground
+from sim.scenarios import Case, GeneratorConfig, Scenario, generate_scenarios, site_ground
 
 HERE = Path(__file__).resolve().parent
 CASES_PATH = HERE / "cases.json"
@@ -171,6 +171,22 @@ def _centroid(xy_m: np.ndarray, weights: np.ndarray | None, z_m: float) -> np.nd
     w = np.ones(len(xy_m)) if weights is None else weights
     centre = (xy_m * w[:, None]).sum(axis=0) / w.sum()
     return np.array([centre[0], centre[1], z_m])
+
+
+def _group_candidates(scenario: Scenario, rng: np.random.Generator) -> list[np.ndarray]:
+    """A placement-agreement group's six UAV positions: the users' centroid at 25, 50 and
+    100 m, the load-weighted centroid at 75 m, above the heaviest user at 50 m and a random
+    grid point (one draw of ``rng``)."""
+    users, loads = scenario.users_xy_m, scenario.load_bps
+    heavy = users[int(np.argmax(loads))]
+    return [
+        _centroid(users, None, 25.0),
+        _centroid(users, None, 50.0),
+        _centroid(users, None, 100.0),
+        _centroid(users, loads, 75.0),
+        np.array([heavy[0], heavy[1], 50.0]),
+        _grid_point(rng),
+    ]
 
 
 def make_cases() -> tuple[list[Case], dict[str, Any]]:
@@ -339,17 +355,8 @@ def make_urban_cases(environment: str) -> tuple[list[Case], dict[str, Any]]:
             total_load_bps=total_mbps * MBPS,
             config=generator,
         )
-        heavy = s.users_xy_m[int(np.argmax(s.load_bps))]
-        candidates = [
-            _centroid(s.users_xy_m, None, 25.0),
-            _centroid(s.users_xy_m, None, 50.0),
-            _centroid(s.users_xy_m, None, 100.0),
-            _centroid(s.users_xy_m, s.load_bps, 75.0),
-            np.array([heavy[0], heavy[1], 50.0]),
-            _grid_point(rng),
-        ]
         ids = []
-        for c, uav in enumerate(candidates):
+        for c, uav in enumerate(_group_candidates(s, rng)):
             case = Case(f"ugrp{g}-c{c}", uav, s.users_xy_m, s.load_bps)
             cases.append(case)
             family[case.id] = "ugroup"
@@ -459,17 +466,8 @@ def make_site_cases(environment: str = "site:munich") -> tuple[list[Case], dict[
         (s,) = generate_scenarios(
             1, n_users, seed=3801 + g, area=area, total_load_bps=total_mbps * MBPS, family=kind
         )
-        heavy = s.users_xy_m[int(np.argmax(s.load_bps))]
-        candidates = [
-            _centroid(s.users_xy_m, None, 25.0),
-            _centroid(s.users_xy_m, None, 50.0),
-            _centroid(s.users_xy_m, None, 100.0),
-            _centroid(s.users_xy_m, s.load_bps, 75.0),
-            np.array([heavy[0], heavy[1], 50.0]),
-            _grid_point(rng),
-        ]
         ids = []
-        for c, uav in enumerate(candidates):
+        for c, uav in enumerate(_group_candidates(s, rng)):
             case = Case(f"sgrp{g}-c{c}", _above_roof(site, uav, area), s.users_xy_m, s.load_bps)
             cases.append(case)
             family[case.id] = "sgroup"
