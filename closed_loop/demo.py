@@ -379,7 +379,7 @@ def format_table(results: Sequence[dict[str, Any]], policy_name: str) -> str:
     for i, r in enumerate(results):
         gap = r["min-distance"] - r["achieved"]
         verdict = f"  ({mine} {gap:.3f} below min-distance (loop))" if gap > TIE_TOLERANCE else ""
-        cells = " ".join(f"{r[key]:>{max(len(title), 7)}.3f}" for key, title in columns)
+        cells = " ".join(_cell(r.get(key), max(len(title), 7)) for key, title in columns)
         lines.append(
             f"{i + 1:>8} {r['world']:>18} {r['heterogeneity']:>5.2f} | {r['achieved']:>22.3f} "
             f"{cells}{verdict}"
@@ -397,6 +397,12 @@ def format_table(results: Sequence[dict[str, Any]], policy_name: str) -> str:
         f"min-distance (loop) column's by more than {TIE_TOLERANCE}"
     )
     return "\n".join(lines)
+
+
+def _cell(value: float | None, width: int) -> str:
+    """A table cell: the mean to three decimals, or ``-`` where the row has none (a demo.json
+    written before that column existed)."""
+    return f"{'-':>{width}}" if value is None else f"{value:>{width}.3f}"
 
 
 BUILDINGS_CMAP = "Greys"

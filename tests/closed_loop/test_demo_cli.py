@@ -103,4 +103,6 @@ def test_the_closing_table_names_the_column_that_is_below_min_distance():
     assert below.endswith("(ddqn-dr (loop) 0.050 below min-distance (loop))"), below
     assert "below" not in tie, tie
     assert "ddqn-dr (loop)" in lines[1] and "min-distance (loop)" in lines[1]
+    # A row without the planning oracle (written before it was flown beside): "-" there.
+    assert "planning oracle (sim)" in lines[1] and below.split("|")[1].split()[4] == "-", below
     assert "mean utility per step" in lines[-1] and "by more than 0.005" in lines[-1]
