@@ -42,7 +42,7 @@ def munich():
     return load_site(MUNICH)  # checks the shapes and the content hash
 
 
-SHIPPED = ("munich", "etoile")
+SHIPPED = ("munich", "etoile", "florence")
 """The sites the package ships (docs/sites.md): each is checked alike."""
 MAX_SITE_BYTES = 25e6
 """The most one shipped site may take (quantised to 0.1 dB, compressed: docs/sites.md)."""
