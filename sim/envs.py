@@ -221,13 +221,10 @@ class _FapEnv(gym.Env, ABC):
         self, target_m: np.ndarray
     ) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self.world.envelope is None:
-            if self.world.flight.stateless:
-                self.uav_xyz_m = self.world.fly(self.uav_xyz_m, target_m)
-            else:  # acceleration and latency: toward the previous target first
-                flown, velocity = self.world.fly_period(
-                    self.uav_xyz_m, self.uav_velocity_mps, self.target_xyz_m, target_m
-                )
-                self.uav_xyz_m, self.uav_velocity_mps = flown[0], velocity[0]
+            flown, velocity = self.world.fly_period(
+                self.uav_xyz_m, self.uav_velocity_mps, self.target_xyz_m, target_m
+            )
+            self.uav_xyz_m, self.uav_velocity_mps = flown[0], velocity[0]
             self.target_xyz_m = target_m
         else:  # the route the vehicle link would stream, to the legal target
             self.uav_xyz_m, self._route = self.world.fly_route(

@@ -71,7 +71,7 @@ from sim.geometry import (
 from sim.observation import N_MAPS, UserReports, build_observations
 from sim.scenarios import Scenario, ScenarioSampler
 from sim.users import UserDynamics, episode_users
-from sim.world import PAPER, World, fly_many
+from sim.world import PAPER, World
 
 if TYPE_CHECKING:
     from sim.envelope.route import Route
@@ -404,14 +404,10 @@ class FleetParallelEnv(ParallelEnv):
         previous_targets = self.target_xyz_m
         if world.envelope is None:
             self.target_xyz_m = enforce_separation(targets, sep, self.area)
-            # The single environment's flight, every vehicle at once (the same floats as
-            # world.fly; with acceleration or latency, world.fly_period's).
-            if world.flight.stateless:
-                flown = fly_many(self.uav_xyz_m, self.target_xyz_m, world.flight, world.step_s)
-            else:
-                flown, self.uav_velocity_mps = world.fly_period(
-                    self.uav_xyz_m, self.uav_velocity_mps, previous_targets, self.target_xyz_m
-                )
+            # The single environment's flight, every vehicle at once (world.fly_period).
+            flown, self.uav_velocity_mps = world.fly_period(
+                self.uav_xyz_m, self.uav_velocity_mps, previous_targets, self.target_xyz_m
+            )
             self.uav_xyz_m = hold_separation(self.uav_xyz_m, flown, sep, self.area)
             # A vehicle held or sent round another stops there (a stand-in, as the hold is).
             self.uav_velocity_mps[np.any(self.uav_xyz_m != flown, axis=1)] = 0.0

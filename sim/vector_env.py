@@ -12,7 +12,7 @@ of :class:`sim.envs.FapDiscreteEnv` (``kind="discrete"``) or :class:`sim.envs.Fa
   observations built from the report the world shows (report age) at each vehicle's position.
 - With an envelope (:attr:`sim.world.World.envelope`), each vehicle flies its own route
   (:meth:`sim.world.World.fly_routes`: row e is the single environment's flight exactly).
-- Flight, targets and masks are numpy over (E, 3) arrays (:func:`sim.world.fly_many`,
+- Flight, targets and masks are numpy over (E, 3) arrays (:meth:`sim.world.World.fly_period`,
   :func:`sim.geometry.move_targets`, :func:`sim.geometry.unit_to_m_many`,
   :func:`sim.geometry.valid_moves_many`): row e equals the scalar function exactly. The cells
   go through :meth:`sim.network.NetworkModel.step_many`, one call per user count (environments whose
@@ -70,7 +70,7 @@ from sim.observation import build_observations, observation_shape
 from sim.scenarios import Scenario, ScenarioSampler
 from sim.users import UserDynamics
 from sim.utility import network_utility
-from sim.world import PAPER, World, fly_many
+from sim.world import PAPER, World
 
 if TYPE_CHECKING:
     from sim.envelope.route import Route
@@ -196,12 +196,7 @@ class FapVectorEnv(VectorEnv):
             )
         else:
             self.target_xyz_m = unit_to_m_many(self._check_coordinates(actions), self.area)
-        if world.envelope is None and not world.flight.stateless:
-            # Acceleration and latency: toward the previous targets first, velocities carried.
-            self.uav_xyz_m, self.uav_velocity_mps = world.fly_period(
-                self.uav_xyz_m, self.uav_velocity_mps, previous_targets, self.target_xyz_m
-            )
-        elif world.envelope is not None:  # the routes the vehicle link would stream
+        if world.envelope is not None:  # the routes the vehicle link would stream
             self.uav_xyz_m, self._routes = world.fly_routes(
                 self.uav_xyz_m, self.target_xyz_m, self._routes
             )
@@ -211,8 +206,10 @@ class FapVectorEnv(VectorEnv):
             )  # fmt: skip
         elif world.flight.teleports:
             self.uav_xyz_m = self.target_xyz_m.copy()
-        else:
-            self.uav_xyz_m = fly_many(self.uav_xyz_m, self.target_xyz_m, world.flight, world.step_s)
+        else:  # velocities carried when the flight accelerates
+            self.uav_xyz_m, self.uav_velocity_mps = world.fly_period(
+                self.uav_xyz_m, self.uav_velocity_mps, previous_targets, self.target_xyz_m
+            )
         self._moved()
         if world.users_change:
             for users, rng in zip(self.users, self._users_rngs, strict=True):

@@ -46,7 +46,7 @@ import numpy as np
 from sim.channel import area_site
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig, check_environment
 from sim.errors import InputError
-from sim.geometry import SCALAR_ROWS, zone_position
+from sim.geometry import SCALAR_ROWS, clip_to_volume, zone_position
 
 if TYPE_CHECKING:
     from sim.envelope.route import Route
@@ -334,10 +334,7 @@ class World:
                 max_h_mps=flight.horizontal_mps, max_v_mps=flight.vertical_mps,
                 accel_h_mps2=flight.accel_mps2, accel_v_mps2=flight.accel_mps2,
             )  # fmt: skip
-            area = self.area
-            lower = (0.0, 0.0, area.z_min_m)
-            upper = (area.size_x_m, area.size_y_m, area.z_max_m)
-            return np.clip(flown, lower, upper), velocities
+            return clip_to_volume(flown, self.area), velocities
         if latency_s > 0:
             previous = np.asarray(previous_targets_m, dtype=float).reshape(-1, 3)
             positions = fly_many(positions, previous, flight, latency_s)
