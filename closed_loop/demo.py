@@ -241,7 +241,12 @@ def _fly_to(loop: _Loop, xy_m: tuple[float, float], area: AreaConfig, timeout_s:
             if float(np.linalg.norm(position - goal)) <= START_TOLERANCE_M:
                 return
             if time.monotonic() > deadline:
-                raise TimeoutError(f"{loop.name}: the vehicle did not reach the start {goal}")
+                route = loop.client.get("/v1/vehicle").json().get("route")
+                raise TimeoutError(
+                    f"{loop.name}: the vehicle did not reach the start {goal} within "
+                    f"{timeout_s:g} s: it is at {np.round(position, 1).tolist()}, its route "
+                    f"{route}; the service's last lines:\n{loop.service.tail(15)}"
+                )
             time.sleep(0.5)  # the next report: the service decides once per report here
     finally:
         loop.client.put("/v1/policy", json={"policy": loop.policy}).raise_for_status()

@@ -176,8 +176,8 @@ class VehicleMotion:
 def _carries_velocity(world: World) -> bool:
     """Whether a period's flight depends on more than the position and the target: a world
     whose flight has acceleration limits or a latency (``Flight.stateless`` false; flown by
-    ``World.fly_period``). Envelope routes are flown at the speed caps."""
-    return world.envelope is None and not world.flight.stateless
+    ``World.fly_period``; with an envelope only when its routes are flown at the speed caps)."""
+    return not world.flight.stateless and (world.envelope is None or world.flight.accelerates)
 
 
 @dataclass(frozen=True)
@@ -418,10 +418,13 @@ class PlanningPolicy:
             velocity = np.repeat(motion.velocity_mps.reshape(1, 3), n, axis=0)
             previous = np.repeat(motion.previous_target_m.reshape(1, 3), n, axis=0)
         index = np.arange(n)  # the trajectories still simulated
-        envelope = world.envelope is not None
+        # With an acceleration limit the trajectories are scored as the open sky flies them
+        # (their targets are legal points; a route's detour is not in the score): planning
+        # every candidate's route would cost more than a decision may.
+        routed = world.envelope is not None and not carried
         for t in range(steps):
             targets = trajectories[index, min(t, horizon - 1)]
-            if envelope:
+            if routed:
                 flown = np.empty_like(targets)
                 for row, (i, p, goal) in enumerate(zip(index, position, targets, strict=True)):
                     flown[row], routes[i] = world.fly_route(p, goal, routes[i])

@@ -36,7 +36,13 @@ import yaml
 from service.errors import InputError
 from service.frames import FrameConfig, ned_to_area
 from sim.config import AreaConfig
-from sim.envelope import Envelope, envelope_from_document, home_violation, load_envelope
+from sim.envelope import (
+    Envelope,
+    area_envelope,
+    envelope_from_document,
+    home_violation,
+    load_envelope,
+)
 from sim.fleet import MAX_UAVS
 
 DEFAULT_SEPARATION_M = 10.0
@@ -84,7 +90,7 @@ class VehicleSpec:
         naming ``field`` for a file that cannot be flown or that puts the vehicle's home (its
         take-off column) inside a no-fly volume."""
         if self.envelope_file is None:
-            return Envelope.for_area(area)
+            return area_envelope(area)
         envelope = load_envelope(self.envelope_file, area)
         check_home(envelope, self.frames, f"{field}: {self.envelope_file}")
         return envelope

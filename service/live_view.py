@@ -57,7 +57,7 @@ from service.pubsub import Hub
 from service.vehicle_link import LinkState
 from sim.channel import area_site
 from sim.config import AreaConfig, UtilityConfig
-from sim.envelope import Envelope
+from sim.envelope import Envelope, area_envelope
 from sim.utility import network_utility
 
 if TYPE_CHECKING:
@@ -246,7 +246,7 @@ class LiveView:
 
     def _envelope_document(self, vehicle_id: str) -> dict[str, Any]:
         """The vehicle's envelope as the frame carries it, built once per envelope."""
-        envelope = self.envelope_of(vehicle_id) or Envelope.for_area(self.area)
+        envelope = self.envelope_of(vehicle_id) or area_envelope(self.area)
         kept = self._envelope_docs.get(id(envelope))
         if kept is None or kept[0] is not envelope:
             kept = (envelope, envelope_document(envelope))

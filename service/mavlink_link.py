@@ -410,6 +410,7 @@ class MavlinkLink(VehicleLinkBase):
                 return  # not the vehicle's (counted), or before its first HEARTBEAT
             elif kind == "LOCAL_POSITION_NED":
                 self._ned = (message.x, message.y, message.z)
+                self._ned_velocity = (message.vx, message.vy, message.vz)
                 self._position_at = now
             elif kind == "GLOBAL_POSITION_INT":
                 self._relative_alt_m = message.relative_alt / 1000.0

@@ -301,9 +301,10 @@ class MavsdkLink(VehicleLinkBase):
             self._note_origin(origin)
 
     def _on_position_ned(self, position_velocity: Any, _user_data: Any) -> None:
-        p = position_velocity.position
+        p, v = position_velocity.position, position_velocity.velocity
         with self._cond:
             self._ned = (p.north_m, p.east_m, p.down_m)
+            self._ned_velocity = (v.north_m_s, v.east_m_s, v.down_m_s)
             self._position_at = time.monotonic()
             self._cond.notify_all()
 

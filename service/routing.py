@@ -28,7 +28,15 @@ from collections.abc import MutableMapping, Sequence
 from dataclasses import dataclass
 
 from sim.envelope import Envelope, legal_target
-from sim.envelope.route import RECOVER_M, SETTLE_M, Route, hold_at, plan_route, way_in
+from sim.envelope.route import (
+    BRAKE_MPS2,
+    RECOVER_M,
+    SETTLE_M,
+    Route,
+    hold_at,
+    plan_route_moving,
+    way_in,
+)
 from sim.envelope.route import advance as advance_route
 from sim.envelope.volume import Vec3
 
@@ -120,25 +128,37 @@ class LinkRoute:
         if self._requested is not None:
             self._stale = True
 
-    def setpoint(self, position_m: Sequence[float] | None) -> Vec3 | None:
+    def setpoint(
+        self,
+        position_m: Sequence[float] | None,
+        velocity_mps: Sequence[float] | None = None,
+        brake_mps2: float = BRAKE_MPS2,
+    ) -> Vec3 | None:
         """The setpoint to stream now (area frame), or None when there is nothing to stream:
-        no target, or no position to plan from yet."""
+        no target, or no position to plan from yet. A route planned while the vehicle moves at
+        ``velocity_mps`` (None: unknown) brakes first where its momentum would carry it into
+        something (:func:`~sim.envelope.route.plan_route_moving`, stops reckoned at
+        ``brake_mps2``)."""
         if self._requested is None:
             return None
         if self._stale:
             if position_m is None:
                 return None
-            self._route = self._plan(tuple(float(v) for v in position_m))  # type: ignore[arg-type]
+            position = tuple(float(v) for v in position_m)
+            self._route = self._plan(position, velocity_mps, brake_mps2)  # type: ignore[arg-type]
             self._stale = False
         elif self._route is not None:
             self._route = advance_route(self.envelope, self._route, position_m)
         return None if self._route is None else self._route.setpoint_m
 
-    def _plan(self, position: Vec3) -> Route:
+    def _plan(
+        self, position: Vec3, velocity_mps: Sequence[float] | None, brake_mps2: float
+    ) -> Route:
         assert self._requested is not None
         envelope = self.envelope
         start = _climbed_in(envelope, position)
-        route = plan_route(envelope, start, self._requested, self._route)
+        moving = velocity_mps if start == position else None  # a climb-in starts from a stop
+        route = plan_route_moving(envelope, start, moving, self._requested, self._route, brake_mps2)
         if route.holding:
             route = hold_at(self._requested, position, route.hold_reason or "holding")
             self.counters["route_holds"] += 1

@@ -58,7 +58,8 @@ from service.modes import GUIDED_MODE_NAME, Flavour, flavour_of, mode_name
 from service.routing import LinkRoute, RouteView
 from service.vehicle_mavlink import mavlink
 from sim.config import AreaConfig
-from sim.envelope import Envelope
+from sim.envelope import Envelope, area_envelope
+from sim.envelope.route import BRAKE_MPS2
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +106,9 @@ class LinkConfig:
     """A new target is sent at once, but never sooner than this after the previous setpoint."""
     telemetry_rate_hz: float = 10.0
     """Rate asked for GLOBAL_POSITION_INT and LOCAL_POSITION_NED."""
+    brake_mps2: float = BRAKE_MPS2
+    """The deceleration the vehicle's stops are reckoned with when a new route is planned while
+    it moves (:func:`sim.envelope.route.plan_route_moving`); lower is safer."""
     heartbeat_timeout_s: float = 3.0
     """No vehicle HEARTBEAT for this long: the link is lost."""
     reconnect_min_s: float = 0.2
@@ -135,6 +139,7 @@ class LinkConfig:
         for name in (
             "setpoint_rate_hz",
             "telemetry_rate_hz",
+            "brake_mps2",
             "heartbeat_timeout_s",
             "reconnect_min_s",
             "reconnect_max_s",
@@ -347,6 +352,7 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
         self._last_hb: float | None = None
         self._up_since = 0.0
         self._ned: tuple[float, float, float] | None = None
+        self._ned_velocity: tuple[float, float, float] | None = None  # with the position, m/s
         self._position_at: float | None = None
         self._relative_alt_m: float | None = None
         self._system_id: int | None = None  # the vehicle's, from its HEARTBEAT
@@ -369,7 +375,7 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
         self._return_pending: str | None = None  # why the vehicle is being sent home
         # Streaming state.
         self._target_m: tuple[float, float, float] | None = None
-        envelope = config.envelope or Envelope.for_area(config.area)
+        envelope = config.envelope or area_envelope(config.area)
         self._fence_envelope = envelope  # what goes on the autopilot (its fence)
         waiting = "waiting for the vehicle's origin (GPS_GLOBAL_ORIGIN)"
         self._fence = waiting if config.autopilot_fence else "off"
@@ -885,7 +891,9 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
                 new = self._stream_since is None
                 if new:
                     self._routing.replan()
-                setpoint = self._routing.setpoint(self._position_locked(now))
+                setpoint = self._routing.setpoint(
+                    self._position_locked(now), self._velocity_locked(now), self.config.brake_mps2
+                )
             if setpoint is None:
                 self._stream_since = None
             else:
@@ -907,6 +915,14 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
         if now - self._position_at > POSITION_FRESH_S:
             return None
         return ned_to_area(*self._ned, self.config.frames)
+
+    def _velocity_locked(self, now: float) -> tuple[float, float, float] | None:
+        """How fast the vehicle moves (area frame, m/s) with its fresh position, or None when
+        not known (call under ``self._cond``)."""
+        if self._ned_velocity is None or self._position_locked(now) is None:
+            return None
+        north, east, down = self._ned_velocity
+        return (east, north, -down)
 
     def _streaming_now(self) -> bool:
         return (

@@ -24,9 +24,10 @@ a :class:`sim.scenarios.ScenarioSampler` (a fresh generated scenario per episode
 user count drawn too: generalization and domain randomisation). ``world`` may also be
 a sequence of worlds with one area, one drawn per episode.
 
-A world with an envelope (:attr:`sim.world.World.envelope`) flies the vehicle along the route
-the service's link would stream (:meth:`sim.world.World.fly_route`, kept across steps and planned
-again when the legal target changes): a target inside an exclusion or outside the inclusion is
+A world with an envelope (:attr:`sim.world.World.envelope`; every world over a site has one)
+flies the vehicle along the route the service's link would stream
+(:meth:`sim.world.World.fly_routes_period`, kept across steps and planned again when the legal
+target changes): a target inside an exclusion or outside the inclusion is
 moved to the nearest legal point (``info["target_xyz_m"]`` is that point), the start too.
 
 ``reset`` places the vehicle at home (or ``options["uav_xyz_m"]``) and simulates one step there,
@@ -227,9 +228,10 @@ class _FapEnv(gym.Env, ABC):
             self.uav_xyz_m, self.uav_velocity_mps = flown[0], velocity[0]
             self.target_xyz_m = target_m
         else:  # the route the vehicle link would stream, to the legal target
-            self.uav_xyz_m, self._route = self.world.fly_route(
-                self.uav_xyz_m, target_m, self._route
+            flown, velocity, routes = self.world.fly_routes_period(
+                self.uav_xyz_m, self.uav_velocity_mps, target_m, [self._route]
             )
+            self.uav_xyz_m, self.uav_velocity_mps, self._route = flown[0], velocity[0], routes[0]
             legal = self._route.target_m
             self.target_xyz_m = target_m if legal is None else np.array(legal)
         self._moved()

@@ -442,9 +442,11 @@ class FleetParallelEnv(ParallelEnv):
         self.target_xyz_m = separated_legal_targets(envelope, targets, sep, self.area)
         flight = fly_fleet(
             envelope, self.uav_xyz_m, self.target_xyz_m, world.flight, world.step_s, sep,
-            self._routes,
+            self._routes, self.uav_velocity_mps,
         )  # fmt: skip
         self.uav_xyz_m = flight.positions_m
+        if flight.velocities_mps is not None:
+            self.uav_velocity_mps = flight.velocities_mps
         self._routes = list(flight.routes)
         self.held = np.array(flight.held, dtype=bool)
 

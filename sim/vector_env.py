@@ -11,7 +11,7 @@ of :class:`sim.envs.FapDiscreteEnv` (``kind="discrete"``) or :class:`sim.envs.Fa
   the cells with their queues carried over, and returns the utilities as rewards and the
   observations built from the report the world shows (report age) at each vehicle's position.
 - With an envelope (:attr:`sim.world.World.envelope`), each vehicle flies its own route
-  (:meth:`sim.world.World.fly_routes`: row e is the single environment's flight exactly).
+  (:meth:`sim.world.World.fly_routes_period`: row e is the single environment's flight exactly).
 - Flight, targets and masks are numpy over (E, 3) arrays (:meth:`sim.world.World.fly_period`,
   :func:`sim.geometry.move_targets`, :func:`sim.geometry.unit_to_m_many`,
   :func:`sim.geometry.valid_moves_many`): row e equals the scalar function exactly. The cells
@@ -197,8 +197,8 @@ class FapVectorEnv(VectorEnv):
         else:
             self.target_xyz_m = unit_to_m_many(self._check_coordinates(actions), self.area)
         if world.envelope is not None:  # the routes the vehicle link would stream
-            self.uav_xyz_m, self._routes = world.fly_routes(
-                self.uav_xyz_m, self.target_xyz_m, self._routes
+            self.uav_xyz_m, self.uav_velocity_mps, self._routes = world.fly_routes_period(
+                self.uav_xyz_m, self.uav_velocity_mps, self.target_xyz_m, self._routes
             )
             self.target_xyz_m = np.array(
                 [t if r.target_m is None else r.target_m for t, r in

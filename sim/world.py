@@ -44,7 +44,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from sim.channel import area_site
-from sim.config import AreaConfig, NetworkConfig, UtilityConfig, check_environment
+from sim.config import AreaConfig, NetworkConfig, UtilityConfig, check_environment, site_path
 from sim.errors import InputError
 from sim.geometry import SCALAR_ROWS, clip_to_volume, zone_position
 
@@ -83,8 +83,9 @@ class Flight:
     autopilot; at most the decision period: a decision reaches the vehicle within its own
     period).
 
-    Inside a flight-safety envelope (:attr:`World.envelope`) the routes are flown at the speed
-    caps, without acceleration or latency (:mod:`sim.envelope.flight`)."""
+    Inside a flight-safety envelope (:attr:`World.envelope`) the routes the link streams are
+    flown: under the same acceleration limit and latency when the flight has one
+    (:func:`sim.envelope.flight.fly_route_period`), else at the speed caps."""
 
     horizontal_mps: float | None = 10.0
     vertical_mps: float | None = 3.0
@@ -229,7 +230,9 @@ class World:
     """The vehicles' flight-safety envelope, a ``tupa-envelope/1`` document (given as a dict or
     its JSON text, kept as canonical JSON text: the world stays a frozen, hashable value), or
     None: the area's box, flown straight as :func:`fly` flies. With one, every flight follows
-    the routes the service's link streams (:mod:`sim.envelope.flight`)."""
+    the routes the service's link streams (:mod:`sim.envelope.flight`). Over a site there is
+    always one (the area's box when none is given), which holds the site's buildings
+    (:mod:`sim.envelope.buildings`)."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.step_s) and self.step_s > 0):
@@ -257,6 +260,11 @@ class World:
             raise InputError(
                 f"static_start: must be 'placement' or 'home', got {self.static_start!r}"
             )
+        if self.envelope is None and site_path(self.area.environment) is not None:
+            # Over a site the buildings are exclusions (sim.envelope.buildings): always flown.
+            from sim.envelope.files import ENVELOPE_FORMAT
+
+            object.__setattr__(self, "envelope", {"format": ENVELOPE_FORMAT})
         if self.envelope is not None:
             from sim.envelope.flight import canonical_document
 
@@ -374,6 +382,40 @@ class World:
             out[e], route = fly_route(envelope, p, t, self.flight, self.step_s, r)
             flown.append(route)
         return out, flown
+
+    def fly_routes_period(
+        self,
+        positions_m: np.ndarray,
+        velocities_mps: np.ndarray,
+        targets_m: np.ndarray,
+        routes: Sequence[Route | None] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, list[Route]]:
+        """One decision period inside the world's envelope for each row (E, 3) of independent
+        vehicles: (positions, velocities, routes) at its end, each route to pass back next
+        period. With an acceleration limit, as the loop flies the link's routes (latency and
+        velocity carried: :func:`sim.envelope.flight.fly_route_period`); else
+        :meth:`fly_routes` (velocities returned zero)."""
+        positions = np.asarray(positions_m, dtype=float).reshape(-1, 3)
+        targets = np.asarray(targets_m, dtype=float).reshape(-1, 3)
+        if not self.flight.accelerates:
+            flown, kept = self.fly_routes(positions, targets, routes)
+            return flown, np.zeros_like(flown), kept
+        from sim.envelope.flight import fly_route_period
+
+        envelope = self.flight_envelope
+        assert envelope is not None
+        velocities = np.asarray(velocities_mps, dtype=float).reshape(-1, 3)
+        kept_routes = [None] * len(positions) if routes is None else list(routes)
+        out, out_velocity = np.empty_like(positions), np.empty_like(positions)
+        flown_routes: list[Route] = []
+        for e in range(len(positions)):
+            flown, out_velocity[e] = fly_route_period(
+                envelope, positions[e], velocities[e], targets[e], self.flight, self.step_s,
+                kept_routes[e],
+            )  # fmt: skip
+            out[e] = flown.position_m
+            flown_routes.append(flown.route)
+        return out, out_velocity, flown_routes
 
     def legal_start(self, xyz_m: np.ndarray) -> np.ndarray:
         """Where a vehicle asked to start at ``xyz_m`` starts: there, or with an envelope the

@@ -7,12 +7,19 @@
 * :mod:`sim.envelope.route`: :class:`Route`, what is streamed leg by leg (planned from where
   the vehicle is, advanced as it flies, or a hold that says why).
 * :mod:`sim.envelope.files`: the ``tupa-envelope/1`` JSON format and its checks.
+* :mod:`sim.envelope.buildings`: a site's buildings as exclusions (every envelope over a site
+  holds them).
 
 Pure geometry on shapely, shared by whatever flies a vehicle (the service's link, the world's
 flight model), so that what is trained, evaluated and flown keeps to the same envelope.
 """
 
-from sim.envelope.files import ENVELOPE_FORMAT, envelope_from_document, load_envelope
+from sim.envelope.files import (
+    ENVELOPE_FORMAT,
+    area_envelope,
+    envelope_from_document,
+    load_envelope,
+)
 from sim.envelope.paths import FlightPath, Hold, legal_target, plan_path
 from sim.envelope.volume import Envelope, Exclusion, home_violation
 
@@ -22,6 +29,7 @@ __all__ = [
     "Exclusion",
     "FlightPath",
     "Hold",
+    "area_envelope",
     "envelope_from_document",
     "home_violation",
     "legal_target",

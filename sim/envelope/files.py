@@ -16,7 +16,8 @@ Polygons are lists of at least three [x, y] corners (closed implicitly), simple 
 self-intersecting). :func:`envelope_from_document` refuses, with one line naming the field, what
 cannot be flown: a polygon that is not simple, an inclusion outside the area, a ceiling not above
 the floor, an exclusion whose ceiling is not above its floor, exclusions (with the clearance)
-that leave no legal point, unknown fields.
+that leave no legal point, unknown fields. Over a site (``environment = site:NAME``) the
+site's buildings are exclusions too, after the document's (:mod:`sim.envelope.buildings`).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import shapely
 from shapely.geometry import Polygon
 
 from sim.config import AreaConfig
+from sim.envelope.buildings import area_exclusions
 from sim.envelope.volume import Envelope, Exclusion
 from sim.errors import InputError
 
@@ -61,8 +63,16 @@ def load_envelope(path: Path, area: AreaConfig) -> Envelope:
         raise InputError(f"{path}: {exc}") from None
 
 
+def area_envelope(area: AreaConfig) -> Envelope:
+    """The envelope of a vehicle given none: the area's box and altitude band, and over a site
+    its buildings (:mod:`sim.envelope.buildings`)."""
+    return envelope_from_document({"format": ENVELOPE_FORMAT}, area)
+
+
 def envelope_from_document(document: Any, area: AreaConfig) -> Envelope:
-    """The envelope a parsed ``tupa-envelope/1`` document describes (see the module docstring)."""
+    """The envelope a parsed ``tupa-envelope/1`` document describes (see the module docstring),
+    over a site with the site's buildings after the document's own exclusions
+    (:func:`sim.envelope.buildings.area_exclusions`)."""
     if not isinstance(document, dict):
         raise InputError("not a JSON object")
     if document.get("format") != ENVELOPE_FORMAT:
@@ -92,6 +102,7 @@ def envelope_from_document(document: Any, area: AreaConfig) -> Envelope:
     if not isinstance(raw, list):
         raise InputError("exclusions: must be a list")
     exclusions = tuple(_exclusion(entry, f"exclusions[{i}]") for i, entry in enumerate(raw))
+    exclusions += area_exclusions(area, floor_m, ceiling_m)
     envelope = Envelope(inclusion, floor_m, ceiling_m, exclusions, clearance_m, max_speed_mps)
     _check_flyable(envelope)
     return envelope

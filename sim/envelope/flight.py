@@ -45,7 +45,7 @@ import numpy as np
 from sim.config import AreaConfig
 from sim.envelope.files import envelope_from_document
 from sim.envelope.paths import legal_target
-from sim.envelope.route import Route, advance, plan_route
+from sim.envelope.route import BRAKE_MPS2, Route, advance, plan_route, plan_route_moving
 from sim.envelope.volume import Envelope, Vec3
 from sim.errors import InputError
 from sim.geometry import enforce_separation, min_pairwise_distance_m
@@ -64,6 +64,7 @@ __all__ = [
     "fly_along",
     "fly_fleet",
     "fly_route",
+    "fly_route_period",
     "fly_route_track",
     "legal_position",
     "plain_box",
@@ -228,17 +229,24 @@ def _vec(values: Sequence[float]) -> Vec3:
 
 
 def route_toward(
-    envelope: Envelope, position_m: Sequence[float], target_m: Sequence[float], route: Route | None
+    envelope: Envelope,
+    position_m: Sequence[float],
+    target_m: Sequence[float],
+    route: Route | None,
+    velocity_mps: Sequence[float] | None = None,
+    brake_mps2: float = BRAKE_MPS2,
 ) -> Route:
     """The route to fly this period, as the link decides it: ``route`` advanced from
     ``position_m`` (:func:`~sim.envelope.route.advance`) when it flies (does not hold) to the
-    legal point of ``target_m``; else a route planned from ``position_m`` (module docstring)."""
+    legal point of ``target_m``; else a route planned from ``position_m`` (module docstring),
+    braking first where a vehicle moving at ``velocity_mps`` would carry into something
+    (:func:`~sim.envelope.route.plan_route_moving`; None: not moving)."""
     requested = _vec(target_m)
     if route is not None and not route.holding:
         same = route.requested_m == requested or legal_target(envelope, requested) == route.target_m
         if same:
             return advance(envelope, route, position_m)
-    return plan_route(envelope, position_m, requested, route)
+    return plan_route_moving(envelope, position_m, velocity_mps, requested, route, brake_mps2)
 
 
 def _leg_times(p: Vec3, w: Vec3, flight: Flight) -> tuple[float, float]:
@@ -410,6 +418,84 @@ def fly_route(
     return flown.position_m, flown.route
 
 
+LINK_TICK_S = 0.1
+"""How often the vehicle link advances its route and streams a setpoint (its default
+``setpoint_rate_hz``, 10 Hz): the accelerating flight along a route does the same."""
+
+
+def fly_route_period(
+    envelope: Envelope,
+    position_m: Sequence[float],
+    velocity_mps: Sequence[float],
+    target_m: Sequence[float],
+    flight: Flight,
+    duration_s: float,
+    route: Route | None = None,
+) -> tuple[Flown, np.ndarray]:
+    """One decision period along the link's routes as the loop flies them, for a flight with an
+    acceleration limit (:mod:`sim.dynamics`): what was flown (its track sampled every link
+    tick) and the velocity at its end. For the flight's ``latency_s`` (at most the period) the
+    vehicle goes on along ``route`` (the one streamed before the decision; with none it keeps
+    where it is), then along the route toward ``target_m`` (:func:`route_toward`). The setpoint
+    is the route's current waypoint, advanced every :data:`LINK_TICK_S` as the link advances it
+    (:func:`~sim.envelope.route.advance`); the vehicle follows it under the acceleration and
+    speed limits, its velocity carried in and out."""
+    here = np.array(position_m, dtype=float).reshape(1, 3)
+    velocity = np.array(velocity_mps, dtype=float).reshape(1, 3)
+    times, points = [0.0], [_vec(here[0])]
+    latency_s = min(flight.latency_s, duration_s)
+    if latency_s > 0:
+        if route is None:  # nothing streamed yet: the vehicle keeps where it is
+            route = Route(points[0], points[0], (points[0],), "direct")
+        here, velocity, route = _follow(
+            envelope, here, velocity, route, flight, latency_s, times, points
+        )
+    route = route_toward(envelope, here[0], target_m, route, velocity[0], flight.accel_mps2)
+    here, velocity, route = _follow(
+        envelope, here, velocity, route, flight, duration_s - latency_s, times, points
+    )
+    return Flown(here[0], route, Track(tuple(times), tuple(points))), velocity[0]
+
+
+def _follow(
+    envelope: Envelope,
+    here: np.ndarray,
+    velocity: np.ndarray,
+    route: Route,
+    flight: Flight,
+    duration_s: float,
+    times: list[float],
+    points: list[Vec3],
+) -> tuple[np.ndarray, np.ndarray, Route]:
+    """Follow ``route`` for ``duration_s``, tick by tick (:func:`fly_route_period`), appending
+    each tick's end to ``times`` and ``points``."""
+    from sim.dynamics import fly_accelerating
+
+    assert flight.horizontal_mps is not None and flight.vertical_mps is not None
+    assert flight.accel_mps2 is not None
+    limits = {
+        "max_h_mps": flight.horizontal_mps,
+        "max_v_mps": flight.vertical_mps,
+        "accel_h_mps2": flight.accel_mps2,
+        "accel_v_mps2": flight.accel_mps2,
+    }
+    left = duration_s
+    first = True
+    while left > 1e-9:
+        if not first and len(route.waypoints) > 1:
+            route = advance(envelope, route, _vec(here[0]))
+        first = False
+        setpoint = np.array(route.setpoint_m).reshape(1, 3)
+        tick_s = min(LINK_TICK_S, left)
+        here, velocity = fly_accelerating(
+            here, velocity, setpoint, setpoint, duration_s=tick_s, latency_s=0.0, **limits
+        )
+        left -= tick_s
+        times.append(times[-1] + tick_s)
+        points.append(_vec(here[0]))
+    return here, velocity, route
+
+
 # --------------------------------------------------------------------------------------------
 # Fleets
 
@@ -516,6 +602,8 @@ class FleetFlight:
     routes: tuple[Route, ...]
     tracks: tuple[Track, ...]
     held: tuple[bool, ...]
+    velocities_mps: np.ndarray | None = None
+    """With an acceleration limit, each vehicle's velocity at the end (K, 3; zero when held)."""
 
 
 def fly_fleet(
@@ -526,18 +614,32 @@ def fly_fleet(
     duration_s: float,
     separation_m: float | None,
     routes: Sequence[Route | None] | None = None,
+    velocities_mps: np.ndarray | None = None,
 ) -> FleetFlight:
     """K vehicles' period: each flies its own route (:func:`fly_route_track`; its route kept
-    from ``routes``), then those whose paths would come too close hold where they are, on the
-    route they had (:func:`separate_tracks`; no separation with ``separation_m`` None)."""
+    from ``routes``; with an acceleration limit and an envelope :func:`fly_route_period`, from
+    ``velocities_mps``, zero when None), then those whose paths would come too close hold where
+    they are, on the route they had (:func:`separate_tracks`; no separation with
+    ``separation_m`` None)."""
     positions = np.asarray(positions_m, dtype=float)
     targets = np.asarray(targets_m, dtype=float)
     previous = list(routes) if routes is not None else [None] * len(positions)
     box = None if envelope is None else plain_box(envelope)
     planned: list[Route | None] = []
     flown: list[Flown] = []
-    for p, t, r in zip(positions.tolist(), targets.tolist(), previous, strict=True):
-        if envelope is None or box is not None:
+    accelerates = envelope is not None and flight.accelerates
+    velocities = np.zeros_like(positions)
+    if accelerates and velocities_mps is not None:
+        velocities = np.array(velocities_mps, dtype=float).reshape(positions.shape)
+    for k, (p, t, r) in enumerate(zip(positions.tolist(), targets.tolist(), previous, strict=True)):
+        if accelerates:
+            assert envelope is not None
+            period, velocities[k] = fly_route_period(
+                envelope, p, velocities[k], t, flight, duration_s, r
+            )
+            planned.append(period.route)
+            flown.append(period)
+        elif envelope is None or box is not None:
             planned.append(None)
             flown.append(_straight(envelope, box, p, t, flight, duration_s))
         else:
@@ -558,6 +660,7 @@ def fly_fleet(
             out[k] = positions[k]
             tracks[k] = Track.still(starts[k], duration_s)
             kept.append(planned[k] or f.route)
+            velocities[k] = 0.0  # held: stopped there (a stand-in, as the hold is)
         else:
             kept.append(f.route)
-    return FleetFlight(out, tuple(kept), tuple(tracks), held)
+    return FleetFlight(out, tuple(kept), tuple(tracks), held, velocities if accelerates else None)

@@ -6,8 +6,10 @@
 * :func:`plan_path`: how to fly from where the vehicle is to a legal target without ever leaving
   the envelope: straight when the segment is legal; else over the exclusions in the way (climb,
   cross, descend) when the ceiling allows; else around them at the current height, along the
-  shortest path of a visibility graph over the corners of the exclusions' footprints grown by
-  the clearance plus :data:`CORNER_MARGIN_M`. A :class:`Hold` says why there is no path.
+  shortest path of a visibility graph over the convex corners of the exclusions' footprints
+  grown by the clearance plus :data:`CORNER_MARGIN_M` (corners at most
+  :data:`CORNER_EDGE_MAX_M` apart linked; the graph kept per envelope and height band). A
+  :class:`Hold` says why there is no path.
 
 Every leg of a returned path is checked with :meth:`Envelope.leg_violation` (the straight
 segment, and every way an autopilot that reaches height and position at separate speeds may fly
@@ -19,21 +21,22 @@ from __future__ import annotations
 import heapq
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import shapely
-from shapely.geometry import LineString, Point
+from shapely.geometry import Point
 from shapely.ops import nearest_points
 
-from sim.envelope.volume import EDGE_EPS_M, Envelope, Vec3
+from sim.envelope.volume import Envelope, Vec3
 
 CORNER_MARGIN_M = 0.5
 """How far outside the grown footprints the path's corners lie (so legs touch nothing)."""
-CORRIDOR_M = 80.0
-"""Exclusions this close to the straight line give the detour's corners first (all do when
-those leave no way)."""
+CORNER_EDGE_MAX_M = 100.0
+"""The longest edge between two corners of the detour graph (a longer clear way goes through
+corners between; the start's and the target's edges have no limit). Bounds the graph's cost over
+a district: hundreds of corners at the lowest level."""
 OVER_MARGIN_M = 1.0
 """How far above the highest blocking exclusion (plus clearance) a climb-over flies."""
 PUSH_STEPS = 4
@@ -91,23 +94,30 @@ def _push(envelope: Envelope, point: Vec3) -> Vec3:
             inner = allowed.buffer(-CORNER_MARGIN_M)
             _, nearest = nearest_points(here, inner if not inner.is_empty else allowed)
         return (nearest.x, nearest.y, z_m)
-    for grown, low, high in envelope.grown:
-        if not (low < z_m < high and grown.buffer(EDGE_EPS_M).intersects(here)):
-            continue
-        over_z = high + OVER_MARGIN_M
-        # Out to the side, but never out of the inclusion: the nearest allowed point at least
-        # CORNER_MARGIN_M off this footprint.
-        free = allowed.difference(grown.buffer(CORNER_MARGIN_M, join_style="mitre"))
-        sideways = math.inf
-        if not free.is_empty:
-            _, nearest = nearest_points(here, free)
-            sideways = math.hypot(nearest.x - x_m, nearest.y - y_m)
-        if over_z <= envelope.ceiling_m and over_z - z_m <= sideways:
-            return (x_m, y_m, over_z)
-        if math.isinf(sideways):
-            return point
-        return (nearest.x, nearest.y, z_m)
-    return point
+    if not _blocking_here(envelope, here, z_m):
+        return point
+    # Over every exclusion stacked above the point (one after the other, as high as needed),
+    # or out to the side of every exclusion forbidden at its height, never out of the
+    # inclusion: the nearest allowed point at least CORNER_MARGIN_M off them. Whichever is
+    # nearer; one push lands clear of all of them.
+    over_z = z_m
+    while (tops := _blocking_here(envelope, here, over_z)) and over_z <= envelope.ceiling_m:
+        over_z = max(tops) + OVER_MARGIN_M
+    free = envelope.free_at(z_m, CORNER_MARGIN_M)
+    sideways = math.inf
+    if not free.is_empty:
+        _, nearest = nearest_points(here, free)
+        sideways = math.hypot(nearest.x - x_m, nearest.y - y_m)
+    if over_z <= envelope.ceiling_m and over_z - z_m <= sideways:
+        return (x_m, y_m, over_z)
+    if math.isinf(sideways):
+        return point
+    return (nearest.x, nearest.y, z_m)
+
+
+def _blocking_here(envelope: Envelope, here: Point, z_m: float) -> list[float]:
+    """The tops (widened bands' highs) of the exclusions that forbid ``here`` at ``z_m``."""
+    return envelope.tops_at(here, z_m)
 
 
 def plan_path(
@@ -175,15 +185,9 @@ def _over(envelope: Envelope, start: Vec3, target: Vec3) -> FlightPath | None:
 
 def _around(envelope: Envelope, start: Vec3, target: Vec3) -> FlightPath | None:
     """At the start's height, the shortest detour through the corners of the grown footprints
-    near the straight line (within :data:`CORRIDOR_M`), or of all of them when that finds none;
-    then straight to the target (its own height)."""
+    forbidden there (:func:`_detour`); then straight to the target (its own height)."""
     z_m = start[2]
-    active = tuple(envelope.obstacles_at(z_m))
-    line = LineString([start[:2], target[:2]])
-    near = tuple(i for i in active if envelope.grown[i][0].distance(line) <= CORRIDOR_M)
-    route = _detour(envelope, start, target, near, active)
-    if route is None and near != active:
-        route = _detour(envelope, start, target, active, active)
+    route = _detour(envelope, start, target, tuple(envelope.obstacles_at(z_m)))
     if route is None:
         return None
     waypoints: list[Vec3] = [(x, y, z_m) for x, y in route]
@@ -195,41 +199,105 @@ def _around(envelope: Envelope, start: Vec3, target: Vec3) -> FlightPath | None:
 
 
 def _detour(
-    envelope: Envelope,
-    start: Vec3,
-    target: Vec3,
-    around: tuple[int, ...],
-    active: tuple[int, ...],
+    envelope: Envelope, start: Vec3, target: Vec3, active: tuple[int, ...]
 ) -> list[tuple[float, float]] | None:
     """The corners (x, y) of the shortest way from ``start`` to above/below ``target`` through
-    the corners of the exclusions ``around`` that avoids every exclusion ``active`` at this
-    height; None when there is none."""
-    corners: list[tuple[float, float]] = []
-    for i in around:
-        ring = envelope.grown[i][0].buffer(CORNER_MARGIN_M, join_style="mitre")
-        for polygon in getattr(ring, "geoms", [ring]):
-            corners.extend(polygon.exterior.coords[:-1])
-    nodes = np.array([start[:2], *corners, target[:2]], dtype=float)
-    n = len(nodes)
-    i_idx, j_idx = np.triu_indices(n, k=1)
-    lines = shapely.linestrings(np.stack([nodes[i_idx], nodes[j_idx]], axis=1))
-    free = shapely.covered_by(lines, envelope.room)
-    if active:
-        hit = envelope.solid_tree(active).query(lines, predicate="intersects")[0]
-        free[hit] = False
-    lengths = np.hypot(*(nodes[i_idx] - nodes[j_idx]).T)
-    graph: list[list[tuple[int, float]]] = [[] for _ in range(n)]
-    for i, j, length in zip(i_idx[free], j_idx[free], lengths[free], strict=True):
-        graph[i].append((j, length))
-        graph[j].append((i, length))
-    route = _shortest(graph, 0, n - 1)
+    the corners of the exclusions ``active`` at this height that avoids every one of them;
+    None when there is none. The corners' own visibility graph is built once per envelope and
+    set of exclusions (:func:`_corner_graph`); only the start's and the target's edges are
+    tested here."""
+    corners, graph = _corner_graph(envelope, active)
+    ends = np.array([start[:2], target[:2]], dtype=float)
+    n = len(corners)
+    # Node indices: the corners 0..n-1, the start n, the target n + 1.
+    pairs = [(n, k) for k in range(n)] + [(n + 1, k) for k in range(n)] + [(n, n + 1)]
+    nodes = np.concatenate([corners, ends]) if n else ends
+    a_idx = np.array([a for a, _ in pairs], dtype=int)
+    b_idx = np.array([b for _, b in pairs], dtype=int)
+    free, lengths = _visible(envelope, active, nodes[a_idx], nodes[b_idx])
+    # The start's and the target's edges, both ways; a corner's own edges come from the graph.
+    extra: dict[int, list[tuple[int, float]]] = {n: [], n + 1: []}
+    for a, b, length in zip(a_idx[free], b_idx[free], lengths[free], strict=True):
+        extra.setdefault(int(a), []).append((int(b), float(length)))
+        extra.setdefault(int(b), []).append((int(a), float(length)))
+
+    def neighbours(node: int) -> list[tuple[int, float]]:
+        return (graph[node] if node < n else []) + extra.get(node, [])
+
+    route = _shortest(neighbours, n, n + 1)
     if route is None:
         return None
     return [(float(nodes[k][0]), float(nodes[k][1])) for k in route[1:-1]]
 
 
-def _shortest(graph: list[list[tuple[int, float]]], source: int, goal: int) -> list[int] | None:
-    """Dijkstra over ``graph``: the node indices from ``source`` to ``goal``, or None."""
+def _visible(
+    envelope: Envelope, active: tuple[int, ...], a: np.ndarray, b: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Whether each straight segment a[i]-b[i] (x, y) stays in the room and off every
+    exclusion ``active``, and its length."""
+    lines = shapely.linestrings(np.stack([a, b], axis=1))
+    free = shapely.covered_by(lines, envelope.room)
+    if active and len(lines):
+        hit = envelope.solid_tree(active).query(lines, predicate="intersects")[0]
+        free[hit] = False
+    return free, np.hypot(*(a - b).T)
+
+
+def _corner_graph(
+    envelope: Envelope, active: tuple[int, ...]
+) -> tuple[np.ndarray, list[list[tuple[int, float]]]]:
+    """The corner nodes (N, 2) of the exclusions ``active`` (:func:`_corners`) and the
+    visibility graph between those at most :data:`CORNER_EDGE_MAX_M` apart (adjacency lists of
+    (node, length)), kept per envelope and set of exclusions."""
+    kept = envelope.graphs.get(active)
+    if kept is None:
+        corners = _corners(envelope, active, active)
+        n = len(corners)
+        graph: list[list[tuple[int, float]]] = [[] for _ in range(n)]
+        if n > 1:
+            points = shapely.points(corners)
+            near = shapely.STRtree(points).query(
+                points, predicate="dwithin", distance=CORNER_EDGE_MAX_M
+            )
+            i_idx, j_idx = near[:, near[0] < near[1]]
+            free, lengths = _visible(envelope, active, corners[i_idx], corners[j_idx])
+            for i, j, length in zip(i_idx[free], j_idx[free], lengths[free], strict=True):
+                graph[i].append((int(j), float(length)))
+                graph[j].append((int(i), float(length)))
+        kept = envelope.graphs[active] = (corners, graph)
+    return kept
+
+
+def _corners(envelope: Envelope, around: tuple[int, ...], active: tuple[int, ...]) -> np.ndarray:
+    """The graph's corner nodes (N, 2): the convex corners of the footprints ``around``, grown
+    by the clearance and :data:`CORNER_MARGIN_M`, that lie in the room and outside every
+    exclusion ``active`` (a shortest way bends only round a convex corner, and never at one
+    inside something; the footprints of a site's stacked layers lie inside each other)."""
+    found = []
+    for i in around:
+        ring = envelope.grown[i][0].buffer(CORNER_MARGIN_M, join_style="mitre")
+        for polygon in getattr(ring, "geoms", [ring]):
+            coords = np.asarray(polygon.exterior.coords)[:-1]
+            if not polygon.exterior.is_ccw:
+                coords = coords[::-1]
+            before, after = np.roll(coords, 1, axis=0), np.roll(coords, -1, axis=0)
+            u, v = coords - before, after - coords
+            found.append(coords[u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0] > 0])  # left turns
+    if not found:
+        return np.empty((0, 2))
+    corners = np.concatenate(found)
+    points = shapely.points(corners)
+    keep = shapely.covered_by(points, envelope.room)
+    if active:
+        keep[envelope.solid_tree(active).query(points, predicate="intersects")[0]] = False
+    return corners[keep]
+
+
+def _shortest(
+    neighbours: Callable[[int], list[tuple[int, float]]], source: int, goal: int
+) -> list[int] | None:
+    """Dijkstra over the graph ``neighbours`` gives: the node indices from ``source`` to
+    ``goal``, or None."""
     best = {source: 0.0}
     previous: dict[int, int] = {}
     queue = [(0.0, source)]
@@ -242,7 +310,7 @@ def _shortest(graph: list[list[tuple[int, float]]], source: int, goal: int) -> l
             return route[::-1]
         if cost > best.get(node, math.inf):
             continue
-        for nxt, length in graph[node]:
+        for nxt, length in neighbours(node):
             new = cost + length
             if new < best.get(nxt, math.inf):
                 best[nxt] = new

@@ -23,6 +23,9 @@ is none. Contract:
   (:func:`way_in`), when the way there crosses no exclusion.
 * Holding means streaming the position where the hold began (the vehicle keeps still), never
   the target.
+* A moving vehicle is not turned onto a new route where its momentum would carry it into
+  something: :func:`plan_route_moving` brakes it to its stopping point first unless its whole
+  turn is clear.
 
 Pure functions on frozen values: the service's link, the tests and the world's flight model use
 the same ones.
@@ -34,6 +37,8 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
+from shapely.geometry import MultiPoint
+
 from sim.envelope.paths import Hold, legal_target, plan_path
 from sim.envelope.volume import Envelope, Vec3
 
@@ -43,6 +48,12 @@ SETTLE_M = 0.5
 """Within this distance of a point the vehicle is at it, up to its autopilot's tracking error."""
 RECOVER_M = 3.0
 """A vehicle outside its envelope but this close to the leg it flies goes back onto the leg."""
+BRAKE_MPS2 = 2.5
+"""The deceleration a vehicle's stop is reckoned with (the loop's autopilots' default horizontal
+acceleration, ArduPilot's 2.5 m/s²; PX4's is higher, so its stops are shorter than reckoned)."""
+SWEEP_MARGIN_M = 1.0
+"""How much wider than the triangle of its turn a moving vehicle's way onto a new route is
+checked (the autopilot's tracking error)."""
 
 
 @dataclass(frozen=True)
@@ -120,6 +131,59 @@ def plan_route(
     if isinstance(path, Hold):
         return hold_at(requested, position, path.reason)
     return Route(requested, legal, lead + path.waypoints, path.kind if not lead else "recover")
+
+
+def stopping_point(
+    position_m: Sequence[float], velocity_mps: Sequence[float], brake_mps2: float
+) -> Vec3:
+    """Where a vehicle at ``position_m`` moving at ``velocity_mps`` (area frame) stops when it
+    brakes at ``brake_mps2``, horizontally and vertically alike, straight along its way."""
+    x_m, y_m, z_m = _vec(position_m)
+    vx, vy, vz = _vec(velocity_mps)
+    speed = math.hypot(vx, vy)
+    return (
+        x_m + vx * speed / (2.0 * brake_mps2),
+        y_m + vy * speed / (2.0 * brake_mps2),
+        z_m + vz * abs(vz) / (2.0 * brake_mps2),
+    )
+
+
+def plan_route_moving(
+    envelope: Envelope,
+    position_m: Sequence[float],
+    velocity_mps: Sequence[float] | None,
+    target_m: Sequence[float],
+    previous: Route | None = None,
+    brake_mps2: float = BRAKE_MPS2,
+) -> Route:
+    """:func:`plan_route` for a vehicle that may be moving: its momentum carries it on while it
+    turns onto the new route, so the route first brakes to its stopping point
+    (:func:`stopping_point`) unless the whole turn is clear. The turn is clear when the column
+    over the triangle of the position, the stopping point and the route's first waypoint, by
+    :data:`SWEEP_MARGIN_M` wider, between their lowest and highest heights, is legal
+    (:meth:`~sim.envelope.volume.Envelope.region_violation`): the vehicle's way from its
+    momentum onto the new leg stays within it. Else the route goes to the stopping point first
+    (when the braking itself is legal: otherwise no route does better than the one planned) and
+    is planned on from there. ``velocity_mps`` None (unknown), or a stopping point within
+    :data:`SETTLE_M`: :func:`plan_route` itself."""
+    route = plan_route(envelope, position_m, target_m, previous)
+    if velocity_mps is None or route.holding:
+        return route
+    position = _vec(position_m)
+    stop = stopping_point(position, velocity_mps, brake_mps2)
+    if math.dist(position, stop) <= SETTLE_M:
+        return route
+    first = route.setpoint_m
+    heights = (position[2], stop[2], first[2])
+    sweep = MultiPoint([position[:2], stop[:2], first[:2]]).convex_hull.buffer(SWEEP_MARGIN_M)
+    if envelope.region_violation(sweep, min(heights), max(heights)) is None:
+        return route
+    if envelope.leg_violation(position, stop) is not None:
+        return route
+    onward = plan_route(envelope, stop, target_m, None)
+    if onward.holding:
+        return hold_at(target_m, stop, onward.hold_reason or "holding")
+    return Route(onward.requested_m, onward.target_m, (stop, *onward.waypoints), onward.kind)
 
 
 def _back_onto_leg(

@@ -71,6 +71,11 @@ class Envelope:
     _trees: dict[tuple[int, ...], shapely.STRtree] = field(
         default_factory=dict, compare=False, repr=False
     )
+    _free: dict[tuple[tuple[int, ...], float], shapely.Geometry] = field(
+        default_factory=dict, compare=False, repr=False
+    )
+    graphs: dict[tuple[int, ...], object] = field(default_factory=dict, compare=False, repr=False)
+    """Kept by :mod:`sim.envelope.paths`: the corners' visibility graph per set of exclusions."""
 
     @classmethod
     def for_area(
@@ -205,6 +210,23 @@ class Envelope:
                 )
         return None
 
+    def region_violation(
+        self, footprint: shapely.Geometry, low_z_m: float, high_z_m: float
+    ) -> str | None:
+        """Why the column over ``footprint`` (area frame) between ``low_z_m`` and ``high_z_m`` is
+        not all legal, or None: it leaves the allowed footprint, leaves the altitude band, or
+        meets an exclusion grown by the clearance whose band overlaps its heights."""
+        if low_z_m < self.floor_m - EDGE_EPS_M or high_z_m > self.ceiling_m + EDGE_EPS_M:
+            return f"heights {low_z_m:.1f}-{high_z_m:.1f} m leave the altitude band"
+        if not self._allowed_prepared.covers(footprint):
+            return "leaves the inclusion (less its clearance)"
+        for (_, low, high), prepared, exclusion in zip(
+            self.grown, self._grown_prepared, self.exclusions, strict=True
+        ):
+            if low < high_z_m and high > low_z_m and prepared.intersects(footprint):
+                return f"meets exclusion {_label(exclusion)}"
+        return None
+
     def blocking(self, start_m: Sequence[float], end_m: Sequence[float]) -> list[int]:
         """The indices of the exclusions the straight segment crosses (see
         :meth:`segment_violation`)."""
@@ -249,6 +271,27 @@ class Envelope:
             parts = [self.grown[i][0] for i in key]
             self._unions[key] = shapely.union_all(parts) if parts else Polygon()
         return self._unions[key]
+
+    def tops_at(self, point: Point, z_m: float) -> list[float]:
+        """The tops (the clearance-widened bands' highs) of the exclusions that forbid ``point``
+        (x, y) at height ``z_m``, as :meth:`violation` finds them."""
+        return [
+            high
+            for (_, low, high), prepared in zip(self.grown, self._grown_prepared, strict=True)
+            if low < z_m < high and prepared.intersects(point)
+        ]
+
+    def free_at(self, z_m: float, margin_m: float) -> shapely.Geometry:
+        """The allowed footprint less every grown footprint forbidden at height ``z_m`` widened
+        by ``margin_m`` (square corners): where a point at that height may go sideways; kept
+        per set of exclusions and margin."""
+        key = (tuple(self.obstacles_at(z_m)), margin_m)
+        if key not in self._free:
+            solid = self.union_at(z_m)
+            if not solid.is_empty:
+                solid = solid.buffer(margin_m, join_style="mitre")
+            self._free[key] = self.allowed_footprint.difference(solid)
+        return self._free[key]
 
 
 def home_violation(envelope: Envelope, home_xy_m: Sequence[float]) -> str | None:

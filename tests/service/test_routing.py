@@ -219,6 +219,40 @@ def test_the_pymavlink_link_flies_the_mock_around_a_no_fly_zone(start_mock, open
     assert closest_m >= 1.0
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
+def test_the_link_turns_a_fast_mock_round_a_block_without_cutting_into_it(
+    start_mock, open_link, backend: str
+):
+    """The mock autopilot (ArduPilot's 2.5 m/s² acceleration, 10 m/s) flies east along a
+    block's south side; short of its west end the service sends it north, a straight leg that
+    passes the block's west side. The link knows the vehicle's velocity (LOCAL_POSITION_NED's,
+    MAVSDK's position_velocity_ned) and brakes it before turning: sampled every 20 ms, the
+    vehicle never enters the block (without the braking it flies ~8 m into it: the unit test
+    above)."""
+    block = Exclusion(box(36, 27, 60, 60), 0.0, 20.0, "block")
+    envelope = Envelope.for_area(LINK_AREA, [block], clearance_m=1.5)
+    mock = start_mock("ardupilot", max_speed_up_mps=5.0, accel_v_mps2=5.0)
+    link = open_link(tcp_url(mock), backend=backend, envelope=envelope)
+    link.arm_and_takeoff(8.0).result(timeout=60.0)
+    link.set_target((58.0, 20.0, 8.0))
+    wait_for(lambda: mock_in_area_m(mock)[0] >= 27.0 or None, 20.0, 0.01, "flying east")
+    speed = math.hypot(*mock.state().velocity_ned_mps[:2])
+    assert speed > 5.0, f"too slow to matter: {speed:.1f} m/s"
+    target = (30.0, 58.0, 8.0)
+    assert envelope.segment_violation(mock_in_area_m(mock), target) is None  # the leg is clear
+    link.set_target(target)
+    deadline = time.monotonic() + 40.0
+    deepest_m = 0.0
+    while math.dist(mock_in_area_m(mock), target) > 1.0 and time.monotonic() < deadline:
+        x_m, y_m, _ = mock_in_area_m(mock)
+        if block.footprint.contains(box(x_m, y_m, x_m, y_m)):
+            deepest_m = max(deepest_m, block.footprint.exterior.distance(box(x_m, y_m, x_m, y_m)))
+        time.sleep(0.02)
+    assert deepest_m == 0.0, f"flew {deepest_m:.1f} m into the block"
+    assert math.dist(mock_in_area_m(mock), target) <= 1.0, "the vehicle never got there"
+
+
 def test_a_take_off_at_the_areas_very_corner_climbs_in_and_flies() -> None:
     """Found on a real ArduCopter SITL: with home on the area's corner (the default frame), the
     take-off ends a little below the floor and a few centimetres outside the box; the route
@@ -248,3 +282,62 @@ def test_a_vehicle_a_little_off_its_envelope_is_brought_back_but_one_far_off_hol
     route.set_target((150.0, 150.0, 50.0))
     assert route.setpoint((90.0, 100.0, 50.0)) == (90.0, 100.0, 50.0)  # deep inside: holds
     assert route.view().kind == "hold"  # type: ignore[union-attr]
+
+
+def _fly_with_momentum(
+    route: LinkRoute, position, velocity, seconds: float, use_velocity: bool
+) -> list[tuple[float, float, float]]:
+    """The loop's flight (sim.dynamics, the mock's kinematics) of the setpoints ``route``
+    streams every 0.1 s, as the link streams them (the vehicle's velocity given to the route
+    when ``use_velocity``); the positions at every tick."""
+    from sim.dynamics import fly_accelerating
+
+    here = np.array([position], dtype=float)
+    speed = np.array([velocity], dtype=float)
+    flown = []
+    for _ in range(round(seconds / 0.1)):
+        setpoint = route.setpoint(tuple(here[0]), tuple(speed[0]) if use_velocity else None)
+        target = np.array([setpoint], dtype=float)
+        here, speed = fly_accelerating(
+            here, speed, target, target, duration_s=0.1, latency_s=0.0,
+            max_h_mps=10.0, max_v_mps=3.0, accel_h_mps2=2.5, accel_v_mps2=2.5,
+        )  # fmt: skip
+        flown.append(tuple(float(v) for v in here[0]))
+    return flown
+
+
+def test_a_moving_vehicle_sent_round_a_corner_brakes_before_it_rather_than_cut_into_it() -> None:
+    """Flying east at 10 m/s along a block's south side, just short of its west end, the
+    vehicle is sent north: the straight leg north passes the block's west side, but the
+    vehicle's momentum carries it up to 20 m further east while it turns, into the block. The
+    route planned with its velocity brakes to its stopping point first and goes round; planned
+    without it (the link before it knew the velocity), the same flight ends up inside."""
+    block = Exclusion(box(100, 100, 160, 160), 0.0, 100.0, "block")
+    envelope = Envelope.for_area(AREA, [block], clearance_m=5.0)
+    start, velocity, target = (88.0, 92.0, 40.0), (10.0, 0.0, 0.0), (80.0, 190.0, 40.0)
+
+    def inside(points) -> int:
+        return sum(block.footprint.contains(box(x, y, x, y)) for x, y, _ in points)
+
+    braking = LinkRoute(envelope)
+    braking.set_target(target)
+    flown = _fly_with_momentum(braking, start, velocity, 30.0, use_velocity=True)
+    view = braking.view()
+    assert view is not None and view.kind == "around"
+    assert inside(flown) == 0
+    assert independent_violations(envelope, np.array(flown)) == []
+    assert math.dist(flown[-1], target) < 1.0, "it still gets there"
+
+    blind = LinkRoute(envelope)
+    blind.set_target(target)
+    assert inside(_fly_with_momentum(blind, start, velocity, 30.0, use_velocity=False)) > 0
+
+
+def test_a_moving_vehicle_with_a_clear_turn_is_not_made_to_stop() -> None:
+    """In the open the route is the same with and without the velocity: no braking detour."""
+    envelope = Envelope.for_area(AREA, [TOWER], clearance_m=5.0)
+    with_velocity, without = LinkRoute(envelope), LinkRoute(envelope)
+    for route in (with_velocity, without):
+        route.set_target((20.0, 180.0, 50.0))
+    position = (20.0, 20.0, 50.0)
+    assert with_velocity.setpoint(position, (10.0, 0.0, 0.0)) == without.setpoint(position)
