@@ -74,7 +74,7 @@ from sim.config import (
     check_environment,
     site_path,
 )
-from sim.envs import FapContinuousEnv, FapDiscreteEnv, ScenarioCycle
+from sim.envs import FapContinuousEnv, FapDiscreteEnv, ScenarioCycle, ScenariosByEnvironment
 from sim.errors import InputError
 from sim.files import atomic_write_json, load_scenarios, scenario_set_hash
 from sim.observation import observation_shape
@@ -239,18 +239,22 @@ def training_scenarios(
 
 def make_env(
     algorithm: str,
-    scenarios: list[Scenario],
+    scenarios: list[Scenario] | ScenariosByEnvironment,
     world: World | list[World],
     action: str = "coordinates",
 ) -> gym.Env:
     """The training environment: discrete moves for DDQN; absolute coordinates for DDPG, or a
     correction to the load-weighted placement with ``action="residual"``
-    (:mod:`policies.residual`)."""
+    (:mod:`policies.residual`). A list of scenarios is cycled; a per-environment source is
+    drawn from by each episode's environment."""
     env: gym.Env
+    source = (
+        scenarios if isinstance(scenarios, ScenariosByEnvironment) else ScenarioCycle(scenarios)
+    )
     if algorithm == "ddqn":
-        env = FapDiscreteEnv(ScenarioCycle(scenarios), world=world)
+        env = FapDiscreteEnv(source, world=world)
     else:
-        env = FapContinuousEnv(ScenarioCycle(scenarios), world=world)
+        env = FapContinuousEnv(source, world=world)
         if action == "residual":
             env = ResidualActions(env)
     return Monitor(env)
@@ -452,6 +456,26 @@ class _Run:
             config.seed,
             config.sampler(drawn_in, self.test[0].n_users) if self.test else None,
         )
+        # Several sites: each environment's own generated set, its users on its own ground
+        # (the first site's set above is the one the run's metadata hashes).
+        self.train_source: list[Scenario] | ScenariosByEnvironment = self.train_set
+        if len({a.environment for a in site_areas}) > 1 and config.strategy != "spec":
+            areas = {w.area.environment: w.area for w in config.train_worlds(self.area)}
+            self.train_source = ScenariosByEnvironment(
+                {
+                    environment: ScenarioCycle(
+                        training_scenarios(
+                            config.strategy,
+                            config.episodes,
+                            self.test,
+                            area,
+                            config.seed,
+                            config.sampler(area, self.test[0].n_users),
+                        )
+                    )
+                    for environment, area in areas.items()
+                }
+            )
         self.episodes_done = episodes_done
         self.wall_time_before_s = wall_time_s
         self.started = time.monotonic()
@@ -635,11 +659,11 @@ def _train(config: TrainConfig, resume: bool) -> dict[str, Any]:
         from policies.vec_env import make_vec_env
 
         env: Any = make_vec_env(
-            config.algorithm, run.train_set, config.train_worlds(run.area), config.envs
+            config.algorithm, run.train_source, config.train_worlds(run.area), config.envs
         )
     else:
         env = make_env(
-            config.algorithm, run.train_set, config.train_worlds(run.area), config.action
+            config.algorithm, run.train_source, config.train_worlds(run.area), config.action
         )
     latest = config.out_dir / LATEST_CHECKPOINT
     if resume:
@@ -654,7 +678,11 @@ def _train(config: TrainConfig, resume: bool) -> dict[str, Any]:
                 file=sys.stderr,
             )
         # Episodes visit the training set in order: continue where the run stopped.
-        env.unwrapped.scenarios._next = run.episodes_done % len(run.train_set)
+        scenarios = env.unwrapped.scenarios
+        by_environment = isinstance(scenarios, ScenariosByEnvironment)
+        cycles = scenarios.sources.values() if by_environment else [scenarios]
+        for cycle in cycles:  # every environment's cycle by as many episodes (an upper bound)
+            cycle._next = run.episodes_done % len(cycle.scenarios)
     else:
         config.out_dir.mkdir(parents=True, exist_ok=True)
         model = build_model(

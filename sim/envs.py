@@ -40,7 +40,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -89,6 +89,29 @@ class ScenarioSource(Protocol):
     """Where an environment gets each episode's scenario (a :class:`ScenarioSampler` too)."""
 
     def sample(self, rng: np.random.Generator) -> Scenario: ...
+
+
+class ScenariosByEnvironment:
+    """One scenario source per channel environment: an episode draws from the source of the
+    environment its world is in (training over several sites: each site's users stand on its own
+    walkable ground). The environments look the source up themselves (:meth:`of`)."""
+
+    def __init__(self, sources: Mapping[str, ScenarioSource]) -> None:
+        if not sources:
+            raise ValueError("sources: none given")
+        self.sources = dict(sources)
+
+    def of(self, environment: str) -> ScenarioSource:
+        """The source of ``environment``; ValueError naming it when there is none."""
+        try:
+            return self.sources[environment]
+        except KeyError:
+            known = ", ".join(self.sources)
+            raise ValueError(f"scenarios: none for environment {environment!r} ({known})") from None
+
+    def sample(self, rng: np.random.Generator) -> Scenario:
+        """Refused: which source depends on the episode's environment (:meth:`of`)."""
+        raise TypeError("ScenariosByEnvironment.sample: use .of(environment).sample(rng)")
 
 
 class ScenarioCycle:
@@ -179,7 +202,10 @@ class _FapEnv(gym.Env, ABC):
             self.area = self.world.area
             self.model = self._models[self.area.environment]
         world = self.world
-        self.scenario = options.get("scenario") or self.scenarios.sample(rng)
+        source = self.scenarios
+        if isinstance(source, ScenariosByEnvironment):
+            source = source.of(self.area.environment)
+        self.scenario = options.get("scenario") or source.sample(rng)
         self.users, self._users_rng = episode_users(
             self.scenario.users_xy_m, self.scenario.load_bps, world, self.area, rng,
             options.get("users_seed"),

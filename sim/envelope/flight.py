@@ -398,8 +398,24 @@ def fly_route_track(
     box = None if envelope is None else plain_box(envelope)
     if envelope is None or box is not None:
         return _straight(envelope, box, position_m, target_m, flight, duration_s)
+    if flight.teleports:  # there at once: no way to plan, only the legal target
+        return _teleport(envelope, position_m, target_m, duration_s)
     chosen = route_toward(envelope, position_m, target_m, route)
     return fly_along(envelope, position_m, chosen, flight, duration_s)
+
+
+def _teleport(
+    envelope: Envelope, position_m: Sequence[float], target_m: Sequence[float], duration_s: float
+) -> Flown:
+    """A flight with no speed limits: at the legal target at once (where the vehicle is when
+    there is none near: it holds)."""
+    requested, here = _vec(target_m), _vec(position_m)
+    legal = legal_target(envelope, requested)
+    if legal is None:
+        route = Route(requested, None, (here,), "hold", "no legal point near the target: holding")
+        return Flown(np.array(here), route, Track.still(here, duration_s))
+    route = Route(requested, legal, (legal,), "direct")
+    return Flown(np.array(legal), route, Track((0.0, duration_s), (legal, legal)))
 
 
 def fly_route(

@@ -346,6 +346,40 @@ def test_training_across_environments_draws_one_per_episode(tmp_path, test_file)
         replace(config, environments=("urban", "downtown"))
 
 
+def test_training_over_two_sites_draws_each_episodes_users_on_its_own_sites_ground(tmp_path):
+    """Generated training scenarios over munich and etoile: one set per site, each episode's
+    users from its own site's set (on its walkable ground); it used to be the first site's set
+    for both, refused by the second site's ground at the first such episode."""
+    from policies.training import _Run
+    from sim.channel import area_site
+    from sim.envs import ScenariosByEnvironment
+    from sim.sites.ground import walkable_at
+
+    munich = AreaConfig(environment="site:munich")
+    etoile = AreaConfig(environment="site:etoile")
+    candidates = generate_scenarios(40, 2, seed=11, area=munich)
+    both = [s for s in candidates if walkable_at(area_site(etoile), s.users_xy_m).all()][:2]
+    assert both, "no generated scenario stands on both sites' ground"
+    test_file = tmp_path / "test.json"
+    save_scenarios(test_file, munich, both)
+    config = replace(
+        small_config(test_file, tmp_path / "sites", "ddpg", 4),
+        strategy="gen10k",
+        environments=("site:munich", "site:etoile"),
+    )
+    run = _Run(config)
+    assert isinstance(run.train_source, ScenariosByEnvironment)
+    env = make_env("ddpg", run.train_source, config.train_worlds(run.area))
+    seen = set()
+    for seed in range(16):
+        env.reset(seed=seed)
+        base = env.unwrapped
+        seen.add(base.area.environment)
+        assert walkable_at(base.model.site, base.users.xy_m).all()
+    assert seen == {"site:munich", "site:etoile"}
+    assert train(config)["episodes"] == 4
+
+
 def test_checkpoint_files_get_the_usual_permissions(tmp_path, random_ddqn):
     """Saved and exported zips are readable like any file the user writes (umask), not 0o600
     as the temporary files they are written through."""

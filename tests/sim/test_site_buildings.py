@@ -135,3 +135,23 @@ def test_what_the_world_flies_over_munich_never_enters_a_building(preset: str) -
             _, _, _, _, info = env.step_to(rng.uniform([0, 0, 25], [500, 500, 100]))
             assert not _in_a_building(site, env.uav_xyz_m)
             assert env.world.flight_envelope.violation(info["target_xyz_m"]) is None
+
+
+def test_a_teleporting_world_over_a_site_is_at_the_legal_target_at_once() -> None:
+    """The paper's protocol (no flight) over munich: the vehicle is at the legal point of each
+    target, never inside a building, and nothing is planned on the way."""
+    from dataclasses import replace
+
+    area = AreaConfig(environment="site:munich")
+    world = replace(get_world("paper"), area=area, episode_steps=20)
+    envelope = world.flight_envelope
+    site = area_site(area)
+    env = FapContinuousEnv(generate_scenarios(2, 5, seed=1, area=area), world=world)
+    env.reset(seed=0)
+    rng = np.random.default_rng(2)
+    for _ in range(world.episode_steps):
+        target = rng.uniform([0, 0, 25], [500, 500, 100])
+        _, _, _, _, info = env.step_to(target)
+        assert env.uav_xyz_m.tolist() == pytest.approx(list(info["target_xyz_m"]))
+        assert envelope.violation(env.uav_xyz_m) is None
+        assert not _in_a_building(site, env.uav_xyz_m)
