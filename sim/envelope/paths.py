@@ -8,7 +8,8 @@
   cross, descend) when the ceiling allows; else around them at the current height, along the
   shortest path of a visibility graph over the convex corners of the exclusions' footprints
   grown by the clearance plus :data:`CORNER_MARGIN_M` (corners at most
-  :data:`CORNER_EDGE_MAX_M` apart linked; the graph kept per envelope and height band). A
+  :data:`CORNER_EDGE_MAX_M` apart linked first, all when that finds no way and they are few; the
+  graph kept per envelope and height band). A
   :class:`Hold` says why there is no path.
 
 Every leg of a returned path is checked with :meth:`Envelope.leg_violation` (the straight
@@ -34,9 +35,14 @@ from sim.envelope.volume import Envelope, Vec3
 CORNER_MARGIN_M = 0.5
 """How far outside the grown footprints the path's corners lie (so legs touch nothing)."""
 CORNER_EDGE_MAX_M = 100.0
-"""The longest edge between two corners of the detour graph (a longer clear way goes through
-corners between; the start's and the target's edges have no limit). Bounds the graph's cost over
-a district: hundreds of corners at the lowest level."""
+"""The longest edge between two corners of the detour graph tried first (a longer clear way
+goes through corners between; the start's and the target's edges have no limit; with no way
+found, every corner is linked). Bounds the graph's cost over a district: hundreds of corners at
+the lowest level."""
+FULL_GRAPH_MAX_CORNERS = 200
+"""Up to this many corners the detour graph links every pair when the limited one finds no way
+(its cost grows with the square of the corners: a district's lowest level has hundreds, and a
+plan must not hold the link's setpoint stream for long)."""
 OVER_MARGIN_M = 1.0
 """How far above the highest blocking exclusion (plus clearance) a climb-over flies."""
 PUSH_STEPS = 4
@@ -205,8 +211,24 @@ def _detour(
     the corners of the exclusions ``active`` at this height that avoids every one of them;
     None when there is none. The corners' own visibility graph is built once per envelope and
     set of exclusions (:func:`_corner_graph`); only the start's and the target's edges are
-    tested here."""
-    corners, graph = _corner_graph(envelope, active)
+    tested here. With corners linked only :data:`CORNER_EDGE_MAX_M` apart first, and when that
+    finds no way and there are at most :data:`FULL_GRAPH_MAX_CORNERS` corners, all of them."""
+    route = _detour_in(envelope, start, target, active, CORNER_EDGE_MAX_M)
+    corners = _corner_graph(envelope, active, CORNER_EDGE_MAX_M)[0]
+    if route is None and len(corners) <= FULL_GRAPH_MAX_CORNERS:
+        route = _detour_in(envelope, start, target, active, math.inf)
+    return route
+
+
+def _detour_in(
+    envelope: Envelope,
+    start: Vec3,
+    target: Vec3,
+    active: tuple[int, ...],
+    limit_m: float,
+) -> list[tuple[float, float]] | None:
+    """:func:`_detour` through the corner graph with edges at most ``limit_m`` long."""
+    corners, graph = _corner_graph(envelope, active, limit_m)
     ends = np.array([start[:2], target[:2]], dtype=float)
     n = len(corners)
     # Node indices: the corners 0..n-1, the start n, the target n + 1.
@@ -244,12 +266,12 @@ def _visible(
 
 
 def _corner_graph(
-    envelope: Envelope, active: tuple[int, ...]
+    envelope: Envelope, active: tuple[int, ...], limit_m: float
 ) -> tuple[np.ndarray, list[list[tuple[int, float]]]]:
     """The corner nodes (N, 2) of the exclusions ``active`` (:func:`_corners`) and the
-    visibility graph between those at most :data:`CORNER_EDGE_MAX_M` apart (adjacency lists of
-    (node, length)), kept per envelope and set of exclusions."""
-    kept = envelope.graphs.get(active)
+    visibility graph between those at most ``limit_m`` apart (adjacency lists of (node,
+    length)), kept per envelope, set of exclusions and limit."""
+    kept = envelope.graphs.get((active, limit_m))
     if kept is None:
         corners = _corners(envelope, active, active)
         n = len(corners)
@@ -257,14 +279,14 @@ def _corner_graph(
         if n > 1:
             points = shapely.points(corners)
             near = shapely.STRtree(points).query(
-                points, predicate="dwithin", distance=CORNER_EDGE_MAX_M
+                points, predicate="dwithin", distance=min(limit_m, 1e12)
             )
             i_idx, j_idx = near[:, near[0] < near[1]]
             free, lengths = _visible(envelope, active, corners[i_idx], corners[j_idx])
             for i, j, length in zip(i_idx[free], j_idx[free], lengths[free], strict=True):
                 graph[i].append((int(j), float(length)))
                 graph[j].append((int(i), float(length)))
-        kept = envelope.graphs[active] = (corners, graph)
+        kept = envelope.graphs[(active, limit_m)] = (corners, graph)
     return kept
 
 

@@ -74,7 +74,9 @@ class Envelope:
     _free: dict[tuple[tuple[int, ...], float], shapely.Geometry] = field(
         default_factory=dict, compare=False, repr=False
     )
-    graphs: dict[tuple[int, ...], object] = field(default_factory=dict, compare=False, repr=False)
+    graphs: dict[tuple[tuple[int, ...], float], object] = field(
+        default_factory=dict, compare=False, repr=False
+    )
     """Kept by :mod:`sim.envelope.paths`: the corners' visibility graph per set of exclusions."""
 
     @classmethod

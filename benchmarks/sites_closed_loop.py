@@ -1,0 +1,134 @@
+"""Policies over the shipped districts in the closed loop, the buildings obstacles: a checkpoint
+trained over munich and etoile, judged on held-out scenarios there and over florence, which it
+never saw, against the planning and tracking oracles and the baselines.
+
+For each site (munich, etoile, florence), user count (``--users``, 3 and 10) and world
+(``closed-loop``, ``closed-loop-moving``): ``--scenarios`` held-out scenarios generated on the
+site (seed 88U, used nowhere else), one ``tupa eval`` of every policy on them (``--episode-steps``
+40, two workers), then one table: each policy's mean, its ratio to the planning oracle's mean
+and whether it is above every baseline (min-distance, min-distance-env, load-weighted) in the
+mean. Writes ``benchmarks/results/sites_closed_loop.json`` and ``.md``; each ``tupa eval``'s
+own output is kept in ``--work`` (default ``runs/sites_closed_loop``).
+
+The checkpoint (``--checkpoint``) is trained by the command in the docs (docs/results.md,
+"Over the districts"); with ``--aggregate`` the evaluations already in ``--work`` are only
+summarised::
+
+    .venv/bin/python benchmarks/sites_closed_loop.py --checkpoint runs/ship40/ddpg-sites/model.zip
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+TUPA = Path(sys.executable).with_name("tupa")
+SITES = ("munich", "etoile", "florence")
+WORLDS = ("closed-loop", "closed-loop-moving")
+BASELINES = ("min-distance", "min-distance-env", "load-weighted")
+REFERENCES = ("planning-oracle", "oracle")
+
+
+def _run(command: list[str]) -> None:
+    done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"{' '.join(command)} failed:\n{done.stdout[-2000:]}{done.stderr[-2000:]}")
+
+
+def _evaluate(args: argparse.Namespace, site: str, users: int, world: str) -> Path:
+    work: Path = args.work
+    scenarios = work / f"test_{site}_{users}.json"
+    if not scenarios.exists():
+        _run([str(TUPA), "scenarios", "generate", "--n", str(args.scenarios), "--users",
+              str(users), "--seed", f"88{users}", "--environment", f"site:{site}",
+              "--out", str(scenarios)])  # fmt: skip
+    out = work / f"eval_{site}_{users}_{world}.json"
+    policies = [args.checkpoint, *REFERENCES, *BASELINES]
+    command = [str(TUPA), "eval", *[a for p in policies for a in ("--policy", str(p))]]
+    command += ["--scenarios", str(scenarios), "--world", world, "--json", str(out)]
+    command += ["--episode-steps", str(args.episode_steps), "--workers", "2", "--no-progress"]
+    started = time.monotonic()
+    _run(command)
+    print(f"{site} {users} users {world}: {time.monotonic() - started:.0f} s", file=sys.stderr)
+    return out
+
+
+def _summary(path: Path, site: str, users: int, world: str) -> dict[str, Any]:
+    results = json.loads(path.read_text())["results"]
+    means = {r["policy"]: r["mean_utility"] for r in results}
+    learned = results[0]["policy"]
+    planner = means["planning-oracle"]
+    best_baseline = max(means[b] for b in BASELINES)
+    return {
+        "site": site,
+        "users": users,
+        "world": world,
+        "scenarios": results[0]["n_scenarios"],
+        "means": means,
+        "learned": learned,
+        "learned_over_planner": means[learned] / planner if planner else None,
+        "learned_over_best_baseline": means[learned] / best_baseline if best_baseline else None,
+        "learned_above_every_baseline": means[learned] > best_baseline,
+        "planner_over_best_baseline": planner / best_baseline if best_baseline else None,
+    }
+
+
+def _markdown(rows: list[dict[str, Any]]) -> str:
+    learned = rows[0]["learned"]
+    names = [learned, *REFERENCES, *BASELINES]
+    lines = [
+        "| site | users | world | n | " + " | ".join(names) + " | learned / planner |",
+        "| --- | ---: | --- | ---: | " + " | ".join("---:" for _ in names) + " | ---: |",
+    ]
+    for r in rows:
+        cells = [f"{r['means'][n]:.3f}" for n in names]
+        lines.append(
+            f"| {r['site']} | {r['users']} | {r['world']} | {r['scenarios']} | "
+            + " | ".join(cells)
+            + f" | {r['learned_over_planner']:.2f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--checkpoint", type=Path, required=True)
+    parser.add_argument("--work", type=Path, default=Path("runs/sites_closed_loop"))
+    parser.add_argument("--scenarios", type=int, default=16, help="per site and user count")
+    parser.add_argument("--users", default="3,10")
+    parser.add_argument("--episode-steps", type=int, default=40)
+    parser.add_argument("--aggregate", action="store_true", help="only summarise --work")
+    parser.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/sites_closed_loop")
+    args = parser.parse_args()
+    if not args.checkpoint.exists() and not args.aggregate:
+        parser.error(f"--checkpoint: {args.checkpoint}: no such file")
+    args.work.mkdir(parents=True, exist_ok=True)
+    users_counts = [int(u) for u in args.users.split(",")]
+    rows = []
+    for site in SITES:
+        for users in users_counts:
+            for world in WORLDS:
+                path = args.work / f"eval_{site}_{users}_{world}.json"
+                if not args.aggregate:
+                    path = _evaluate(args, site, users, world)
+                rows.append(_summary(path, site, users, world))
+    document = {
+        "command": " ".join(["python", *sys.argv]),
+        "checkpoint": str(args.checkpoint),
+        "episode_steps": args.episode_steps,
+        "rows": rows,
+    }
+    args.out.with_suffix(".json").write_text(json.dumps(document, indent=1) + "\n")
+    args.out.with_suffix(".md").write_text(_markdown(rows))
+    print(_markdown(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
