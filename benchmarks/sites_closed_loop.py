@@ -7,8 +7,10 @@ For each site (munich, etoile, florence), user count (``--users``, 3 and 10) and
 site (seed 88U, used nowhere else), one ``tupa eval`` of every policy on them (``--episode-steps``
 40, two workers), then one table: each policy's mean, its ratio to the planning oracle's mean
 and whether it is above every baseline (min-distance, min-distance-env, load-weighted) in the
-mean. Writes ``benchmarks/results/sites_closed_loop.json`` and ``.md``; each ``tupa eval``'s
-own output is kept in ``--work`` (default ``runs/sites_closed_loop``).
+mean. Writes ``benchmarks/results/sites_closed_loop.json``, ``.md`` and ``.png`` (the mean
+utility of every policy over the episode, step by step, per site and world, ``--figure-users``
+users); each ``tupa eval``'s own output is kept in ``--work`` (default
+``runs/sites_closed_loop``).
 
 The checkpoint (``--checkpoint``) is trained by the command in the docs (docs/results.md,
 "Over the districts"); with ``--aggregate`` the evaluations already in ``--work`` are only
@@ -96,6 +98,37 @@ def _markdown(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _figure(work: Path, users: int, out: Path) -> None:
+    """Mean utility per step of each policy (over the set's scenarios), a panel per site and
+    world: how each gets there and what it holds, flown round the buildings."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    fig, axes = plt.subplots(
+        len(WORLDS), len(SITES), figsize=(4.2 * len(SITES), 3.2 * len(WORLDS)), sharey=True
+    )
+    for row, world in enumerate(WORLDS):
+        for column, site in enumerate(SITES):
+            ax = axes[row][column]
+            results = json.loads((work / f"eval_{site}_{users}_{world}.json").read_text())
+            for result in results["results"]:
+                traces = np.array([s["trace"] for s in result["scenarios"]], dtype=float)
+                steps = np.arange(1, traces.shape[1] + 1)
+                ax.plot(steps, traces.mean(axis=0), label=result["policy"], linewidth=1.4)
+            ax.set_title(f"{site}, {world}, {users} users", fontsize=9)
+            ax.set_xlabel("step (s)")
+            ax.grid(alpha=0.3)
+        axes[row][0].set_ylabel("mean utility")
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", type=Path, required=True)
@@ -104,6 +137,7 @@ def main() -> int:
     parser.add_argument("--users", default="3,10")
     parser.add_argument("--episode-steps", type=int, default=40)
     parser.add_argument("--aggregate", action="store_true", help="only summarise --work")
+    parser.add_argument("--figure-users", type=int, default=10, help="the figure's user count")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/sites_closed_loop")
     args = parser.parse_args()
     if not args.checkpoint.exists() and not args.aggregate:
@@ -126,6 +160,8 @@ def main() -> int:
     }
     args.out.with_suffix(".json").write_text(json.dumps(document, indent=1) + "\n")
     args.out.with_suffix(".md").write_text(_markdown(rows))
+    if args.figure_users in users_counts:
+        _figure(args.work, args.figure_users, args.out.with_suffix(".png"))
     print(_markdown(rows))
     return 0
 
