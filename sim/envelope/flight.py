@@ -615,7 +615,8 @@ class FleetFlight:
     held for the separation (:func:`separate_tracks`)."""
 
     positions_m: np.ndarray
-    routes: tuple[Route, ...]
+    routes: tuple[Route | None, ...]
+    """Each vehicle's route to pass back next period (None: plan one from where it is)."""
     tracks: tuple[Track, ...]
     held: tuple[bool, ...]
     velocities_mps: np.ndarray | None = None
@@ -653,7 +654,7 @@ def fly_fleet(
             period, velocities[k] = fly_route_period(
                 envelope, p, velocities[k], t, flight, duration_s, r
             )
-            planned.append(period.route)
+            planned.append(r)  # held: the route it had (this one advanced along a path not flown)
             flown.append(period)
         elif envelope is None or box is not None:
             planned.append(None)
@@ -670,12 +671,12 @@ def fly_fleet(
         else separate_tracks(starts, tracks, separation_m, duration_s)
     )
     out = np.array([f.position_m for f in flown], dtype=float).reshape(len(flown), 3)
-    kept: list[Route] = []
+    kept: list[Route | None] = []
     for k, f in enumerate(flown):
         if held[k]:
             out[k] = positions[k]
             tracks[k] = Track.still(starts[k], duration_s)
-            kept.append(planned[k] or f.route)
+            kept.append(planned[k] if accelerates else planned[k] or f.route)
             velocities[k] = 0.0  # held: stopped there (a stand-in, as the hold is)
         else:
             kept.append(f.route)
