@@ -418,10 +418,11 @@ def _change_envelope(service: PlacementService, vid: str, body: EnvelopeIn) -> N
     summary="Give the vehicle a new flight envelope",
     responses={**_ENVELOPE_RESPONSES, **_FLEET_CONFLICT},
 )
-async def put_vehicle_envelope(body: EnvelopeIn, request: Request) -> VehicleOut:
+def put_vehicle_envelope(body: EnvelopeIn, request: Request) -> VehicleOut:
     """From now on the vehicle flies inside this envelope: its route is planned again from where
     it is; a vehicle the new envelope finds outside holds where it is and says why (``route``),
-    it never jumps. The answer is the vehicle's state."""
+    it never jumps. The answer is the vehicle's state. (A plain function: the envelope is built
+    and checked, and the state file written, on the server's thread pool, not its event loop.)"""
     service = _single_vehicle(request, "PUT /v1/vehicles/{vehicle_id}/envelope")
     _change_envelope(service, next(iter(service.links)), body)
     return _vehicle_out(service.vehicle())
@@ -433,7 +434,7 @@ async def put_vehicle_envelope(body: EnvelopeIn, request: Request) -> VehicleOut
     summary="Give one vehicle a new flight envelope",
     responses={**_ENVELOPE_RESPONSES, **_NO_SUCH_VEHICLE},
 )
-async def put_fleet_vehicle_envelope(
+def put_fleet_vehicle_envelope(
     vehicle_id: str, body: EnvelopeIn, request: Request
 ) -> FleetVehicleOut:
     """As ``PUT /v1/vehicle/envelope``, for one vehicle of the fleet."""

@@ -269,8 +269,8 @@ class EnvelopeIn(_Strict):
     exclusions: list[ExclusionIn] = Field(
         default_factory=list,
         max_length=200,
-        description="At most 200 of at most 200 corners each: the request stays under the body "
-        "size limit (a district's buildings come from a file, --envelope)",
+        description="At most 200, of at most 200 corners each and 1000 corners in all (routes "
+        "are planned round every corner); a district's buildings are added by the service",
     )
 
 

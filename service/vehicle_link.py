@@ -55,7 +55,7 @@ from service.link_takeoff import (
     TakeoffMixin,
 )
 from service.modes import GUIDED_MODE_NAME, Flavour, flavour_of, mode_name
-from service.routing import LinkRoute, RouteView
+from service.routing import LinkRoute, RouteView, background_planner
 from service.vehicle_mavlink import mavlink
 from sim.config import AreaConfig
 from sim.envelope import Envelope, area_envelope
@@ -70,6 +70,10 @@ STATUS_TEXTS_KEPT = 8
 IDLE_WAIT_S = 0.05
 """The I/O loop's longest wait for input, and its pace while no vehicle answers."""
 HEARTBEAT_PERIOD_S = 1.0
+PLAN_WAIT_S = 0.05
+"""How long the I/O loop waits for a route it just asked for before it streams what goes on
+meanwhile (:mod:`service.routing`): most plans take milliseconds; a slow one never holds the
+loop longer (PX4 gives up OFFBOARD after 1 s without a setpoint)."""
 """Our own HEARTBEAT's period (where the backend sends it)."""
 TELEMETRY_REQUEST_PERIOD_S = 2.0
 """How often ``_request_telemetry`` is called while the vehicle is up."""
@@ -386,7 +390,9 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
         self._speed_busy = False
         self._origin: GeoPoint | None = None  # the local NED origin, from GPS_GLOBAL_ORIGIN
         self._routing = LinkRoute(
-            fence_compatible(envelope) if config.autopilot_fence else envelope
+            fence_compatible(envelope) if config.autopilot_fence else envelope,
+            background_planner(f"{self._thread_name}-routes"),
+            self._route_planned,
         )
         self._target_dirty = False  # a new target not sent yet: send it at once
         self._hold_setpoints = False
@@ -485,6 +491,7 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
             if thread is not None:
                 thread.join(timeout_s)
         self._thread = None
+        self._routing.close()
         self._close_transport()
 
     def state(self) -> LinkState:
@@ -892,7 +899,10 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
                 if new:
                     self._routing.replan()
                 setpoint = self._routing.setpoint(
-                    self._position_locked(now), self._velocity_locked(now), self.config.brake_mps2
+                    self._position_locked(now),
+                    self._velocity_locked(now),
+                    self.config.brake_mps2,
+                    PLAN_WAIT_S,
                 )
             if setpoint is None:
                 self._stream_since = None
@@ -906,6 +916,12 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
         if self._send_setpoint(ned_m, now, new):
             with self._cond:
                 self.counters["setpoints_sent"] += 1
+
+    def _route_planned(self) -> None:
+        """A route plan ended (on the planner's thread): stream it at once."""
+        with self._cond:
+            self._target_dirty = True
+            self._cond.notify_all()
 
     def _position_locked(self, now: float) -> tuple[float, float, float] | None:
         """Where the vehicle is (area frame) from a fresh LOCAL_POSITION_NED, or None (call

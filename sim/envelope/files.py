@@ -16,8 +16,10 @@ Polygons are lists of at least three [x, y] corners (closed implicitly), simple 
 self-intersecting). :func:`envelope_from_document` refuses, with one line naming the field, what
 cannot be flown: a polygon that is not simple, an inclusion outside the area, a ceiling not above
 the floor, an exclusion whose ceiling is not above its floor, exclusions (with the clearance)
-that leave no legal point, unknown fields. Over a site (``environment = site:NAME``) the
-site's buildings are exclusions too, after the document's (:mod:`sim.envelope.buildings`).
+that leave no legal point, unknown fields, more than :data:`MAX_EXCLUSION_CORNERS` exclusion
+corners in all (routes are planned round every corner: their cost must stay bounded). Over a
+site (``environment = site:NAME``) the site's buildings are exclusions too, after the
+document's (:mod:`sim.envelope.buildings`).
 """
 
 from __future__ import annotations
@@ -36,6 +38,8 @@ from sim.envelope.volume import Envelope, Exclusion
 from sim.errors import InputError
 
 ENVELOPE_FORMAT = "tupa-envelope/1"
+MAX_EXCLUSION_CORNERS = 1000
+"""The most corners a document's exclusions may have in all (a site's buildings not counted)."""
 _TOP_FIELDS = {
     "format",
     "inclusion",
@@ -101,6 +105,16 @@ def envelope_from_document(document: Any, area: AreaConfig) -> Envelope:
     raw = document.get("exclusions", [])
     if not isinstance(raw, list):
         raise InputError("exclusions: must be a list")
+    corners = sum(
+        len(entry["polygon"])
+        for entry in raw
+        if isinstance(entry, dict) and isinstance(entry.get("polygon"), list)
+    )
+    if corners > MAX_EXCLUSION_CORNERS:
+        raise InputError(
+            f"exclusions: {corners} corners in all, at most {MAX_EXCLUSION_CORNERS} "
+            "(routes are planned round every corner)"
+        )
     exclusions = tuple(_exclusion(entry, f"exclusions[{i}]") for i, entry in enumerate(raw))
     exclusions += area_exclusions(area, floor_m, ceiling_m)
     envelope = Envelope(inclusion, floor_m, ceiling_m, exclusions, clearance_m, max_speed_mps)

@@ -39,6 +39,12 @@ CORNER_EDGE_MAX_M = 100.0
 goes through corners between; the start's and the target's edges have no limit; with no way
 found, every corner is linked). Bounds the graph's cost over a district: hundreds of corners at
 the lowest level."""
+SIMPLIFY_CORNERS_M = 1.0
+"""How far outward a footprint's outline may move for its corners to become fewer (a curved
+outline's many corners are the graph's cost; the simplified outline is used only where it covers
+the grown footprint, so the corners stay outside it)."""
+VISIBILITY_CHUNK = 50_000
+"""Segments tested at once when a detour graph is built (bounds its memory)."""
 FULL_GRAPH_MAX_CORNERS = 200
 """Up to this many corners the detour graph links every pair when the limited one finds no way
 (its cost grows with the square of the corners: a district's lowest level has hundreds, and a
@@ -281,23 +287,29 @@ def _corner_graph(
             near = shapely.STRtree(points).query(
                 points, predicate="dwithin", distance=min(limit_m, 1e12)
             )
-            i_idx, j_idx = near[:, near[0] < near[1]]
-            free, lengths = _visible(envelope, active, corners[i_idx], corners[j_idx])
-            for i, j, length in zip(i_idx[free], j_idx[free], lengths[free], strict=True):
-                graph[i].append((int(j), float(length)))
-                graph[j].append((int(i), float(length)))
+            i_all, j_all = near[:, near[0] < near[1]]
+            for start in range(0, len(i_all), VISIBILITY_CHUNK):
+                i_idx = i_all[start : start + VISIBILITY_CHUNK]
+                j_idx = j_all[start : start + VISIBILITY_CHUNK]
+                free, lengths = _visible(envelope, active, corners[i_idx], corners[j_idx])
+                for i, j, length in zip(
+                    i_idx[free].tolist(), j_idx[free].tolist(), lengths[free].tolist(), strict=True
+                ):
+                    graph[i].append((j, length))
+                    graph[j].append((i, length))
         kept = envelope.graphs[(active, limit_m)] = (corners, graph)
     return kept
 
 
 def _corners(envelope: Envelope, around: tuple[int, ...], active: tuple[int, ...]) -> np.ndarray:
     """The graph's corner nodes (N, 2): the convex corners of the footprints ``around``, grown
-    by the clearance and :data:`CORNER_MARGIN_M`, that lie in the room and outside every
+    by the clearance and :data:`CORNER_MARGIN_M` (simplified outward by up to
+    :data:`SIMPLIFY_CORNERS_M` where that covers them), that lie in the room and outside every
     exclusion ``active`` (a shortest way bends only round a convex corner, and never at one
     inside something; the footprints of a site's stacked layers lie inside each other)."""
     found = []
     for i in around:
-        ring = envelope.grown[i][0].buffer(CORNER_MARGIN_M, join_style="mitre")
+        ring = _outward(envelope.grown[i][0].buffer(CORNER_MARGIN_M, join_style="mitre"))
         for polygon in getattr(ring, "geoms", [ring]):
             coords = np.asarray(polygon.exterior.coords)[:-1]
             if not polygon.exterior.is_ccw:
@@ -313,6 +325,20 @@ def _corners(envelope: Envelope, around: tuple[int, ...], active: tuple[int, ...
     if active:
         keep[envelope.solid_tree(active).query(points, predicate="intersects")[0]] = False
     return corners[keep]
+
+
+def _outward(ring: shapely.Geometry) -> shapely.Geometry:
+    """``ring`` with fewer corners, moved only outward (:data:`SIMPLIFY_CORNERS_M`): the simpler
+    outline when it covers ``ring`` and has fewer corners, else ``ring``."""
+    simpler = ring.buffer(SIMPLIFY_CORNERS_M, join_style="mitre").simplify(SIMPLIFY_CORNERS_M)
+    if (
+        simpler.geom_type == ring.geom_type
+        and simpler.is_valid
+        and shapely.get_num_coordinates(simpler) < shapely.get_num_coordinates(ring)
+        and simpler.covers(ring)
+    ):
+        return simpler
+    return ring
 
 
 def _shortest(

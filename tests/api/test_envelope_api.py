@@ -3,6 +3,8 @@ show them (issue 39). In memory: a FakeLink (the same routing as the real links)
 
 from __future__ import annotations
 
+import math
+
 from fastapi.testclient import TestClient
 from shapely.geometry import box
 
@@ -74,6 +76,17 @@ def test_an_operator_puts_a_new_envelope_and_a_bad_one_is_refused_naming_the_fie
     answer = client.put("/v1/vehicle/envelope", json=corner, headers=AUTH)
     assert answer.status_code == 422
     assert "home (0.0, 0.0) is inside" in answer.json()["detail"][0]["msg"]
+    # More corners than routes may be planned round (each polygon within the schema's limit).
+    square = [[300, 300], [301, 300], [301, 301], [300, 301]]
+    ring = [[400 + 20 * math.cos(k / 32), 400 + 20 * math.sin(k / 32)] for k in range(200)]
+    many = {"format": "tupa-envelope/1", "exclusions": [
+        {"polygon": ring, "floor_m": 0, "ceiling_m": 120}] * 5 + [
+        {"polygon": square, "floor_m": 0, "ceiling_m": 120}]}  # fmt: skip
+    answer = client.put("/v1/vehicle/envelope", json=many, headers=AUTH)
+    assert answer.status_code == 422
+    (error,) = answer.json()["detail"]
+    assert error["loc"] == ["body", "exclusions"]
+    assert error["msg"].startswith("envelope.exclusions: 1004 corners in all, at most 1000")
 
     answer = client.put("/v1/vehicle/envelope", json=STADIUM_DOC, headers=AUTH)
     assert answer.status_code == 200, answer.text

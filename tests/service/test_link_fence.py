@@ -14,6 +14,7 @@ from typing import Any
 import pytest
 from shapely.geometry import Point, Polygon, box
 
+from service.routing import PLANNING
 from sim.envelope import Envelope, Exclusion
 from sitl_mock.server import MockAutopilot
 from tests.helpers import tcp_url, wait_for
@@ -52,7 +53,9 @@ def test_the_fence_is_on_the_vehicle_before_the_take_off_and_routes_keep_out_of_
     # the route goes around it.
     target = (50.0, 25.0, 15.0)
     assert link.set_target(target) == target
-    wait_for(lambda: (s := link.state()).route is not None and s.streaming, 5.0)
+    wait_for(
+        lambda: (s := link.state()).streaming and s.route and s.route.hold_reason != PLANNING, 5.0
+    )
     assert link.state().route.kind == "around"
     deadline = time.monotonic() + 40.0
     closest_m = math.inf

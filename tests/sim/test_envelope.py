@@ -215,6 +215,10 @@ BOWTIE = [[0, 0], [100, 100], [100, 0], [0, 100]]
         (doc(max_speed_mps=0), "max_speed_mps: must be a positive number"),
         (doc(floor_m=float("nan")), "floor_m: must be a finite number"),
         (doc(exclusions={}), "exclusions: must be a list"),
+        (
+            doc(exclusions=[{"polygon": [[0, 0], [9, 0], [9, 9]] * 167, "ceiling_m": 9}] * 2),
+            "exclusions: 1002 corners in all, at most 1000",
+        ),
         (doc(exclusions=[{"polygon": BOWTIE, "ceiling_m": 9}]), "exclusions[0].polygon: not a"),
         (
             doc(exclusions=[{"polygon": [[0, 0], [9, 0], [9, 9]]}]),
