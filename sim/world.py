@@ -363,26 +363,6 @@ class World:
             self.flight_envelope, position_m, target_m, self.flight, self.step_s, route
         )
 
-    def fly_routes(
-        self,
-        positions_m: np.ndarray,
-        targets_m: np.ndarray,
-        routes: Sequence[Route | None] | None = None,
-    ) -> tuple[np.ndarray, list[Route]]:
-        """:meth:`fly_route` of each row (E, 3), independent vehicles (one per environment of a
-        batch): row e is exactly :meth:`fly_route` of row e with ``routes[e]``."""
-        from sim.envelope.flight import fly_route
-
-        envelope = self.flight_envelope
-        positions = np.asarray(positions_m, dtype=float)
-        kept = [None] * len(positions) if routes is None else list(routes)
-        out = np.empty((len(positions), 3))
-        flown: list[Route] = []
-        for e, (p, t, r) in enumerate(zip(positions, np.asarray(targets_m), kept, strict=True)):
-            out[e], route = fly_route(envelope, p, t, self.flight, self.step_s, r)
-            flown.append(route)
-        return out, flown
-
     def fly_routes_period(
         self,
         positions_m: np.ndarray,
@@ -391,30 +371,26 @@ class World:
         routes: Sequence[Route | None] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, list[Route]]:
         """One decision period inside the world's envelope for each row (E, 3) of independent
-        vehicles: (positions, velocities, routes) at its end, each route to pass back next
-        period. With an acceleration limit, as the loop flies the link's routes (latency and
-        velocity carried: :func:`sim.envelope.flight.fly_route_period`); else
-        :meth:`fly_routes` (velocities returned zero)."""
-        positions = np.asarray(positions_m, dtype=float).reshape(-1, 3)
-        targets = np.asarray(targets_m, dtype=float).reshape(-1, 3)
-        if not self.flight.accelerates:
-            flown, kept = self.fly_routes(positions, targets, routes)
-            return flown, np.zeros_like(flown), kept
-        from sim.envelope.flight import fly_route_period
+        vehicles (:func:`sim.envelope.flight.fly_vehicle_period`: with an acceleration limit as
+        the loop flies the link's routes, latency and velocity carried; else at the speed caps
+        or at once): (positions, velocities, routes) at its end, each route to pass back next
+        period; velocities zero without an acceleration limit."""
+        from sim.envelope.flight import fly_vehicle_period
 
         envelope = self.flight_envelope
-        assert envelope is not None
+        positions = np.asarray(positions_m, dtype=float).reshape(-1, 3)
+        targets = np.asarray(targets_m, dtype=float).reshape(-1, 3)
         velocities = np.asarray(velocities_mps, dtype=float).reshape(-1, 3)
-        kept_routes = [None] * len(positions) if routes is None else list(routes)
+        kept = [None] * len(positions) if routes is None else list(routes)
         out, out_velocity = np.empty_like(positions), np.empty_like(positions)
         flown_routes: list[Route] = []
         for e in range(len(positions)):
-            flown, out_velocity[e] = fly_route_period(
+            period = fly_vehicle_period(
                 envelope, positions[e], velocities[e], targets[e], self.flight, self.step_s,
-                kept_routes[e],
+                kept[e],
             )  # fmt: skip
-            out[e] = flown.position_m
-            flown_routes.append(flown.route)
+            out[e], out_velocity[e] = period.flown.position_m, period.velocity_mps
+            flown_routes.append(period.flown.route)
         return out, out_velocity, flown_routes
 
     def legal_start(self, xyz_m: np.ndarray) -> np.ndarray:

@@ -66,6 +66,7 @@ __all__ = [
     "fly_route",
     "fly_route_period",
     "fly_route_track",
+    "fly_vehicle_period",
     "legal_position",
     "plain_box",
     "read_document",
@@ -395,13 +396,62 @@ def fly_route_track(
 ) -> Flown:
     """One vehicle's period toward ``target_m`` inside ``envelope`` (module docstring), with
     the route to keep for the next period and the path flown."""
+    return _track_period(envelope, position_m, target_m, flight, duration_s, route)[0]
+
+
+def _track_period(
+    envelope: Envelope | None,
+    position_m: Sequence[float],
+    target_m: Sequence[float],
+    flight: Flight,
+    duration_s: float,
+    route: Route | None,
+) -> tuple[Flown, Route | None]:
+    """:func:`fly_route_track`, and the route chosen at the period's start (None on the fast
+    path, which keeps none)."""
     box = None if envelope is None else plain_box(envelope)
     if envelope is None or box is not None:
-        return _straight(envelope, box, position_m, target_m, flight, duration_s)
+        return _straight(envelope, box, position_m, target_m, flight, duration_s), None
     if flight.teleports:  # there at once: no way to plan, only the legal target
-        return _teleport(envelope, position_m, target_m, duration_s)
+        flown = _teleport(envelope, position_m, target_m, duration_s)
+        return flown, flown.route
     chosen = route_toward(envelope, position_m, target_m, route)
-    return fly_along(envelope, position_m, chosen, flight, duration_s)
+    return fly_along(envelope, position_m, chosen, flight, duration_s), chosen
+
+
+@dataclass(frozen=True)
+class VehiclePeriod:
+    """One vehicle's decision period (:func:`fly_vehicle_period`)."""
+
+    flown: Flown
+    """Where it ends, the route to pass back next period, the path flown."""
+    velocity_mps: np.ndarray
+    """Its velocity at the end (3,): zero without an acceleration limit."""
+    route_if_held: Route | None
+    """The route it keeps when it is held where it was for the period (a fleet's separation):
+    the one chosen at the period's start, not one advanced along a path it did not fly."""
+
+
+def fly_vehicle_period(
+    envelope: Envelope | None,
+    position_m: Sequence[float],
+    velocity_mps: Sequence[float],
+    target_m: Sequence[float],
+    flight: Flight,
+    duration_s: float,
+    route: Route | None = None,
+) -> VehiclePeriod:
+    """One vehicle's decision period, the one flight of the single, vector and fleet worlds:
+    inside an envelope with an acceleration limit as the loop flies the link's routes
+    (:func:`fly_route_period`, velocity carried); else :func:`fly_route_track` (at the speed
+    caps, or at once for a teleporting flight; velocity zero)."""
+    if envelope is not None and flight.accelerates:
+        flown, velocity = fly_route_period(
+            envelope, position_m, velocity_mps, target_m, flight, duration_s, route
+        )
+        return VehiclePeriod(flown, velocity, route)
+    flown, chosen = _track_period(envelope, position_m, target_m, flight, duration_s, route)
+    return VehiclePeriod(flown, np.zeros(3), chosen or flown.route)
 
 
 def _teleport(
@@ -633,36 +683,24 @@ def fly_fleet(
     routes: Sequence[Route | None] | None = None,
     velocities_mps: np.ndarray | None = None,
 ) -> FleetFlight:
-    """K vehicles' period: each flies its own route (:func:`fly_route_track`; its route kept
-    from ``routes``; with an acceleration limit and an envelope :func:`fly_route_period`, from
-    ``velocities_mps``, zero when None), then those whose paths would come too close hold where
-    they are, on the route they had (:func:`separate_tracks`; no separation with
-    ``separation_m`` None)."""
+    """K vehicles' period: each flies its own (:func:`fly_vehicle_period`; its route kept from
+    ``routes``, its velocity from ``velocities_mps``, zero when None), then those whose paths
+    would come too close hold where they are, on the route they had
+    (:func:`separate_tracks`; no separation with ``separation_m`` None)."""
     positions = np.asarray(positions_m, dtype=float)
     targets = np.asarray(targets_m, dtype=float)
     previous = list(routes) if routes is not None else [None] * len(positions)
-    box = None if envelope is None else plain_box(envelope)
-    planned: list[Route | None] = []
-    flown: list[Flown] = []
     accelerates = envelope is not None and flight.accelerates
     velocities = np.zeros_like(positions)
     if accelerates and velocities_mps is not None:
         velocities = np.array(velocities_mps, dtype=float).reshape(positions.shape)
-    for k, (p, t, r) in enumerate(zip(positions.tolist(), targets.tolist(), previous, strict=True)):
-        if accelerates:
-            assert envelope is not None
-            period, velocities[k] = fly_route_period(
-                envelope, p, velocities[k], t, flight, duration_s, r
-            )
-            planned.append(r)  # held: the route it had (this one advanced along a path not flown)
-            flown.append(period)
-        elif envelope is None or box is not None:
-            planned.append(None)
-            flown.append(_straight(envelope, box, p, t, flight, duration_s))
-        else:
-            chosen = route_toward(envelope, p, t, r)
-            planned.append(chosen)
-            flown.append(fly_along(envelope, p, chosen, flight, duration_s))
+    periods = [
+        fly_vehicle_period(envelope, p, v, t, flight, duration_s, r)
+        for p, v, t, r in zip(
+            positions.tolist(), velocities.tolist(), targets.tolist(), previous, strict=True
+        )
+    ]
+    flown = [period.flown for period in periods]
     starts = [_vec(p) for p in positions.tolist()]
     tracks = [f.track for f in flown]
     held = (
@@ -672,12 +710,13 @@ def fly_fleet(
     )
     out = np.array([f.position_m for f in flown], dtype=float).reshape(len(flown), 3)
     kept: list[Route | None] = []
-    for k, f in enumerate(flown):
+    for k, period in enumerate(periods):
+        velocities[k] = period.velocity_mps
         if held[k]:
             out[k] = positions[k]
             tracks[k] = Track.still(starts[k], duration_s)
-            kept.append(planned[k] if accelerates else planned[k] or f.route)
+            kept.append(period.route_if_held)
             velocities[k] = 0.0  # held: stopped there (a stand-in, as the hold is)
         else:
-            kept.append(f.route)
+            kept.append(period.flown.route)
     return FleetFlight(out, tuple(kept), tuple(tracks), held, velocities if accelerates else None)
