@@ -346,6 +346,11 @@ def run_demo(cfg: DemoConfig) -> dict[str, Any]:
                     "achieved": achieved["served"],
                     **others,
                     "loop_minus_sim": loop_minus_sim,
+                    # Every loop's utility per step, as flown (the served one under its name).
+                    "loop_utilities": {
+                        (policy_name if k == "served" else k): [r.utility for r in rs]
+                        for k, rs in records.items()
+                    },
                     "track": [asdict(r) for r in records["served"]],
                 }
             )
@@ -358,8 +363,12 @@ def run_demo(cfg: DemoConfig) -> dict[str, Any]:
 
     atomic_write_json(cfg.out_dir / "demo.json", summary)
     plot_tracks(results, area, cfg.out_dir / "track.png", policy_name)
+    plot_utilities(results, cfg.out_dir / "utility.png")
     _say("\n" + format_table(results, policy_name))
-    _say(f"\nwrote {cfg.out_dir / 'demo.json'} and {cfg.out_dir / 'track.png'}")
+    _say(
+        f"\nwrote {cfg.out_dir / 'demo.json'}, {cfg.out_dir / 'track.png'} and "
+        f"{cfg.out_dir / 'utility.png'}"
+    )
     return summary
 
 
@@ -503,6 +512,33 @@ def plot_tracks(
     handles, labels = axes[0][0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0.06, 1, 1))
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(path)
+
+
+def plot_utilities(results: Sequence[dict[str, Any]], path: Path) -> None:
+    """One panel per scenario: the utility of every loop, step by step, as flown through its
+    service and autopilot simulator (``loop_utilities``). Written atomically to ``path``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(results)
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.4), squeeze=False, sharey=True)
+    for ax, (i, r) in zip(axes[0], enumerate(results), strict=True):
+        for name, utilities in r["loop_utilities"].items():
+            steps = np.arange(1, len(utilities) + 1)
+            mean = float(np.mean(utilities[LOOP_SCORED])) if len(utilities) > 1 else 0.0
+            ax.plot(steps, utilities, lw=1.5, label=f"{name} ({mean:.3f})")
+        ax.set_title(f"scenario {i + 1} ({r['world']}): H = {r['heterogeneity']:.2f}", fontsize=9)
+        ax.set_xlabel("step (s)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, title="loop (mean from step 2)", title_fontsize=7)
+    axes[0][0].set_ylabel("utility, flown")
+    fig.tight_layout()
     tmp = path.with_suffix(".tmp.png")
     fig.savefig(tmp, dpi=110)
     plt.close(fig)

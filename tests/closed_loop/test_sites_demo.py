@@ -195,6 +195,28 @@ def test_the_demo_track_figure_draws_the_site_under_the_track(
     assert drawn[-1] is None
 
 
+def test_the_demo_utility_figure_draws_every_loop_of_every_scenario(tmp_path: Path, monkeypatch):
+    drawn: dict[str, list[float]] = {}
+    import matplotlib.axes
+
+    original = matplotlib.axes.Axes.plot
+
+    def plot(ax, x, y, *args, label=None, **kwargs):
+        drawn[label] = list(y)
+        return original(ax, x, y, *args, label=label, **kwargs)
+
+    monkeypatch.setattr(matplotlib.axes.Axes, "plot", plot)
+    loops = {"planning-oracle": [0.0, 0.5, 0.7], "min-distance": [0.0, 0.2, 0.3]}
+    row = {"world": "closed-loop", "heterogeneity": 0.3, "loop_utilities": loops}
+    path = tmp_path / "utility.png"
+    demo.plot_utilities([row, row], path)
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert drawn == {
+        "planning-oracle (0.600)": [0.0, 0.5, 0.7],
+        "min-distance (0.250)": [0.0, 0.2, 0.3],
+    }
+
+
 def test_the_fleet_demo_stands_its_users_on_walkable_ground_and_draws_the_site(
     site_env: str, tmp_path: Path, monkeypatch
 ):
