@@ -168,6 +168,8 @@ def fence_plan(
     for i, hole in enumerate(envelope.inclusion.interiors):
         rings.append((CMD_EXCLUSION, f"inclusion hole {i}", _ring(hole.coords)))
     for i, exclusion in enumerate(envelope.exclusions):
+        if not exclusion.on_autopilot_fence:
+            continue
         label = f"exclusions[{i}]" + (f" {exclusion.name!r}" if exclusion.name else "")
         rings.append((CMD_EXCLUSION, label, _ring(exclusion.footprint.exterior.coords)))
         notes.append(
@@ -224,11 +226,15 @@ def fence_compatible(envelope: Envelope) -> Envelope:
     """The envelope with every exclusion made a full-height column (from below the floor to
     above the ceiling), as the autopilot's 2-D fence polygons have them: plan routes with it
     while the fence is uploaded, so that no route climbs over an exclusion the autopilot forbids
-    at every height. The inclusion, band, clearance and speed are unchanged."""
+    at every height. The inclusion, band, clearance and speed are unchanged; an exclusion the
+    fence does not hold (:attr:`~sim.envelope.volume.Exclusion.on_autopilot_fence`: a site's
+    buildings) keeps its heights."""
     low = envelope.floor_m - envelope.clearance_m - 1.0
     high = envelope.ceiling_m + envelope.clearance_m + 1.0
     exclusions = tuple(
         Exclusion(e.footprint, min(e.floor_m, low), max(e.ceiling_m, high), e.name)
+        if e.on_autopilot_fence
+        else e
         for e in envelope.exclusions
     )
     return Envelope(

@@ -81,7 +81,9 @@ def building_exclusions(
             footprint = _grown(group, margin_m)
             x, y = footprint.centroid.x, footprint.centroid.y
             name = f"building at ({x:.0f}, {y:.0f}) m, {tallest:.0f} m tall"
-            exclusions.append(Exclusion(footprint, 0.0, top + margin_m, name))
+            exclusions.append(
+                Exclusion(footprint, 0.0, top + margin_m, name, on_autopilot_fence=False)
+            )
         threshold = following
     return tuple(exclusions)
 

@@ -48,6 +48,11 @@ class Exclusion:
     floor_m: float
     ceiling_m: float
     name: str = ""
+    on_autopilot_fence: bool = True
+    """Whether ``--autopilot-fence`` puts it on the autopilot (as a full-height column). A
+    site's buildings are not: dozens of polygons an autopilot may not hold, every one a column
+    where the service's routes fly over the low ones; the routes keep out of them at their
+    heights."""
 
     def band_m(self, clearance_m: float) -> tuple[float, float]:
         """The heights in which the footprint grown by ``clearance_m`` is forbidden."""

@@ -204,3 +204,23 @@ def test_fence_compatible_plans_no_route_over_an_exclusion():
         for a, b in zip(blocked.waypoints, blocked.waypoints[1:], strict=False)
     )
     assert envelope.exclusions[0].ceiling_m == 40.0  # the original is unchanged
+
+
+def test_a_sites_buildings_stay_off_the_autopilots_fence_and_keep_their_heights():
+    """Over munich the fence holds the inclusion and the document's own no-fly volume only;
+    the routes planned for the fence keep that one as a column and the buildings at their
+    heights (a low roof may still be flown over)."""
+    from sim.envelope.files import envelope_from_document
+
+    area = AreaConfig(environment="site:munich")
+    mast = {"name": "mast", "polygon": [[20, 20], [40, 20], [40, 40], [20, 40]],
+            "floor_m": 0, "ceiling_m": 30}  # fmt: skip
+    envelope = envelope_from_document({"format": "tupa-envelope/1", "exclusions": [mast]}, area)
+    buildings = [e for e in envelope.exclusions if not e.on_autopilot_fence]
+    assert len(buildings) == len(envelope.exclusions) - 1 > 10
+    plan = fence_plan(envelope, CMAC)
+    assert plan.polygons == 2  # the inclusion and the mast
+    assert [i.vertex_count for i in plan.items] == [4] * 8
+    compatible = fence_compatible(envelope)
+    assert compatible.exclusions[0].ceiling_m > compatible.ceiling_m  # the mast: a column
+    assert compatible.exclusions[1:] == envelope.exclusions[1:]  # the buildings: as they are
