@@ -57,11 +57,12 @@ llvm:
 TEST_WORKERS ?= auto
 PYTEST := $(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadgroup
 
-# Everything: every tier (tests/tiers.py), as CI runs it (.ci/run).
+# Everything: every tier (tests/tiers.py), as CI runs it (.ci/run); the 25 slowest tests are
+# listed at the end (where the suite's time goes).
 test: $(STAMP) browser llvm
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(PYTEST)
+	$(PYTEST) --durations=25
 
 # The inner loop: lint, then the tests that need no process, flying mock, training, ns-3,
 # browser or Ray (pure logic, in process: pytest --fast, tests/conftest.py).

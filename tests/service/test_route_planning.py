@@ -137,16 +137,18 @@ def test_a_plan_that_fails_holds_and_says_why() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
 def test_a_link_whose_plan_takes_seconds_keeps_streaming_and_px4_keeps_offboard(
     start_mock: Callable[..., MockAutopilot],
     open_link: Callable[..., Any],
     monkeypatch: pytest.MonkeyPatch,
+    backend: str,
 ) -> None:
     """The plan of a new envelope is held for 3 s (three times PX4's 1 s offboard timeout):
     the vehicle holds at its stopping point meanwhile, the setpoints keep streaming, PX4 keeps
     OFFBOARD; once planned the vehicle flies round the new block to its target."""
     mock = start_mock("px4", **FAST_VEHICLE)
-    link = open_link(tcp_url(mock))
+    link = open_link(tcp_url(mock), backend)
     link.arm_and_takeoff().result(timeout=30.0)
     target = (55.0, 20.0, 10.0)
     link.set_target(target)
