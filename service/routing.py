@@ -188,6 +188,7 @@ class LinkRoute:
         self._route = None
         self._stale = False
         self._generation += 1
+        self._interim = None
         self._route_goes_on = False
 
     def set_envelope(self, envelope: Envelope) -> None:
@@ -206,6 +207,7 @@ class LinkRoute:
     def _mark_stale(self, route_goes_on: bool) -> None:
         self._stale = True
         self._generation += 1
+        self._interim = None  # decided again at the next setpoint
         self._route_goes_on = route_goes_on and self._route_goes_on
 
     def setpoint(

@@ -202,3 +202,19 @@ def test_after_a_hand_back_mid_plan_the_hold_is_where_the_vehicle_is_now() -> No
     assert (
         view is not None and view.kind == "around" and view.waypoints_m[-1] == (50.0, 400.0, 50.0)
     )
+
+
+def test_a_new_target_shows_the_route_flown_not_an_earlier_hold() -> None:
+    """The hold streamed while the first route was planned is not what the link shows once a
+    new target comes: the route flown goes on until the next one is planned."""
+    planner = ManualPlanner()
+    route = LinkRoute(Envelope.for_area(AREA), planner)
+    route.set_target((100.0, 50.0, 50.0))
+    route.setpoint((50.0, 50.0, 50.0))  # the first plan: a hold meanwhile
+    planner.finish()
+    route.setpoint((50.0, 50.0, 50.0))
+    route.set_target((50.0, 150.0, 50.0))
+    view = route.view()
+    assert view is not None and view.kind == "direct" and view.hold_reason is None
+    assert route.setpoint((55.0, 50.0, 50.0)) == (100.0, 50.0, 50.0)
+    assert route.view().kind == "direct"  # type: ignore[union-attr]
