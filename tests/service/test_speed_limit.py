@@ -32,10 +32,11 @@ def test_arducopter_flies_guided_at_the_envelopes_speed_and_takes_a_new_one(
     assert _speed(mock) == before  # nothing before the service streams in GUIDED
     link.set_target((40.0, 40.0, 15.0))
     wait_for(lambda: _speed(mock) == 4.0, 10.0, message="the envelope's speed on the vehicle")
-    assert link.counters["speed_limits_set"] == 1
+    # The vehicle takes the speed before its ACK reaches the link: wait for the link to count it.
+    wait_for(lambda: link.counters["speed_limits_set"] == 1, 5.0, message="the ACK counted")
     link.set_envelope(Envelope.for_area(AREA, max_speed_mps=6.0))
     wait_for(lambda: _speed(mock) == 6.0, 10.0, message="the new envelope's speed")
-    assert link.counters["speed_limits_set"] == 2
+    wait_for(lambda: link.counters["speed_limits_set"] == 2, 5.0, message="the ACK counted")
     assert link.counters["speed_limit_failures"] == 0
 
 
