@@ -918,10 +918,12 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
                 self.counters["setpoints_sent"] += 1
 
     def _route_planned(self) -> None:
-        """A route plan ended (on the planner's thread): stream it at once."""
+        """A route plan ended (on the planner's thread): stream it at once, unless the I/O loop
+        has taken it already (it waits a little for each plan it asks for)."""
         with self._cond:
-            self._target_dirty = True
-            self._cond.notify_all()
+            if self._routing.planning:
+                self._target_dirty = True
+                self._cond.notify_all()
 
     def _position_locked(self, now: float) -> tuple[float, float, float] | None:
         """Where the vehicle is (area frame) from a fresh LOCAL_POSITION_NED, or None (call

@@ -78,7 +78,11 @@ def _hand_back_if_left(api: Api) -> bool:
     if control["holder"] == "service" or api.vehicle()["link"] != "up":
         return False
     assert control["holder"] == "autopilot", control
-    assert "while the link was lost" in control["reason"], control
+    # The flap itself, or PX4's offboard failsafe after it (the stream stops while the link is
+    # lost; when the HEARTBEAT that brings it back still shows OFFBOARD, the failsafe's mode
+    # change is seen after the loss, named by the failsafe's own text).
+    reason = control["reason"]
+    assert "while the link was lost" in reason or "no offboard signal" in reason, control
     return api.client.put("/v1/vehicle/control", json={"holder": "service"}).is_success
 
 
