@@ -512,10 +512,7 @@ def plot_tracks(
     handles, labels = axes[0][0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0.06, 1, 1))
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
+    save_png(fig, path, 110)
 
 
 def plot_utilities(results: Sequence[dict[str, Any]], path: Path) -> None:
@@ -539,8 +536,16 @@ def plot_utilities(results: Sequence[dict[str, Any]], path: Path) -> None:
         ax.legend(fontsize=7, title="loop (mean from step 2)", title_fontsize=7)
     axes[0][0].set_ylabel("utility, flown")
     fig.tight_layout()
+    save_png(fig, path, 110)
+
+
+def save_png(fig: Any, path: Path, dpi: int) -> None:
+    """Write the matplotlib figure ``fig`` to ``path`` as PNG (through a temporary file renamed
+    over it: a reader never sees half a figure) and close it."""
+    import matplotlib.pyplot as plt
+
     tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    fig.savefig(tmp, dpi=dpi)
     plt.close(fig)
     tmp.replace(path)
 

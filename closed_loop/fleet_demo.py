@@ -41,7 +41,14 @@ import httpx
 import numpy as np
 
 from closed_loop.controller import TruePosition
-from closed_loop.demo import _in_parallel, _jsonable, _say, _wait_airborne, draw_buildings
+from closed_loop.demo import (
+    _in_parallel,
+    _jsonable,
+    _say,
+    _wait_airborne,
+    draw_buildings,
+    save_png,
+)
 from closed_loop.fleet_controller import (
     FleetStepRecord,
     GroupedUsers,
@@ -549,10 +556,7 @@ def plot_fleet_tracks(summary: dict[str, Any], area: AreaConfig, path: Path) -> 
         ha="center", fontsize=7, color="0.3",
     )  # fmt: skip
     fig.tight_layout(rect=(0, 0.07, 1, 1))
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    tmp.replace(path)
+    save_png(fig, path, 100)
 
 
 def _vehicles(client: httpx.Client) -> dict[str, Any]:

@@ -194,13 +194,11 @@ class LinkRoute:
     def set_envelope(self, envelope: Envelope) -> None:
         """Replace the envelope; the route is planned again at the next setpoint."""
         self.envelope = envelope
-        self._route_goes_on = False
         if self._requested is not None:
             self._mark_stale(route_goes_on=False)
 
     def replan(self) -> None:
         """Plan again at the next setpoint (the vehicle was handed back, or the stream paused)."""
-        self._route_goes_on = False
         if self._requested is not None:
             self._mark_stale(route_goes_on=False)
 

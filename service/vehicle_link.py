@@ -70,11 +70,11 @@ STATUS_TEXTS_KEPT = 8
 IDLE_WAIT_S = 0.05
 """The I/O loop's longest wait for input, and its pace while no vehicle answers."""
 HEARTBEAT_PERIOD_S = 1.0
+"""Our own HEARTBEAT's period (where the backend sends it)."""
 PLAN_WAIT_S = 0.05
 """How long the I/O loop waits for a route it just asked for before it streams what goes on
 meanwhile (:mod:`service.routing`): most plans take milliseconds; a slow one never holds the
 loop longer (PX4 gives up OFFBOARD after 1 s without a setpoint)."""
-"""Our own HEARTBEAT's period (where the backend sends it)."""
 TELEMETRY_REQUEST_PERIOD_S = 2.0
 """How often ``_request_telemetry`` is called while the vehicle is up."""
 BATTERY_CHECK_PERIOD_S = 1.0
