@@ -93,7 +93,11 @@ Scenarios:
   with MAV_CMD_DO_SET_MODE, and for ``--observe-s`` (30 s) the service's ``control``, the tap and
   PX4's modes are recorded. Pass: PX4 took the mode, the service let go within 5 s naming
   ``pilot`` or ``autopilot``, and sent no setpoint, mode request or command after it let go
-  (tap; the metrics), and PX4 never showed OFFBOARD armed again.
+  (tap; the metrics), and PX4 never showed OFFBOARD armed again. The speed limit too: the
+  ground station reads ``MPC_XY_VEL_MAX`` before the service starts, just before the takeover
+  and after ``--observe-s``; pass when it was the envelope's (10 m/s, or the vehicle's own if
+  lower) while the service flew, PX4's own again after, and the 5 Hz track never went faster
+  than the envelope's limit (+ :data:`SPEED_TOLERANCE_MPS`) while the service flew.
 
 Every process (PX4, ``tupa serve``) is started in its own session, killed by the kernel if this
 driver dies, and stopped at the end of the run, also on failure; a run is bounded by
@@ -160,6 +164,7 @@ from service.mission_protocol import (
 )
 from service.modes import mode_name, set_mode_numbers
 from sim.config import AreaConfig
+from sim.envelope import Envelope
 from sim.envelope.files import envelope_from_document
 
 MAV = mavutil.mavlink
@@ -204,12 +209,31 @@ FENCE_WORDS = ("fence", "geofence")
 POSITION_ONLY_MASK = 0b0000_1101_1111_1000  # position + yaw (PX4 wants a yaw or ignores it)
 TAKEOVER_MODES = {"hold": "AUTO.LOITER", "land": "AUTO.LAND", "posctl": "POSCTL"}
 SERVE_TAIL = 150
+SPEED_PARAM = "MPC_XY_VEL_MAX"
+ENVELOPE_DEFAULT_SPEED_MPS = Envelope.for_area(AreaConfig()).max_speed_mps
+"""``handback`` flies the area's envelope: this is its speed limit."""
+SPEED_TOLERANCE_MPS = 0.5
+"""How far above the limit a 5 Hz track's speed may read (its position noise and overshoot)."""
 SO_ATTACH_FILTER = 26
 PLAN_TOLERANCE_E7 = 5
 """How far (degE7, ~5.6 cm) a vertex read back may lie from ``fence_plan`` around PX4's origin
 as the ground station reads it: the origin itself comes rounded to 1 degE7 (GPS_GLOBAL_ORIGIN) or
 through float arithmetic (HOME_POSITION minus its local x/y/z), as the service computes it."""
 LET_GO_LOG = re.compile(r"^the (autopilot|pilot|operator) has the vehicle")
+
+
+def fastest_horizontal_mps(
+    track: list[tuple[float, float, float, float]], from_s: float, to_s: float
+) -> float | None:
+    """The fastest horizontal speed between successive (t, north, east, down) samples of
+    ``track`` within [from_s, to_s] (None with fewer than two)."""
+    samples = [p for p in track if from_s <= p[0] <= to_s]
+    speeds = [
+        math.hypot(b[1] - a[1], b[2] - a[2]) / (b[0] - a[0])
+        for a, b in itertools.pairwise(samples)
+        if b[0] - a[0] >= 0.1
+    ]
+    return round(max(speeds), 2) if speeds else None
 
 
 def rel(t0: float) -> float:
@@ -1166,6 +1190,8 @@ class Run:
             if args.scenario == "death" and args.obl_rc_act != "default":
                 wanted["COM_OBL_RC_ACT"] = float(args.obl_rc_act)
             self.set_px4_params(wanted)
+        if args.scenario == "handback":
+            self.result["speed_param_before"] = self.station.read_params([SPEED_PARAM])
         self.start_service(serve_log_path)
         airborne = self.wait_airborne()
         if args.scenario == "fence":
@@ -1805,6 +1831,8 @@ class Run:
         st, api, tap, note = self.station, self.api, self.tap, self.note
         airborne = self.result["airborne_streaming_s"]
         time.sleep(self.args.fly_s)
+        speed_flying = st.read_params([SPEED_PARAM])
+        flown_to = rel(self.t0)
         wanted = TAKEOVER_MODES[self.args.takeover]
         main_mode, sub_mode = set_mode_numbers("px4", wanted)
         commanded = rel(self.t0)
@@ -1853,6 +1881,21 @@ class Run:
                 "let_go_reason": let_go["reason"],
             }
         )
+        speed_after = st.read_params([SPEED_PARAM])
+        own_mps = self.result["speed_param_before"][SPEED_PARAM]
+        fastest_mps = fastest_horizontal_mps(st.track, airborne, flown_to)
+        r.update(
+            {
+                "speed_param_while_flying": speed_flying[SPEED_PARAM],
+                "speed_param_after_observing": speed_after[SPEED_PARAM],
+                "envelope_max_speed_mps": ENVELOPE_DEFAULT_SPEED_MPS,
+                "fastest_horizontal_mps_while_flying": fastest_mps,
+            }
+        )
+        note(
+            f"{SPEED_PARAM}: {own_mps} before, {speed_flying[SPEED_PARAM]} flying, "
+            f"{speed_after[SPEED_PARAM]} after; fastest {fastest_mps} m/s"
+        )
         self.result["handback"] = r
         took = r["first_mode_after_offboard"] == wanted
         checks = {
@@ -1865,6 +1908,12 @@ class Run:
             "setpoints_metric_flat": r["setpoints_metric_growth_after_let_go"] in (None, 0, 0.0),
             "mode_requests_metric_flat": r["mode_requests_metric_flat"],
             "never_offboard_armed_again": not r["offboard_armed_again"],
+            "envelope_speed_on_px4_while_flying": own_mps is not None
+            and speed_flying[SPEED_PARAM] == min(ENVELOPE_DEFAULT_SPEED_MPS, own_mps),
+            "flew_within_the_envelope_speed": fastest_mps is not None
+            and fastest_mps <= ENVELOPE_DEFAULT_SPEED_MPS + SPEED_TOLERANCE_MPS,
+            "own_speed_back_after_let_go": own_mps is not None
+            and speed_after[SPEED_PARAM] == own_mps,
         }
         self.finish(checks)
 

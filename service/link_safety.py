@@ -14,13 +14,14 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from service import control as vehicle_control
 from service import mavlink_commands
 from service.battery import reserve_reached, return_needs_pct
 from service.control import Control
-from service.fence import FenceError, fence_plan
+from service.fence import PARAM_TOLERANCE, FenceError, fence_plan
 from service.frames import GeoPoint, global_to_ned
 from service.link_takeoff import STEP_TIMEOUT_S
 from service.mission_protocol import MissionError
@@ -42,6 +43,12 @@ HOME_REQUEST_PERIOD_S = 2.0
 """How often GPS_GLOBAL_ORIGIN is asked for while the fence waits for it."""
 ORIGIN_MOVED_M = 0.05
 """An origin that moves more than this after the fence was uploaded puts it on again."""
+PX4_SPEED_PARAM = "MPC_XY_VEL_MAX"
+"""PX4's horizontal speed limit, in every mode (offboard included)."""
+SPEED_ANSWER_S = 3.0
+"""How long a speed command or parameter waits for the vehicle's answer."""
+SPEED_GIVE_BACK_S = 2.0
+"""How long closing the link waits for PX4's own speed limit to be set back."""
 SPEED_RETRY_S = 5.0
 """After an unanswered or refused speed limit, how long until it is asked for again."""
 SPEED_AFTER_STREAM_S = 1.0
@@ -61,18 +68,24 @@ class SafetyMixin(_Base):
     # ------------------------------------------------------------------ the speed limit
 
     def _speed_limit_step(self, now: float) -> None:
-        """ArduPilot: the envelope's ``max_speed_mps`` as the guided mode's horizontal speed
-        (MAV_CMD_DO_CHANGE_SPEED, ground speed), once the stream has run
-        ``SPEED_AFTER_STREAM_S`` in GUIDED, again every ``SPEED_REASSERT_S`` while it stays and
-        at once for a new envelope's; asked on a worker (the I/O loop never waits for an
-        answer), again after ``SPEED_RETRY_S`` when unanswered or refused. PX4 is
-        not asked: its offboard mode ignores the command (its position controller flies at
-        ``MPC_XY_VEL_MAX``)."""
+        """The envelope's ``max_speed_mps`` on the autopilot, asked on a worker (the I/O loop
+        never waits for an answer), again after ``SPEED_RETRY_S`` when unanswered or refused.
+
+        ArduPilot: as the guided mode's horizontal speed (MAV_CMD_DO_CHANGE_SPEED, ground
+        speed), once the stream has run ``SPEED_AFTER_STREAM_S`` in GUIDED, again every
+        ``SPEED_REASSERT_S`` while it stays and at once for a new envelope's; GUIDED's speed is
+        the guided mode's own, so nothing is given back. PX4's offboard mode ignores that
+        command and flies at ``MPC_XY_VEL_MAX``: :meth:`_px4_speed_step`."""
+        with self._cond:
+            flavour = self._flavour
+        if flavour == "px4":
+            self._px4_speed_step(now)
+            return
         with self._cond:
             wanted_mps = self._routing.envelope.max_speed_mps
             if (
                 self._speed_busy
-                or self._flavour != "ardupilot"
+                or flavour != "ardupilot"
                 or not self._streaming_now()
                 or self._stream_since is None
                 or now - self._stream_since < SPEED_AFTER_STREAM_S
@@ -85,19 +98,115 @@ class SafetyMixin(_Base):
                 return
             self._speed_busy = True
             self._speed_next_try = now + SPEED_RETRY_S
+        self._start_speed_worker(self._speed_limit_worker, wanted_mps)
+
+    def _start_speed_worker(
+        self, target: Callable[[float | None], None], arg: float | None
+    ) -> None:
         worker = threading.Thread(
-            target=self._speed_limit_worker,
-            args=(wanted_mps,),
-            name=f"{self._thread_name}-speed",
-            daemon=True,
+            target=target, args=(arg,), name=f"{self._thread_name}-speed", daemon=True
         )
         self._workers.append(worker)
         worker.start()
 
-    def _speed_limit_worker(self, speed_mps: float) -> None:
-        result = self._ask(
-            mavlink.MAV_CMD_DO_CHANGE_SPEED, mavlink_commands.change_speed(speed_mps), 3.0
-        )
+    def _px4_speed_step(self, now: float) -> None:
+        """PX4: while the service flies the vehicle in OFFBOARD, its ``MPC_XY_VEL_MAX`` (the
+        horizontal speed limit of every mode) is the envelope's ``max_speed_mps`` (never above
+        the vehicle's own value, read first); once the service no longer flies it (a hand-back,
+        a pilot's switch, a failsafe, a return, the service stopping) the vehicle's own value
+        is set back, at once. A vehicle whose own limit is already at or below the envelope's
+        is left alone."""
+        with self._cond:
+            if self._speed_busy or self._health != "up":
+                return
+            own = self._speed_param_own_mps
+            flying_it = (
+                not self._closing
+                and self._streaming_now()
+                and self._mode_locked() == GUIDED_MODE_NAME["px4"]
+            )
+            wanted: float | None = None
+            if flying_it:
+                wanted = self._routing.envelope.max_speed_mps
+                if own is not None and self._speed_param_mps == min(wanted, own):
+                    return
+            elif own is None:
+                return
+            elif self._speed_param_mps == own:  # never changed: nothing to give back
+                self._speed_param_own_mps = self._speed_param_mps = None
+                return
+            self._speed_busy = True
+            self._speed_next_try = now + SPEED_RETRY_S
+        self._start_speed_worker(self._px4_speed_worker, wanted)
+
+    def _px4_speed_worker(self, wanted_mps: float | None) -> None:
+        """Put ``wanted_mps`` (capped by the vehicle's own value) on ``MPC_XY_VEL_MAX``, or give
+        the vehicle's own value back (``wanted_mps`` None)."""
+        with self._cond:
+            own = self._speed_param_own_mps
+        if own is None:  # first read what the vehicle flies at by itself
+            own = self._param_float(PX4_SPEED_PARAM, None, SPEED_ANSWER_S)
+            if own is None or not math.isfinite(own):
+                self._speed_param_failed("could not read MPC_XY_VEL_MAX")
+                return
+            with self._cond:
+                self._speed_param_own_mps = own
+        value = own if wanted_mps is None else min(wanted_mps, own)
+        with self._cond:
+            unchanged = self._speed_param_mps in (None, own) and value == own
+            if unchanged and wanted_mps is not None:  # its own is the envelope's or lower
+                self._speed_param_mps = own
+                self._speed_busy = False
+                return
+        reported = self._param_float(PX4_SPEED_PARAM, value, SPEED_ANSWER_S)
+        if reported is None or abs(reported - value) > PARAM_TOLERANCE:
+            self._speed_param_failed(f"MPC_XY_VEL_MAX {value:g} m/s not taken ({reported})")
+            return
+        with self._cond:
+            self._speed_busy = False
+            self._speed_next_try = 0.0
+            if wanted_mps is None:
+                self._speed_param_own_mps = self._speed_param_mps = None
+                self.counters["speed_limits_given_back"] += 1
+            else:
+                self.counters["speed_limits_set"] += value != self._speed_param_mps
+                self._speed_param_mps = value
+            self._cond.notify_all()
+        if wanted_mps is None:
+            log.info("MPC_XY_VEL_MAX is the vehicle's own %g m/s again", value)
+        else:
+            log.info("MPC_XY_VEL_MAX is the envelope's %g m/s (the vehicle's own: %g)", value, own)
+
+    def _speed_param_failed(self, why: str) -> None:
+        with self._cond:
+            self._speed_busy = False
+            self.counters["speed_limit_failures"] += 1
+            self._cond.notify_all()
+        log.warning("the envelope's speed limit on the vehicle: %s", why)
+
+    def _give_back_speed_param(self, timeout_s: float) -> None:
+        """Before the link closes: the vehicle's own ``MPC_XY_VEL_MAX`` back if the service
+        changed it, waiting up to ``timeout_s`` (the I/O loop does it); says so if it could
+        not."""
+        with self._cond:
+            self._closing = True
+            if self._speed_param_own_mps is None or self._thread is None:
+                return
+            self._speed_next_try = 0.0
+            self._cond.notify_all()
+            given_back = self._cond.wait_for(lambda: self._speed_param_own_mps is None, timeout_s)
+            own, now_mps = self._speed_param_own_mps, self._speed_param_mps
+        if not given_back:
+            log.error(
+                "MPC_XY_VEL_MAX stays %s m/s on the vehicle (its own was %g m/s): set it back",
+                now_mps,
+                own,
+            )
+
+    def _speed_limit_worker(self, speed_mps: float | None) -> None:
+        assert speed_mps is not None
+        command = mavlink_commands.change_speed(speed_mps)
+        result = self._ask(mavlink.MAV_CMD_DO_CHANGE_SPEED, command, SPEED_ANSWER_S)
         new = False
         with self._cond:
             self._speed_busy = False

@@ -45,6 +45,7 @@ import contextlib
 import errno
 import ipaddress
 import logging
+import math
 import os
 import socket
 import threading
@@ -56,7 +57,13 @@ from typing import Any, Self
 from service import mavlink_commands
 from service.fence import FencePlan
 from service.frames import GeoPoint
-from service.mission_protocol import FenceReport, MavPort, MissionError, apply_fence_plan
+from service.mission_protocol import (
+    FenceReport,
+    MavPort,
+    MissionError,
+    apply_fence_plan,
+    param_name,
+)
 from service.modes import GUIDED_MODE_NAME, Flavour, set_mode_numbers
 from service.vehicle_link import HEARTBEAT_PERIOD_S, LinkConfig, VehicleLinkBase
 
@@ -93,6 +100,7 @@ VEHICLE_MESSAGES = frozenset(
         "SYS_STATUS",
         "GPS_GLOBAL_ORIGIN",
         "COMMAND_ACK",
+        "PARAM_VALUE",
         "STATUSTEXT",
     }
 )
@@ -286,6 +294,7 @@ class MavlinkLink(VehicleLinkBase):
         self._landed_state: int | None = None
         self._acks: dict[int, tuple[int, int]] = {}
         self._ack_seq = 0
+        self._param_values: dict[str, tuple[int, float]] = {}  # name: (answer number, value)
         self._interval_accepted = False
         self._fallback_streams_sent = False
 
@@ -441,6 +450,9 @@ class MavlinkLink(VehicleLinkBase):
                     and message.result == mavlink.MAV_RESULT_ACCEPTED
                 ):
                     self._interval_accepted = True
+            elif kind == "PARAM_VALUE" and message.param_type == mavlink.MAV_PARAM_TYPE_REAL32:
+                self._ack_seq += 1
+                self._param_values[param_name(message)] = (self._ack_seq, message.param_value)
             self._cond.notify_all()
 
     def _on_link_up(self, now: float) -> None:
@@ -601,6 +613,36 @@ class MavlinkLink(VehicleLinkBase):
                     seq, result = self._acks.get(command, (0, -1))
                     if seq > seq_before:
                         return result
+                    remaining = resend_at - time.monotonic()
+                    if remaining <= 0:
+                        break
+                    self._cond.wait(remaining)
+            if time.monotonic() >= ask_until:
+                return None
+        return None
+
+    def _param_float(self, name: str, value: float | None, timeout_s: float) -> float | None:
+        """PARAM_SET of ``value`` (None: PARAM_REQUEST_READ), re-sent every
+        ``COMMAND_RESEND_S`` until a PARAM_VALUE of ``name`` newer than the request answers or
+        ``timeout_s`` passes: the value it reports, or None."""
+        with self._cond:
+            seq_before = self._ack_seq
+            sys_id, comp_id = self._target_sys, self._target_comp
+        if value is None:
+            request = mavlink.MAVLink_param_request_read_message(sys_id, comp_id, name.encode(), -1)
+        else:
+            request = mavlink.MAVLink_param_set_message(
+                sys_id, comp_id, name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32
+            )
+        ask_until = time.monotonic() + timeout_s
+        while not self._stop.is_set():
+            self._send(lambda mav: mav.send(request))
+            resend_at = min(ask_until, time.monotonic() + COMMAND_RESEND_S)
+            with self._cond:
+                while not self._stop.is_set():
+                    seq, reported = self._param_values.get(name, (0, math.nan))
+                    if seq > seq_before:
+                        return float(reported)
                     remaining = resend_at - time.monotonic()
                     if remaining <= 0:
                         break

@@ -522,6 +522,29 @@ class MavsdkLink(VehicleLinkBase):
         except (ValueError, KeyError, TypeError):
             return None
 
+    def _param_float(self, name: str, value: float | None, timeout_s: float) -> float | None:
+        """Set ``value`` (None: only read) through the Param plugin, then read it back: the
+        value the vehicle reports, or None (no answer, refused, or ``timeout_s`` passed). The
+        plugin's calls block: they run on a thread of their own, counted as the session's
+        unanswered calls (no teardown destroys MAVSDK under them)."""
+
+        def call(session: Session) -> float | None:
+            try:
+                if value is not None:
+                    session.param.set_param_float(name, float(value))
+                return float(session.param.get_param_float(name))
+            except Exception as exc:  # ParamError, or the session going away under the call
+                log.debug("%s: %s", name, exc)
+                return None
+
+        def start(session: Session, answer: Callable[..., None]) -> None:
+            threading.Thread(
+                target=lambda: answer(call(session)), name="mavsdk-param", daemon=True
+            ).start()
+
+        reply = self._request(start, timeout_s)
+        return None if reply is None else reply[0]
+
     def _ask_arm(self, timeout_s: float) -> int | None:
         """Arm through the Action plugin: MAV_RESULT_ACCEPTED, the MAV_RESULT MAVSDK's answer
         stands for when refused, or None when no answer came."""

@@ -314,7 +314,7 @@ def set_params(
             ("PARAM_VALUE",),
             Timing(timing.param_timeout_s, timing.retries, timing.param_timeout_s),
             f"{param.name}: PARAM_SET",
-            lambda m, name=param.name: _param_id(m) == name,
+            lambda m, name=param.name: param_name(m) == name,
             error=ParamError,
         )
         value = _param_value(reply, bytewise)
@@ -346,7 +346,7 @@ def read_params(
             ("PARAM_VALUE",),
             Timing(timing.param_timeout_s, timing.retries, timing.param_timeout_s),
             f"{name}: PARAM_REQUEST_READ",
-            lambda m, name=name: _param_id(m) == name,
+            lambda m, name=name: param_name(m) == name,
             error=ParamError,
         )
         values[name] = _param_value(reply, bytewise)
@@ -512,7 +512,8 @@ def _result_name(result: int) -> str:
     return f"{entry.name} ({entry.description.rstrip('.')})"
 
 
-def _param_id(message: Any) -> str:
+def param_name(message: Any) -> str:
+    """A PARAM_VALUE's ``param_id`` as text."""
     name = message.param_id
     return name.decode(errors="replace") if isinstance(name, bytes) else str(name)
 

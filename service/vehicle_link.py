@@ -48,7 +48,7 @@ from service.battery import BatteryConfig, DrainEstimate
 from service.control import Control, ControlHolder
 from service.fence import FenceError, FencePlan, fence_compatible
 from service.frames import FrameConfig, GeoPoint, area_to_ned, ned_to_area
-from service.link_safety import SafetyMixin
+from service.link_safety import SPEED_GIVE_BACK_S, SafetyMixin
 from service.link_takeoff import (
     POSITION_FRESH_S,
     TAKEOFF_TIMEOUT_S,
@@ -388,6 +388,10 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
         self._speed_set_at = -math.inf
         self._speed_next_try = 0.0
         self._speed_busy = False
+        # PX4's MPC_XY_VEL_MAX: the vehicle's own value while the service has changed it.
+        self._speed_param_own_mps: float | None = None
+        self._speed_param_mps: float | None = None  # what the service set it to
+        self._closing = False
         self._origin: GeoPoint | None = None  # the local NED origin, from GPS_GLOBAL_ORIGIN
         self._routing = LinkRoute(
             fence_compatible(envelope) if config.autopilot_fence else envelope,
@@ -440,6 +444,12 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
         final COMMAND_ACK: the MAV_RESULT, or None when no answer came."""
 
     @abstractmethod
+    def _param_float(self, name: str, value: float | None, timeout_s: float) -> float | None:
+        """Set the vehicle's REAL32 parameter ``name`` to ``value`` (None: only read it), from a
+        worker thread: the value the vehicle reports afterwards, or None when no answer came in
+        ``timeout_s``."""
+
+    @abstractmethod
     def _ask_arm(self, timeout_s: float) -> int | None:
         """Ask the vehicle to arm (never forced), once: MAV_RESULT_ACCEPTED, another MAV_RESULT
         for a refusal, or None when no answer came."""
@@ -483,7 +493,9 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
         return self
 
     def close(self, timeout_s: float = 5.0) -> None:
-        """Stop every thread and drop the connection (safe to call twice)."""
+        """Stop every thread and drop the connection (safe to call twice); a speed limit the
+        service put on a PX4 is given back first (:meth:`_give_back_speed_param`)."""
+        self._give_back_speed_param(min(timeout_s, SPEED_GIVE_BACK_S))
         self._stop.set()
         with self._cond:
             self._cond.notify_all()

@@ -4,7 +4,9 @@ a client (speeds, return and takeoff altitudes, fence, failsafe timeouts).
 Names and units are the real ones of each autopilot (ArduPilot speeds in cm/s, altitudes in cm;
 PX4 in m/s and m), so that a client reading them gets what it would from the real vehicle. Values
 come from the vehicle's configuration, which the command line sets: PARAM_SET of those is answered
-with the unchanged value. The uploaded fence's parameters are the exception (ArduPilot
+with the unchanged value. Two kinds are exceptions. PX4's ``MPC_XY_VEL_MAX`` (its horizontal
+speed limit in every mode, offboard included; 0-20 m/s as on PX4) sets the vehicle's speed
+limit, as ``MAV_CMD_DO_CHANGE_SPEED`` does. The uploaded fence's parameters (ArduPilot
 ``FENCE_ENABLE`` (0 at boot, as on ArduPilot), ``FENCE_TYPE``, ``FENCE_ACTION``,
 ``FENCE_ALT_MAX``, ``FENCE_ALT_MIN``, ``FENCE_MARGIN``, ``AVOID_ENABLE``; PX4 ``GF_ACTION``,
 ``GF_MAX_VER_DIST``): :func:`set_parameter` takes them (within their ranges) and PARAM_VALUE
@@ -22,6 +24,8 @@ from sitl_mock.vehicle import Vehicle
 PARAM_TYPE_INT8 = 2
 PARAM_TYPE_INT32 = 6
 PARAM_TYPE_REAL32 = 9
+PX4_XY_VEL_MAX_MPS = 20.0
+"""The top of PX4's ``MPC_XY_VEL_MAX`` range."""
 INT_TYPES = frozenset({1, 2, 3, 4, 5, 6})
 """MAV_PARAM_TYPE_UINT8 .. INT32."""
 
@@ -75,11 +79,17 @@ def parameter_table(vehicle: Vehicle, system_id: int) -> list[tuple[str, float, 
 
 
 def set_parameter(vehicle: Vehicle, name: str, value: float, param_type: int) -> bool:
-    """PARAM_SET of ``name``: True when the vehicle took ``value`` (one of the fence's
-    parameters, within its range); False when it keeps its own (read-only, unknown, out of
-    range). PX4 (``params_bytewise``) sends integers bit for bit in the float: decoded here."""
+    """PARAM_SET of ``name``: True when the vehicle took ``value`` (PX4's speed limit or one of
+    the fence's parameters, within its range); False when it keeps its own (read-only, unknown,
+    out of range). PX4 (``params_bytewise``) sends integers bit for bit in the float: decoded
+    here."""
     if vehicle.flavour.params_bytewise and param_type in INT_TYPES:
         value = float(struct.unpack("<i", struct.pack("<f", value))[0])
     if not math.isfinite(value):
         return False
+    if vehicle.flavour.name == "px4" and name == "MPC_XY_VEL_MAX":
+        if not 0.0 < value <= PX4_XY_VEL_MAX_MPS:
+            return False
+        vehicle.max_speed_h_mps = value
+        return True
     return vehicle.autopilot_fence.set_param(name, value)

@@ -1,10 +1,13 @@
-"""The envelope's speed limit on the autopilot (issue 39): on ArduPilot the link sends
+"""The envelope's speed limit on the autopilot: on ArduPilot the link sends
 MAV_CMD_DO_CHANGE_SPEED with the envelope's ``max_speed_mps`` once the vehicle is in GUIDED with
 the service's stream, and again for a new envelope's; PX4's offboard mode ignores the command, so
-it is not sent there."""
+there the link sets MPC_XY_VEL_MAX while it flies the vehicle and gives the vehicle's own value
+back when it stops."""
 
 from __future__ import annotations
 
+import math
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -40,15 +43,62 @@ def test_arducopter_flies_guided_at_the_envelopes_speed_and_takes_a_new_one(
     assert link.counters["speed_limit_failures"] == 0
 
 
-def test_px4_is_not_asked(
+def _fly_px4_offboard(mock: MockAutopilot, link: Any) -> None:
+    link.arm_and_takeoff().result(timeout=30.0)
+    link.set_target((60.0, 60.0, 15.0))
+    wait_for(lambda: link.state().mode == "OFFBOARD", 15.0, message="OFFBOARD")
+
+
+@pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
+def test_px4_flies_offboard_at_the_envelopes_speed_and_gets_its_own_back(
+    start_mock: Callable[..., MockAutopilot], open_link: Callable[..., Any], backend: str
+) -> None:
+    """PX4's offboard mode flies at MPC_XY_VEL_MAX: the service puts the envelope's limit there
+    while it flies the vehicle, a new envelope's at once, and the vehicle's own value back the
+    moment an operator takes the vehicle."""
+    mock = start_mock("px4", **FAST_VEHICLE)
+    own = _speed(mock)
+    assert own == 10.0
+    link = open_link(
+        tcp_url(mock), backend=backend, envelope=Envelope.for_area(AREA, max_speed_mps=4.0)
+    )
+    link.arm_and_takeoff().result(timeout=30.0)
+    assert _speed(mock) == own  # nothing before the service flies it in OFFBOARD
+    link.set_target((60.0, 60.0, 15.0))
+    wait_for(lambda: _speed(mock) == 4.0, 15.0, message="the envelope's speed on the vehicle")
+    wait_for(lambda: link.counters["speed_limits_set"] == 1, 5.0, message="the answer counted")
+    fastest_mps = 0.0
+    deadline = time.monotonic() + 3.0
+    while time.monotonic() < deadline:  # flying: 60 m away at 4 m/s
+        fastest_mps = max(fastest_mps, math.hypot(*mock.state().velocity_ned_mps[:2]))
+        time.sleep(0.05)
+    assert 3.0 < fastest_mps <= 4.0 + 1e-6, fastest_mps
+    link.set_envelope(Envelope.for_area(AREA, max_speed_mps=6.0))
+    wait_for(lambda: _speed(mock) == 6.0, 10.0, message="the new envelope's speed")
+    link.release()
+    wait_for(lambda: _speed(mock) == own, 10.0, message="the vehicle's own speed back")
+    wait_for(lambda: link.counters["speed_limits_given_back"] == 1, 5.0, message="counted")
+    assert link.counters["speed_limit_failures"] == 0
+
+
+def test_closing_the_link_gives_px4_its_own_speed_back(
     start_mock: Callable[..., MockAutopilot], open_link: Callable[..., Any]
 ) -> None:
     mock = start_mock("px4", **FAST_VEHICLE)
-    before = _speed(mock)
     link = open_link(tcp_url(mock), envelope=Envelope.for_area(AREA, max_speed_mps=4.0))
-    link.arm_and_takeoff().result(timeout=30.0)
-    link.set_target((40.0, 40.0, 15.0))
-    wait_for(lambda: link.state().mode == "OFFBOARD", 15.0, message="OFFBOARD")
-    wait_for(lambda: mock.stats["setpoints_received"] >= 20, 10.0, message="20 setpoints")
-    assert _speed(mock) == before
+    _fly_px4_offboard(mock, link)
+    wait_for(lambda: _speed(mock) == 4.0, 15.0, message="the envelope's speed on the vehicle")
+    link.close()
+    assert _speed(mock) == 10.0
+
+
+def test_a_px4_slower_than_the_envelope_is_left_alone(
+    start_mock: Callable[..., MockAutopilot], open_link: Callable[..., Any]
+) -> None:
+    mock = start_mock("px4", max_speed_h_mps=3.0, **FAST_VEHICLE)
+    link = open_link(tcp_url(mock), envelope=Envelope.for_area(AREA, max_speed_mps=4.0))
+    _fly_px4_offboard(mock, link)
+    wait_for(lambda: mock.stats["setpoints_received"] >= 40, 10.0, message="40 setpoints")
+    assert _speed(mock) == 3.0
+    assert mock.stats.get("param_sets", 0) == 0  # not even its own value set again
     assert link.counters["speed_limits_set"] == 0 and link.counters["speed_limit_failures"] == 0
