@@ -95,9 +95,10 @@ Scenarios:
   ``pilot`` or ``autopilot``, and sent no setpoint, mode request or command after it let go
   (tap; the metrics), and PX4 never showed OFFBOARD armed again. The speed limit too: the
   ground station reads ``MPC_XY_VEL_MAX`` before the service starts, just before the takeover
-  and after ``--observe-s``; pass when it was the envelope's (10 m/s, or the vehicle's own if
-  lower) while the service flew, PX4's own again after, and the 5 Hz track never went faster
-  than the envelope's limit (+ :data:`SPEED_TOLERANCE_MPS`) while the service flew.
+  and after ``--observe-s``; pass when it was the envelope's (``--max-speed-mps``, default the
+  area envelope's 10 m/s; the vehicle's own if lower) while the service flew, PX4's own again
+  after, and the 5 Hz track never went faster than the envelope's limit
+  (+ :data:`SPEED_TOLERANCE_MPS`) while the service flew.
 
 Every process (PX4, ``tupa serve``) is started in its own session, killed by the kernel if this
 driver dies, and stopped at the end of the run, also on failure; a run is bounded by
@@ -897,6 +898,11 @@ def main() -> int:
     )
     parser.add_argument("--takeover", choices=sorted(TAKEOVER_MODES), default="hold")
     parser.add_argument(
+        "--max-speed-mps",
+        type=float,
+        help="handback: the envelope's speed limit (default: the area's envelope, 10 m/s)",
+    )
+    parser.add_argument(
         "--breach-point",
         type=float,
         nargs=3,
@@ -1077,6 +1083,12 @@ class Run:
             envelope_path.write_text(json.dumps(ENVELOPE, indent=1))
             serve_args += ["--envelope", str(envelope_path), "--autopilot-fence"]
             self.result["envelope"] = ENVELOPE
+        elif args.scenario == "handback" and args.max_speed_mps is not None:
+            envelope_path = self.out / "envelope.json"
+            document = {"format": "tupa-envelope/1", "max_speed_mps": args.max_speed_mps}
+            envelope_path.write_text(json.dumps(document, indent=1))
+            serve_args += ["--envelope", str(envelope_path)]
+            self.result["envelope"] = document
         env = {
             "TUPA_AREA_ORIGIN_NORTH_M": str(self.frame.area_origin_north_m),
             "TUPA_AREA_ORIGIN_EAST_M": str(self.frame.area_origin_east_m),
@@ -1884,11 +1896,12 @@ class Run:
         speed_after = st.read_params([SPEED_PARAM])
         own_mps = self.result["speed_param_before"][SPEED_PARAM]
         fastest_mps = fastest_horizontal_mps(st.track, airborne, flown_to)
+        limit_mps = self.args.max_speed_mps or ENVELOPE_DEFAULT_SPEED_MPS
         r.update(
             {
                 "speed_param_while_flying": speed_flying[SPEED_PARAM],
                 "speed_param_after_observing": speed_after[SPEED_PARAM],
-                "envelope_max_speed_mps": ENVELOPE_DEFAULT_SPEED_MPS,
+                "envelope_max_speed_mps": limit_mps,
                 "fastest_horizontal_mps_while_flying": fastest_mps,
             }
         )
@@ -1909,9 +1922,9 @@ class Run:
             "mode_requests_metric_flat": r["mode_requests_metric_flat"],
             "never_offboard_armed_again": not r["offboard_armed_again"],
             "envelope_speed_on_px4_while_flying": own_mps is not None
-            and speed_flying[SPEED_PARAM] == min(ENVELOPE_DEFAULT_SPEED_MPS, own_mps),
+            and speed_flying[SPEED_PARAM] == min(limit_mps, own_mps),
             "flew_within_the_envelope_speed": fastest_mps is not None
-            and fastest_mps <= ENVELOPE_DEFAULT_SPEED_MPS + SPEED_TOLERANCE_MPS,
+            and fastest_mps <= limit_mps + SPEED_TOLERANCE_MPS,
             "own_speed_back_after_let_go": own_mps is not None
             and speed_after[SPEED_PARAM] == own_mps,
         }
