@@ -12,6 +12,7 @@ re-places for three.
 from __future__ import annotations
 
 import itertools
+import json
 import secrets
 import signal
 import threading
@@ -66,8 +67,16 @@ def fleet(tmp_path: Path) -> Iterator[tuple[httpx.Client, list[TupaProcess]]]:
             ["--flavour", "px4", "--ready-delay-s", "1", "--speed-mps", "25"],
         )
         processes += [p for p, _ in mocks]
+        # The envelope lets the vehicles fly at their own 25 m/s (the default envelope's 10 m/s
+        # would be put on them as PX4's MPC_XY_VEL_MAX): the loss below lasts only while the
+        # two others are re-placed, as in the flights this test was written for.
+        (tmp_path / "envelope.json").write_text(
+            json.dumps({"format": "tupa-envelope/1", "max_speed_mps": 25.0})
+        )
+        fleet_file = mock_fleet_file([port for _, port in mocks], FRAMES)
+        fleet_file["envelope"] = "envelope.json"
         path = tmp_path / "fleet.yaml"
-        path.write_text(yaml.safe_dump(mock_fleet_file([port for _, port in mocks], FRAMES)))
+        path.write_text(yaml.safe_dump(fleet_file))
         service, port = start_service(
             ["--fleet-file", str(path), "--port", "0", "--arm-and-takeoff", "--step-s", "0.5"],
             env={"TUPA_API_TOKEN": token},
