@@ -36,7 +36,6 @@ import logging
 import math
 from collections.abc import Callable, MutableMapping, Sequence
 from concurrent.futures import Executor, Future, ThreadPoolExecutor
-from concurrent.futures import wait as wait_futures
 from dataclasses import dataclass
 
 from sim.envelope import Envelope, legal_target
@@ -213,14 +212,16 @@ class LinkRoute:
         position_m: Sequence[float] | None,
         velocity_mps: Sequence[float] | None = None,
         brake_mps2: float = BRAKE_MPS2,
-        wait_s: float = 0.0,
+        wait: Callable[[Future], object] | None = None,
     ) -> Vec3 | None:
         """The setpoint to stream now (area frame), or None when there is nothing to stream:
         no target, or no position to plan from yet. A route planned while the vehicle moves at
         ``velocity_mps`` (None: unknown) brakes first where its momentum would carry it into
         something (:func:`~sim.envelope.route.plan_route_moving`, stops reckoned at
-        ``brake_mps2``). A plan asked for in this call is waited for up to ``wait_s`` (most
-        plans take milliseconds: the new route then streams at once)."""
+        ``brake_mps2``). A plan asked for in this call is handed to ``wait`` (None: not waited
+        for), which returns when it ended or it will not wait longer: most plans take
+        milliseconds, and the new route then streams at once. The link's ``wait`` lets go of
+        its lock meanwhile."""
         if self._requested is None:
             return None
         self._collect()
@@ -233,8 +234,11 @@ class LinkRoute:
                 self._interim_generation = self._generation
             if self._pending is None:
                 self._submit(position, velocity_mps, brake_mps2)
-                if wait_s > 0 and self._pending is not None:
-                    wait_futures([self._pending.future], timeout=wait_s)
+                if wait is not None and self._pending is not None:
+                    wait(self._pending.future)
+                    # ``wait`` may have let go of the link's lock: another thread may have
+                    # changed the target or the envelope meanwhile, so start again from there.
+                    return self.setpoint(position_m, velocity_mps, brake_mps2)
                 if self._collect():  # planned already: streamed as planned
                     return None if self._route is None else self._route.setpoint_m
         if self._waiting_for_plan() and self._interim is not None:

@@ -399,6 +399,7 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
             self._route_planned,
         )
         self._target_dirty = False  # a new target not sent yet: send it at once
+        self._awaiting_plan = False  # the I/O loop waits for a route plan it asked for
         self._hold_setpoints = False
         self._stream_since: float | None = None
         self._mode_wanted_until = 0.0
@@ -914,8 +915,10 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
                     self._position_locked(now),
                     self._velocity_locked(now),
                     self.config.brake_mps2,
-                    PLAN_WAIT_S,
+                    self._wait_for_plan,
                 )
+                if not self._streaming_now():  # changed while the lock was let go
+                    setpoint = None
             if setpoint is None:
                 self._stream_since = None
             else:
@@ -929,12 +932,23 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
             with self._cond:
                 self.counters["setpoints_sent"] += 1
 
+    def _wait_for_plan(self, plan: Future) -> None:
+        """Wait up to ``PLAN_WAIT_S`` for a route plan just asked for (called under
+        ``self._cond``, which is let go meanwhile: the API and the link's workers are not held
+        up by a plan)."""
+        self._awaiting_plan = True
+        try:
+            self._cond.wait_for(plan.done, PLAN_WAIT_S)
+        finally:
+            self._awaiting_plan = False
+
     def _route_planned(self) -> None:
         """A route plan ended (on the planner's thread): stream it at once, unless the I/O loop
-        has taken it already (it waits a little for each plan it asks for)."""
+        has taken it already or is waiting for it (:meth:`_wait_for_plan`)."""
         with self._cond:
             if self._routing.planning:
-                self._target_dirty = True
+                if not self._awaiting_plan:
+                    self._target_dirty = True
                 self._cond.notify_all()
 
     def _position_locked(self, now: float) -> tuple[float, float, float] | None:

@@ -218,3 +218,52 @@ def test_a_new_target_shows_the_route_flown_not_an_earlier_hold() -> None:
     assert view is not None and view.kind == "direct" and view.hold_reason is None
     assert route.setpoint((55.0, 50.0, 50.0)) == (100.0, 50.0, 50.0)
     assert route.view().kind == "direct"  # type: ignore[union-attr]
+
+
+def test_a_new_envelope_set_while_the_link_waits_for_a_plan_is_never_streamed_past() -> None:
+    """The link lets go of its lock while it waits for a plan it just asked for: an envelope
+    set meanwhile (by the API) makes the setpoint a hold at the stopping point of the new one's
+    plan, never the route planned in the old envelope."""
+    planner = ManualPlanner()
+    route = LinkRoute(Envelope.for_area(AREA), planner)
+    route.set_target((350.0, 350.0, 50.0))
+    position = (100.0, 250.0, 50.0)
+
+    def meanwhile(plan: Future) -> None:
+        planner.finish()  # the straight route, planned in the old envelope
+        route.set_envelope(Envelope.for_area(AREA, [TOWER]))  # the API, lock let go
+
+    setpoint = route.setpoint(position, (0.0, 0.0, 0.0), 2.5, meanwhile)
+    assert setpoint == pytest.approx(position)  # a hold: the new envelope's plan is under way
+    assert route.view() is not None and route.view().hold_reason == PLANNING
+    planner.finish()
+    assert route.setpoint(position, (0.0, 0.0, 0.0), 2.5) != pytest.approx((350.0, 350.0, 50.0))
+    assert route.route is not None and route.route.kind == "around"
+
+
+@pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
+def test_the_link_lets_go_of_its_lock_while_it_waits_for_a_plan(
+    monkeypatch: pytest.MonkeyPatch, backend: str
+) -> None:
+    """The I/O loop's wait for a plan must not hold the API and the workers up: a thread that
+    needs the link's lock gets it while the loop waits (here the wait could last 5 s; it ends
+    as soon as that thread, holding the lock, ends the plan)."""
+    from service import links, vehicle_link
+    from service.vehicle_link import LinkConfig
+
+    monkeypatch.setattr(vehicle_link, "PLAN_WAIT_S", 5.0)
+    link = links.open_link(backend, LinkConfig("tcp:127.0.0.1:9", area=LINK_AREA))
+    plan: Future = Future()
+
+    def end_the_plan_under_the_lock() -> None:
+        with link._cond:
+            plan.set_result(None)
+            link._cond.notify_all()
+
+    started = time.monotonic()
+    with link._cond:
+        threading.Thread(target=end_the_plan_under_the_lock, daemon=True).start()
+        link._wait_for_plan(plan)
+        assert plan.done()
+    assert time.monotonic() - started < 4.0
+    link.close()
