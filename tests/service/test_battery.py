@@ -53,6 +53,12 @@ def test_the_reserve_is_what_flying_home_takes_plus_what_must_be_left() -> None:
         BatteryConfig(reserve_pct=100.0)
 
 
+QUICK_RETURN = {"rtl_alt_m": 10.0, "land_speed_mps": 2.0}
+"""A vehicle whose return and landing take seconds, not half a minute (the flavours' defaults:
+RTL at 15 or 30 m, the last metres at 0.5 or 0.7 m/s): what is checked is what the service does
+(nothing) until the vehicle is down, not how long that takes."""
+
+
 def fly_to_target(mock: MockAutopilot, link: Any) -> tuple[float, float, float]:
     link.arm_and_takeoff().result(timeout=30.0)
     target = (25.0, 35.0, 8.0)
@@ -70,7 +76,7 @@ def fly_to_target(mock: MockAutopilot, link: Any) -> tuple[float, float, float]:
 def test_at_its_reserve_the_vehicle_is_sent_home_and_let_go(
     start_mock: Callable[..., MockAutopilot], open_link: Callable[..., Any], flavour: str
 ) -> None:
-    mock = start_mock(flavour, gcs_failsafe_action="none", **FAST_VEHICLE)
+    mock = start_mock(flavour, gcs_failsafe_action="none", **QUICK_RETURN, **FAST_VEHICLE)
     link = open_link(tcp_url(mock), battery=BatteryConfig(reserve_pct=20.0))
     fly_to_target(mock, link)
     state = wait_for(lambda: (s := link.state()).battery_pct is not None and s, 5.0)
@@ -104,7 +110,7 @@ def test_at_its_reserve_the_vehicle_is_sent_home_and_let_go(
 def test_the_autopilots_own_battery_failsafe_is_never_overridden(
     start_mock: Callable[..., MockAutopilot], open_link: Callable[..., Any], flavour: str
 ) -> None:
-    mock = start_mock(flavour, gcs_failsafe_action="none", **FAST_VEHICLE)
+    mock = start_mock(flavour, gcs_failsafe_action="none", **QUICK_RETURN, **FAST_VEHICLE)
     link = open_link(tcp_url(mock), battery=BatteryConfig(reserve_pct=20.0))
     fly_to_target(mock, link)
     # Under the autopilot's own failsafe level at once: it lands by itself.
