@@ -20,7 +20,7 @@ Every flown path (each :class:`Track`'s pieces, sampled every 0.25 m) is held to
 with the point test (:meth:`Envelope.violation`); the fleet's paths to the separation exactly
 (:func:`closest_approach_m`). Also the overhead of the no-envelope path, in the same run:
 :meth:`World.fly` with no envelope against the method as it was before envelopes (and
-:func:`sim.world.fly`, and :func:`fly_route` with no envelope), the same floats checked.
+:func:`sim.flight.fly`, and :func:`fly_route` with no envelope), the same floats checked.
 Writes JSON::
 
     .venv/bin/python benchmarks/envelope_flight.py --decisions 10000 \\
@@ -57,8 +57,9 @@ from sim.envelope.flight import (  # noqa: E402
     separated_legal_targets,
 )
 from sim.envelope.volume import Envelope  # noqa: E402
+from sim.flight import Flight, fly, fly_many  # noqa: E402
 from sim.geometry import clip_to_volume, enforce_separation, hold_separation  # noqa: E402
-from sim.world import CLOSED_LOOP, Flight, World, fly, fly_many  # noqa: E402
+from sim.world import CLOSED_LOOP, World  # noqa: E402
 
 STEP_M = 0.25
 SEPARATION_M = 10.0
@@ -201,7 +202,7 @@ def run_fleet(
 def run_fleet_without_envelope(
     rng: np.random.Generator, area: AreaConfig, args: argparse.Namespace
 ) -> dict[str, Any]:
-    """Today's fleet flight with no envelope (unchanged: :func:`sim.world.fly_many` toward
+    """Today's fleet flight with no envelope (unchanged: :func:`sim.flight.fly_many` toward
     separated targets, then :func:`sim.geometry.hold_separation` on where the period ends),
     its paths measured as the envelope's are: each vehicle's dog-leg as :func:`fly` flies it,
     a held one still, a detour (a turned step) straight."""

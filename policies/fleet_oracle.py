@@ -60,8 +60,8 @@ from policies.oracle import coarse_grid_positions_m
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig, FleetModel, FleetState
+from sim.flight import Flight, fly_many
 from sim.geometry import assign_targets, clip_to_volume, enforce_separation
-from sim.world import Flight, fly_many
 
 __all__ = [
     "FleetOracle",
@@ -146,7 +146,7 @@ def fleet_episode_utility(
 
     With ``start`` the episode is the one a closed loop flies: it begins where the fleet is,
     with the users on the APs they are on, and every step after the first the vehicles fly
-    toward the placement (:func:`sim.world.fly_many`, the environments' flight) before it is
+    toward the placement (:func:`sim.flight.fly_many`, the environments' flight) before it is
     simulated; a placement is settled only once it is reached. (The environments also hold a
     vehicle whose flight would end too close to another; this score does not.)"""
     fleets = np.asarray(fleets_m, dtype=float)

@@ -47,9 +47,10 @@ from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig
 from sim.fleet_env import FleetParallelEnv
+from sim.flight import Flight
 from sim.geometry import assign_targets, clip_to_volume, enforce_separation
 from sim.observation import UserReports
-from sim.world import Flight, World
+from sim.world import World
 
 __all__ = [
     "DEFAULT_PRIOR",

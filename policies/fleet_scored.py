@@ -40,8 +40,8 @@ from policies.interface import UsersLike
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig, FleetModel
+from sim.flight import Flight
 from sim.geometry import assign_targets
-from sim.world import Flight
 
 __all__ = ["ALPHAS", "KMEANS_SCORED", "REGROUP_ALPHAS", "ScoredKMeansPlacement"]
 

@@ -10,7 +10,7 @@ and replans every decision from the latest report.
 
 **A trajectory** is a sequence of ``horizon_steps`` (H) targets, one per decision period, the
 last one then held (``A A A``: go to A and stay; ``W A A``: head for W for one period, then for
-A). It is flown exactly as the world flies: :func:`sim.world.fly_many` (the world's speed
+A). It is flown exactly as the world flies: :func:`sim.flight.fly_many` (the world's speed
 limits, the same floats as :meth:`sim.world.World.fly`); with acceleration limits or a latency,
 the world's ``fly_period`` with the velocity and the previous target carried from period to
 period (the vehicle's own motion at the decision is the last period replayed with that flight
@@ -101,11 +101,12 @@ from policies.adapters import StaticPolicy
 from policies.baselines import MinDistancePolicy
 from policies.interface import Placement, PolicyKind, ReportedUsers, UsersLike
 from policies.oracle import OracleConfig, OraclePolicy, coarse_grid_positions_m, episode_utility
+from sim.flight import fly_many
 from sim.geometry import clip_to_volume
 from sim.network import NetworkModel, QueueState
 from sim.observation import UserReports
 from sim.utility import network_utility
-from sim.world import PAPER, World, fly_many
+from sim.world import PAPER, World
 
 _DIRECTIONS = np.concatenate([np.eye(3), -np.eye(3)])
 

@@ -32,8 +32,8 @@ import numpy as np
 from sim.config import AreaConfig
 from sim.envelope.flight import fly_route_track, separate_tracks
 from sim.envelope.volume import Envelope
+from sim.flight import Flight
 from sim.geometry import assign_targets, enforce_separation, volume_bounds
-from sim.world import Flight
 
 __all__ = [
     "SEPARATION_TOLERANCE_M",

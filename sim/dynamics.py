@@ -1,7 +1,7 @@
 """The vehicle's flight as the loop flies it: acceleration limits and the decision's latency.
 
 A decision period of the world (:meth:`sim.world.World.fly_period`) is flown here when the
-world's :class:`~sim.world.Flight` has acceleration limits. The vehicle is a point mass whose
+world's :class:`~sim.flight.Flight` has acceleration limits. The vehicle is a point mass whose
 velocity follows a commanded velocity under those limits, the commanded velocity toward the
 setpoint coming from a square-root position controller (ArduPilot's ``sqrt_controller``, gain
 :data:`POSITION_GAIN_PER_S`): proportional near the setpoint, constant-deceleration braking

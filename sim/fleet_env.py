@@ -3,7 +3,7 @@ Gymnasium wrapper with the joint observation and action (centralised training).
 
 The world is the single-UAV environments' (:mod:`sim.envs`): a :class:`sim.world.World` gives
 the decision period, the episode's length, where the vehicles start, how they fly
-(:func:`sim.world.fly`), how users move and change their demand
+(:func:`sim.flight.fly`), how users move and change their demand
 (:class:`sim.users.UserDynamics`), how old and how noisy the report a decision sees is; the
 network is the fleet model (:class:`sim.fleet.FleetModel`: K access points, association with
 hysteresis, handovers, distinct or shared channels). One step:

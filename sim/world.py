@@ -39,28 +39,33 @@ import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import numpy as np
 
 from sim.channel import area_site
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig, check_environment, site_path
+from sim.envelope.files import ENVELOPE_FORMAT
+from sim.envelope.flight import (
+    canonical_document,
+    envelope_for,
+    fly_route,
+    fly_vehicle_period,
+    legal_position,
+    read_document,
+)
+from sim.envelope.route import Route
+from sim.envelope.volume import Envelope
 from sim.errors import InputError
-from sim.geometry import SCALAR_ROWS, clip_to_volume, zone_position
-
-if TYPE_CHECKING:
-    from sim.envelope.route import Route
-    from sim.envelope.volume import Envelope
+from sim.flight import Flight, fly, fly_many
+from sim.geometry import clip_to_volume, zone_position
 
 __all__ = [
     "WORLDS",
     "Demand",
-    "Flight",
     "Mobility",
     "ReportModel",
     "World",
-    "fly",
-    "fly_many",
     "get_world",
     "world_with",
 ]
@@ -68,62 +73,6 @@ __all__ = [
 MobilityModel = Literal["static", "random-waypoint", "group"]
 MOBILITY_MODELS: tuple[str, ...] = ("static", "random-waypoint", "group")
 HOMES: tuple[str, ...] = ("centre", "random")
-
-
-@dataclass(frozen=True)
-class Flight:
-    """How fast the vehicle reaches a target: ``None`` speeds mean it is there at once.
-
-    Without an acceleration limit the vehicle flies at its speed caps from the first instant
-    (:func:`fly`). With one (``accel_mps2``, horizontally and vertically alike, as the loop's
-    autopilots' defaults; both speeds needed) it flies as the loop's autopilot does: a point mass
-    under that limit, steered by a square-root position controller, its velocity carried from
-    period to period (:mod:`sim.dynamics`). ``latency_s``: for that long after a decision the
-    vehicle still flies toward the previous target (from the report to the new setpoint on the
-    autopilot; at most the decision period: a decision reaches the vehicle within its own
-    period).
-
-    Inside a flight-safety envelope (:attr:`World.envelope`) the routes the link streams are
-    flown: under the same acceleration limit and latency when the flight has one
-    (:func:`sim.envelope.flight.fly_route_period`), else at the speed caps."""
-
-    horizontal_mps: float | None = 10.0
-    vertical_mps: float | None = 3.0
-    accel_mps2: float | None = None
-    latency_s: float = 0.0
-
-    def __post_init__(self) -> None:
-        for name in ("horizontal_mps", "vertical_mps"):
-            value = getattr(self, name)
-            if value is not None and not (math.isfinite(value) and value > 0):
-                raise InputError(f"flight.{name}: must be > 0 (or none: no flight), got {value}")
-        value = self.accel_mps2
-        if value is not None and not (math.isfinite(value) and value > 0):
-            raise InputError(
-                f"flight.accel_mps2: must be > 0 (or none: no acceleration limit), got {value}"
-            )
-        if value is not None and (self.horizontal_mps is None or self.vertical_mps is None):
-            raise InputError(
-                "flight.accel_mps2: an acceleration limit needs both speed caps "
-                "(flight.horizontal_mps and flight.vertical_mps; or set flight.accel_mps2=none)"
-            )
-        if not (math.isfinite(self.latency_s) and self.latency_s >= 0):
-            raise InputError(f"flight.latency_s: must be >= 0, got {self.latency_s}")
-
-    @property
-    def teleports(self) -> bool:
-        return self.horizontal_mps is None and self.vertical_mps is None
-
-    @property
-    def accelerates(self) -> bool:
-        """Whether the flight has an acceleration limit (and carries a velocity)."""
-        return self.accel_mps2 is not None
-
-    @property
-    def stateless(self) -> bool:
-        """Whether a period's flight depends only on the position and the new target (no
-        acceleration limits, no latency): :func:`fly`."""
-        return not self.accelerates and self.latency_s == 0.0
 
 
 @dataclass(frozen=True)
@@ -262,12 +211,9 @@ class World:
             )
         if self.envelope is None and site_path(self.area.environment) is not None:
             # Over a site the buildings are exclusions (sim.envelope.buildings): always flown.
-            from sim.envelope.files import ENVELOPE_FORMAT
 
             object.__setattr__(self, "envelope", {"format": ENVELOPE_FORMAT})
         if self.envelope is not None:
-            from sim.envelope.flight import canonical_document
-
             try:
                 document = canonical_document(self.envelope, self.area)
             except InputError as exc:
@@ -302,7 +248,6 @@ class World:
         """The parsed envelope (built once per document and area), or None without one."""
         if self.envelope is None:
             return None
-        from sim.envelope.flight import envelope_for
 
         return envelope_for(self.envelope, self.area)
 
@@ -357,7 +302,6 @@ class World:
         """:meth:`fly` keeping the route across periods, as the vehicle link does: pass back the
         route returned (planned again only when the legal target changes, or it holds). See
         :func:`sim.envelope.flight.fly_route`; with no envelope, :func:`fly`'s flight."""
-        from sim.envelope.flight import fly_route
 
         return fly_route(
             self.flight_envelope, position_m, target_m, self.flight, self.step_s, route
@@ -375,7 +319,6 @@ class World:
         the loop flies the link's routes, latency and velocity carried; else at the speed caps
         or at once): (positions, velocities, routes) at its end, each route to pass back next
         period; velocities zero without an acceleration limit."""
-        from sim.envelope.flight import fly_vehicle_period
 
         envelope = self.flight_envelope
         positions = np.asarray(positions_m, dtype=float).reshape(-1, 3)
@@ -399,7 +342,6 @@ class World:
         none is near)."""
         if self.envelope is None:
             return np.asarray(xyz_m, dtype=float)
-        from sim.envelope.flight import legal_position
 
         return legal_position(self.flight_envelope, xyz_m, search=True)
 
@@ -421,71 +363,6 @@ def _check_range(name: str, value: tuple[float, float], positive: bool) -> None:
     if not ok:
         bound = "> 0" if positive else ">= 0"
         raise InputError(f"{name}: need {bound} and low <= high, got {value!r}")
-
-
-# --------------------------------------------------------------------------------------------
-# Flight: one code path for the environments and the service
-
-
-def fly(
-    position_m: np.ndarray, target_m: np.ndarray, flight: Flight, duration_s: float
-) -> np.ndarray:
-    """Straight toward ``target_m`` for ``duration_s``, horizontal and vertical speeds capped
-    separately (as a multirotor's position controller does); at the target when in reach."""
-    px, py, pz = (float(v) for v in position_m)
-    x, y, z = (float(v) for v in target_m)
-    return np.array(_fly_point(px, py, pz, x, y, z, flight, duration_s))
-
-
-def _fly_point(
-    px: float, py: float, pz: float, x: float, y: float, z: float, flight: Flight, duration_s: float
-) -> tuple[float, float, float]:
-    """:func:`fly` on Python floats: where a vehicle at (px, py, pz) ends, aiming at (x, y, z)."""
-    if flight.horizontal_mps is not None:
-        gap_x, gap_y = x - px, y - py
-        distance = math.hypot(gap_x, gap_y)
-        reach = flight.horizontal_mps * duration_s
-        if distance > reach:
-            x, y = px + gap_x * (reach / distance), py + gap_y * (reach / distance)
-    if flight.vertical_mps is not None:
-        reach_z = flight.vertical_mps * duration_s
-        if abs(z - pz) > reach_z:
-            z = pz + math.copysign(reach_z, z - pz)
-    return x, y, z
-
-
-def fly_many(
-    position_m: np.ndarray, target_m: np.ndarray, flight: Flight, duration_s: float
-) -> np.ndarray:
-    """:func:`fly` of each row of ``position_m`` toward ``target_m`` (E, 3): the same floats.
-
-    The horizontal distance is Python's ``math.hypot`` (as the scalar function's), one call per
-    row: numpy's ``hypot`` rounds differently in the last bit now and then."""
-    position = np.asarray(position_m, dtype=float)
-    if len(position) <= SCALAR_ROWS:  # a fleet: Python floats
-        rows = zip(position.tolist(), np.asarray(target_m, dtype=float).tolist(), strict=True)
-        flown = [_fly_point(*p, *t, flight, duration_s) for p, t in rows]
-        return np.array(flown, dtype=float).reshape(len(position), 3)
-    out = np.array(target_m, dtype=float)
-    if flight.horizontal_mps is not None:
-        gap_x = out[:, 0] - position[:, 0]
-        gap_y = out[:, 1] - position[:, 1]
-        distance = np.fromiter(
-            map(math.hypot, gap_x.tolist(), gap_y.tolist()), dtype=float, count=len(out)
-        )
-        reach = flight.horizontal_mps * duration_s
-        far = distance > reach
-        if far.any():
-            scale = reach / distance[far]
-            out[far, 0] = position[far, 0] + gap_x[far] * scale
-            out[far, 1] = position[far, 1] + gap_y[far] * scale
-    if flight.vertical_mps is not None:
-        reach_z = flight.vertical_mps * duration_s
-        gap_z = out[:, 2] - position[:, 2]
-        far = np.abs(gap_z) > reach_z
-        if far.any():
-            out[far, 2] = position[far, 2] + np.copysign(reach_z, gap_z[far])
-    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -598,8 +475,6 @@ def _with_envelope(world: World, raw: Any) -> World:
     if raw is None or (isinstance(raw, str) and raw.strip().lower() == "none"):
         document = None
     elif isinstance(raw, str | Path):
-        from sim.envelope.flight import read_document
-
         where = f"{str(raw).strip()}: "
         try:
             document = read_document(str(raw).strip())

@@ -9,15 +9,15 @@ routes here, so that what is learned and what is flown agree. Contract:
   legal target is the one it flies to and it does not hold; else planned again from where the
   vehicle is (:func:`~sim.envelope.route.plan_route`).
 * :func:`fly_along` flies a route for a period, waypoint by waypoint, under the horizontal and
-  vertical speed caps of :class:`sim.world.Flight`. Each leg is flown as
-  :func:`sim.world.fly` flies (each axis at its own cap, the *dog-leg* an autopilot's position
+  vertical speed caps of :class:`sim.flight.Flight`. Each leg is flown as
+  :func:`sim.flight.fly` flies (each axis at its own cap, the *dog-leg* an autopilot's position
   controller flies) when both pieces of that dog-leg are legal
   (:meth:`~sim.envelope.volume.Envelope.segment_violation`), else along the leg itself (both
   axes slowed to arrive together). Either way the vehicle reaches a waypoint when :func:`fly`
   would have, never leaves the envelope, and its path is returned as a :class:`Track`.
 * A holding route keeps the vehicle where it is.
 * Fast path: with no envelope, or an envelope that is a plain box (no exclusions, no clearance,
-  an axis-aligned rectangle), the flight is exactly :func:`sim.world.fly` toward the target
+  an axis-aligned rectangle), the flight is exactly :func:`sim.flight.fly` toward the target
   (clamped into the box when it lies outside), without a single shapely call.
 * Fleets (:func:`fly_fleet`): every vehicle flies its own route; :func:`separate_tracks` then
   holds, for the period, a vehicle whose flown path would come closer than the separation to
@@ -38,7 +38,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -48,11 +48,8 @@ from sim.envelope.paths import legal_target
 from sim.envelope.route import BRAKE_MPS2, Route, advance, plan_route, plan_route_moving
 from sim.envelope.volume import Envelope, Vec3
 from sim.errors import InputError
+from sim.flight import Flight, fly, fly_point
 from sim.geometry import enforce_separation, min_pairwise_distance_m
-from sim.world import _fly_point, fly
-
-if TYPE_CHECKING:
-    from sim.world import Flight
 
 __all__ = [
     "FleetFlight",
@@ -260,7 +257,7 @@ def _leg_times(p: Vec3, w: Vec3, flight: Flight) -> tuple[float, float]:
 
 
 def _knee(p: Vec3, w: Vec3, horizontal_s: float, vertical_s: float) -> Vec3 | None:
-    """Where :func:`sim.world.fly`'s dog-leg from ``p`` to ``w`` turns (one axis arrived, the
+    """Where :func:`sim.flight.fly`'s dog-leg from ``p`` to ``w`` turns (one axis arrived, the
     other still going), or None when it is the straight leg itself."""
     if (w[0], w[1]) == (p[0], p[1]) or w[2] == p[2] or horizontal_s == vertical_s:
         return None
@@ -335,7 +332,7 @@ def fly_along(
         if dog_leg:
             assert knee is not None
             turn_s = min(horizontal_s, vertical_s)
-            end = _fly_point(*here, *waypoint, flight, left)
+            end = fly_point(*here, *waypoint, flight, left)
             if turn_s < left:
                 times.append(elapsed + turn_s)
                 points.append(knee)
@@ -359,7 +356,7 @@ def _straight(
     flight: Flight,
     duration_s: float,
 ) -> Flown:
-    """The fast path: :func:`sim.world.fly` toward the target (clamped into ``box``)."""
+    """The fast path: :func:`sim.flight.fly` toward the target (clamped into ``box``)."""
     requested = _vec(target_m)
     target = requested
     if box is not None:
@@ -479,7 +476,7 @@ def fly_route(
     """Where the vehicle at ``position_m`` is after ``duration_s`` flying toward ``target_m``
     along the route the link would stream, and that route (pass it back next period: it is
     planned again only when the legal target changes or it holds). With no envelope or a plain
-    box and a legal target: exactly :func:`sim.world.fly`'s result."""
+    box and a legal target: exactly :func:`sim.flight.fly`'s result."""
     flown = fly_route_track(envelope, position_m, target_m, flight, duration_s, route)
     return flown.position_m, flown.route
 

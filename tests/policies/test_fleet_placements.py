@@ -17,9 +17,9 @@ from policies.interface import UsersLike
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig, FleetModel
+from sim.flight import Flight, fly_many
 from sim.geometry import assign_targets, volume_bounds
 from sim.scenarios import Scenario, generate_scenarios
-from sim.world import Flight, fly_many
 
 
 def _hot_spots() -> Scenario:

@@ -15,10 +15,11 @@ from policies.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig, FleetModel
+from sim.flight import Flight
 from sim.geometry import assign_targets, volume_bounds
 from sim.observation import UserReports
 from sim.scenarios import Scenario, generate_scenarios
-from sim.world import Flight, get_world
+from sim.world import get_world
 
 
 def _one_loaded_spot() -> Scenario:

@@ -24,8 +24,8 @@ from service.fleet_targets import (
 from sim.config import AreaConfig
 from sim.envelope.flight import Track, closest_approach_m, fly_route_track
 from sim.envelope.volume import Envelope
+from sim.flight import Flight
 from sim.geometry import volume_bounds
-from sim.world import Flight
 
 AREA = AreaConfig()
 SMALL = AreaConfig(size_x_m=60.0, size_y_m=60.0, zone_m=5.0, z_min_m=5.0, z_max_m=20.0)

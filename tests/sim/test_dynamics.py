@@ -17,9 +17,10 @@ from sim.config import AreaConfig
 from sim.dynamics import PHYSICS_DT_S, fly_accelerating
 from sim.envs import FapContinuousEnv
 from sim.errors import InputError
+from sim.flight import Flight, fly_many
 from sim.scenarios import generate_scenarios
 from sim.vector_env import FapVectorEnv
-from sim.world import CLOSED_LOOP, Flight, World, fly_many, get_world, world_with
+from sim.world import CLOSED_LOOP, World, get_world, world_with
 from sitl_mock.flavours import ARDUPILOT
 from sitl_mock.setpoints import FRAME_LOCAL_NED, POSITION_ONLY_MASK
 from tests.sitl_mock.test_vehicle import ardupilot_airborne

@@ -1,5 +1,5 @@
 """The world's flight inside an envelope (:mod:`sim.envelope.flight`): the fast path is
-:func:`sim.world.fly` exactly, routes are flown without ever leaving the envelope (single
+:func:`sim.flight.fly` exactly, routes are flown without ever leaving the envelope (single
 vehicles and fleets of 3, hypothesis, every flown path sampled and held to the envelope with the
 plain-distance check of ``test_envelope.py``), the fleet's separation holds on the paths, and
 the world and its environments fly that way when given an envelope."""
@@ -36,9 +36,10 @@ from sim.envelope.route import Route
 from sim.envs import FapContinuousEnv, FapDiscreteEnv
 from sim.errors import InputError
 from sim.fleet_env import FleetParallelEnv
+from sim.flight import Flight, fly
 from sim.scenarios import ScenarioSampler
 from sim.vector_env import FapVectorEnv
-from sim.world import CLOSED_LOOP, CLOSED_LOOP_MOVING, PAPER, Flight, World, fly, world_with
+from sim.world import CLOSED_LOOP, CLOSED_LOOP_MOVING, PAPER, World, world_with
 from tests.sim.test_envelope import AREA, envelopes, independent_violations
 from tests.sim.test_fleet_env import assert_one_uav_flies_as_the_single_environment
 

@@ -18,10 +18,11 @@ from sim.envs import (
     FapDiscreteEnv,
     position_to_action,
 )
+from sim.flight import Flight
 from sim.geometry import unit_to_m
 from sim.observation import UserReports, build_observation
 from sim.scenarios import Scenario, generate_scenarios
-from sim.world import Flight, World
+from sim.world import World
 
 AREA = AreaConfig()
 SCENARIOS = generate_scenarios(5, 3, seed=11)

@@ -13,6 +13,7 @@ from sim.association import associate, received_power_dbm
 from sim.config import AreaConfig, RadioConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig, FleetModel, jain_index
+from sim.flight import Flight, fly_many
 from sim.geometry import (
     enforce_separation,
     hold_separation,
@@ -21,7 +22,6 @@ from sim.geometry import (
 )
 from sim.network import NetworkModel
 from sim.scenarios import generate_scenarios
-from sim.world import Flight, fly_many
 
 
 @pytest.mark.parametrize("environment", ["open", "urban"])

@@ -11,6 +11,7 @@ from gymnasium.wrappers.vector import RecordEpisodeStatistics
 
 from sim.config import AreaConfig
 from sim.envs import FapContinuousEnv, FapDiscreteEnv
+from sim.flight import Flight, fly, fly_many
 from sim.geometry import (
     MOVES,
     move_target,
@@ -26,15 +27,7 @@ from sim.geometry import (
 )
 from sim.scenarios import ScenarioSampler, generate_scenarios
 from sim.vector_env import FapVectorEnv
-from sim.world import (
-    CLOSED_LOOP,
-    CLOSED_LOOP_MOVING,
-    PAPER,
-    Flight,
-    ReportModel,
-    fly,
-    fly_many,
-)
+from sim.world import CLOSED_LOOP, CLOSED_LOOP_MOVING, PAPER, ReportModel
 
 AREA = AreaConfig()
 SCENARIOS = generate_scenarios(5, 3, seed=11)

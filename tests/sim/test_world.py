@@ -12,20 +12,12 @@ from hypothesis import strategies as st
 from sim.config import AreaConfig
 from sim.envs import FapContinuousEnv, FapDiscreteEnv
 from sim.errors import InputError
+from sim.flight import Flight, fly
 from sim.geometry import MOVES, move_target, valid_moves, zone_index, zone_position
 from sim.observation import build_observation
 from sim.scenarios import Scenario, generate_scenarios
 from sim.users import UserDynamics
-from sim.world import (
-    PAPER,
-    Demand,
-    Flight,
-    Mobility,
-    World,
-    fly,
-    get_world,
-    world_with,
-)
+from sim.world import PAPER, Demand, Mobility, World, get_world, world_with
 
 AREA = AreaConfig()
 
