@@ -28,6 +28,7 @@ from api.ratelimit import RateLimit
 from api.responses import send_error
 from api.routes import RATE_LIMITED, probes, v1
 from api.ui import ui
+from service.opening import open_service
 from service.placement import PlacementService
 from service.settings import ServiceSettings
 
@@ -155,7 +156,7 @@ def create_app(
 ) -> FastAPI:
     """The app for ``settings``; ``ValueError`` if it may not start (no token, not insecure)."""
     settings.check_startable()
-    factory = service_factory or PlacementService.from_settings
+    factory = service_factory or open_service
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

@@ -223,7 +223,7 @@ def _serve(args: argparse.Namespace) -> int:
     from api.live import end_streams
     from api.server import server_config
     from service.errors import InputError
-    from service.placement import PlacementService
+    from service.opening import open_service
 
     logging.basicConfig(
         level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -233,7 +233,7 @@ def _serve(args: argparse.Namespace) -> int:
         settings.check_startable()
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    service = PlacementService.from_settings(settings)  # InputError for an unusable policy
+    service = open_service(settings)  # InputError for an unusable policy
     app = create_app(settings, service_factory=lambda _settings: service)
 
     import socket

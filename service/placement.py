@@ -2,7 +2,7 @@
 
 :class:`PlacementService` is what ``tupa serve`` runs behind its HTTP side::
 
-    service = PlacementService.from_settings(settings)   # opens the MAVLink link
+    service = open_service(settings)   # service.opening: opens the MAVLink link(s)
     service.start()
     service.submit(report)             # POST /v1/reports: accept(), then receipt()
     service.current_decision()         # GET /v1/setpoint
@@ -311,13 +311,12 @@ class PlacementService:
 
     @classmethod
     def from_settings(cls, settings: ServiceSettings) -> PlacementService:
-        """Load the policy (``InputError`` if unusable) and open the link (retries on its own)."""
+        """Load the policy (``InputError`` if unusable) and open the link (retries on its own).
+        One vehicle; :func:`service.opening.open_service` opens whichever ``settings`` ask for."""
         from service.links import open_link
 
         if settings.is_fleet:
-            from service.fleet_placement import FleetPlacementService
-
-            return FleetPlacementService.from_settings(settings)
+            raise ValueError("a fleet's settings: FleetPlacementService.from_settings")
         world = settings.policy_world()
         # The operator's own choice (or the served default for the environment): from any
         # directory, within the size limit.

@@ -259,7 +259,7 @@ def _columns(reports: UserReports) -> list[np.ndarray]:
 @pytest.fixture(scope="module")
 def placement() -> Iterator[Any]:
     """PlacementService (load-weighted, decides on every report) on an in-process sitl_mock."""
-    from service.placement import PlacementService
+    from service.opening import open_service
     from service.settings import ServiceSettings
     from sitl_mock.config import VehicleConfig
     from sitl_mock.server import MockAutopilot
@@ -274,7 +274,7 @@ def placement() -> Iterator[Any]:
             policy="load-weighted",
             decision_mode="on-report",
         )
-        service = PlacementService.from_settings(settings_).start()
+        service = open_service(settings_).start()
         try:
             wait_for(lambda: service.readiness()[0], 15.0, message="link up, position known")
             yield service
