@@ -27,9 +27,9 @@ from typing import Any
 
 import numpy as np
 
+from policies.fleet_checkpoint import FleetCheckpointPolicy
 from policies.fleet_evaluation import build_fleet_candidate, evaluate_fleet
 from policies.fleet_scored import KMEANS_SCORED
-from policies.fleet_training import FleetCheckpointPolicy
 from sim.fleet import MAX_UAVS, FleetConfig
 from sim.fleet_env import FleetParallelEnv
 from sim.scenarios import generate_scenarios

@@ -7,7 +7,7 @@ mixture families (``--per-family`` each, Λ = 40 Mbit/s per UAV, seeds from ``--
 cell, never the training's), one episode of the fleet environment in that world (its decision
 period and episode length; ``--episode-steps`` shortens it) from the fleet's homes, for:
 
-* the checkpoint (:class:`policies.fleet_training.FleetCheckpointPolicy`), deciding every step
+* the checkpoint (:class:`policies.fleet_checkpoint.FleetCheckpointPolicy`), deciding every step
   (``--checkpoint``; without it the placements alone);
 * ``kmeans-min-distance``, ``kmeans-load-weighted``, ``kmeans-scored``
   (:class:`policies.fleet_scored.ScoredKMeansPlacement`) and the search oracle

@@ -467,7 +467,7 @@ def export_checkpoint(
     metadata says ``"serving_only": true``.
 
     ``observation_shape``: what the network must take, as for :func:`load_checkpoint` (a fleet
-    checkpoint's: :func:`policies.fleet_training.fleet_observation_shape`).
+    checkpoint's: :func:`policies.fleet_checkpoint.fleet_observation_shape`).
     """
     model, meta = load_checkpoint(source, area, device="cpu", observation_shape=observation_shape)
     for name in model._get_torch_save_params()[0]:

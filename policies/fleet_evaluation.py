@@ -7,7 +7,7 @@ Protocol (:func:`evaluate_fleet`), for scenario i of the set, K UAVs, a
 * the fleet environment (:class:`sim.fleet_env.FleetParallelEnv`, continuous actions) is reset
   with ``seed + i`` from the fleet's homes (:func:`sim.fleet_env.fleet_homes`), so every policy
   meets the same fading draws, user motion and demand changes on the same scenario;
-* a fleet checkpoint (:class:`policies.fleet_training.FleetCheckpointPolicy`) decides every
+* a fleet checkpoint (:class:`policies.fleet_checkpoint.FleetCheckpointPolicy`) decides every
   step from the K agents' observations; a placement (``place(users) -> (K, 3)``: the k-means
   baselines of :mod:`policies.fleet_baselines`, the search oracle of
   :mod:`policies.fleet_oracle`) is placed on the first report the decision sees and re-placed
@@ -47,9 +47,9 @@ from typing import Any, Protocol
 import numpy as np
 
 from policies.fleet_baselines import FLEET_BASELINES, KMeansPlacement
+from policies.fleet_checkpoint import FleetCheckpointPolicy
 from policies.fleet_oracle import FleetOracle, FleetOracleConfig
 from policies.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
-from policies.fleet_training import FleetCheckpointPolicy
 from policies.interface import ReportedUsers
 from sim.errors import InputError
 from sim.fleet import MAX_UAVS, FleetConfig

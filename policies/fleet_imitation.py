@@ -60,6 +60,7 @@ from typing import Any
 import numpy as np
 import torch as th
 
+from policies.fleet_checkpoint import FleetCheckpointPolicy
 from policies.fleet_oracle import FleetOracle, FleetOracleConfig
 from policies.fleet_residual import KMeansPrior
 from policies.interface import ReportedUsers
@@ -280,9 +281,7 @@ def _collect(
     oracle = teacher_oracle(n_uavs, world, imitation.horizon_steps, imitation.teacher)
     prior = KMeansPrior(world.area, env.fleet.separation_m)
     policy = None
-    if learner is not None:  # imported here: policies.fleet_training imports this module
-        from policies.fleet_training import FleetCheckpointPolicy
-
+    if learner is not None:
         policy = FleetCheckpointPolicy.load(
             learner, world.area, env.fleet.separation_m, world=world
         )

@@ -129,8 +129,9 @@ class FleetPlacementPolicy:
 
 
 class FleetCheckpointServing:
-    """A shared-parameter fleet checkpoint (:class:`policies.fleet_training.FleetCheckpointPolicy`)
-    deciding for the vehicles that fly now, from reports.
+    """A shared-parameter fleet checkpoint
+    (:class:`policies.fleet_checkpoint.FleetCheckpointPolicy`) deciding for the vehicles that
+    fly now, from reports.
 
     The observation is the environments' (:func:`sim.fleet_env.fleet_observations`) at the
     vehicles' positions. Which AP each user is on (the fleet maps need it) is not in a report:
@@ -207,7 +208,7 @@ def resolve_fleet_policy(
             f"checkpoint, got {spec!r} (single-vehicle policies cannot drive a fleet)"
         )
     from policies.checkpoints import CheckpointError
-    from policies.fleet_training import FleetCheckpointPolicy
+    from policies.fleet_checkpoint import FleetCheckpointPolicy
 
     try:
         policy = FleetCheckpointPolicy.load(

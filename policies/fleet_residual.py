@@ -25,8 +25,8 @@ The actor starts at ``delta = 0`` (its last layer zeroed), so an untrained fleet
 its prior, and training learns what the prior misses (contention within a cell, the interplay
 of cells, heavy users that need a cell of their own).
 :func:`fleet_residual_targets` is the one function both the training wrapper
-(:class:`FleetResidualActions`) and serving (:class:`policies.fleet_training.FleetCheckpointPolicy`)
-use, so they agree to the bit.
+(:class:`FleetResidualActions`) and serving
+(:class:`policies.fleet_checkpoint.FleetCheckpointPolicy`) use, so they agree to the bit.
 """
 
 from __future__ import annotations

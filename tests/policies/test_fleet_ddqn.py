@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from policies.fleet_checkpoint import FleetCheckpointPolicy
 from policies.fleet_training import (
-    FleetCheckpointPolicy,
     FleetTrainConfig,
     make_fleet_vec_env,
     train_fleet,

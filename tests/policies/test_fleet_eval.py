@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from policies.fleet_baselines import KMeansPlacement
+from policies.fleet_checkpoint import FleetCheckpointPolicy
 from policies.fleet_evaluation import (
     FLEET_EVAL_FORMAT,
     FLEET_METRICS,
@@ -20,7 +21,7 @@ from policies.fleet_evaluation import (
     build_fleet_candidate,
     evaluate_fleet,
 )
-from policies.fleet_training import FleetCheckpointPolicy, FleetTrainConfig, train_fleet
+from policies.fleet_training import FleetTrainConfig, train_fleet
 from policies.interface import ReportedUsers
 from policies.report import build_report
 from service.cli import main

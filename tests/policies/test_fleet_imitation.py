@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch as th
 
+from policies.fleet_checkpoint import FleetCheckpointPolicy
 from policies.fleet_imitation import (
     TEACHERS,
     ImitationConfig,
@@ -24,7 +25,6 @@ from policies.fleet_imitation import (
 )
 from policies.fleet_residual import KMeansPrior, fleet_residual_targets
 from policies.fleet_training import (
-    FleetCheckpointPolicy,
     FleetTrainConfig,
     make_fleet_vec_env,
     train_fleet,

@@ -15,6 +15,7 @@ from pettingzoo.test import parallel_api_test
 
 from policies.checkpoints import export_checkpoint
 from policies.fleet_baselines import KMeansPlacement
+from policies.fleet_checkpoint import FleetCheckpointPolicy, fleet_observation_shape
 from policies.fleet_evaluation import evaluate_fleet
 from policies.fleet_residual import (
     FleetResidualActions,
@@ -25,9 +26,7 @@ from policies.fleet_residual import (
 )
 from policies.fleet_scored import ScoredKMeansPlacement
 from policies.fleet_training import (
-    FleetCheckpointPolicy,
     FleetTrainConfig,
-    fleet_observation_shape,
     train_fleet,
 )
 from policies.interface import ReportedUsers

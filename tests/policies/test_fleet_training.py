@@ -14,9 +14,9 @@ import pytest
 
 from policies.checkpoints import CheckpointError, load_checkpoint
 from policies.fleet_baselines import KMeansPlacement
+from policies.fleet_checkpoint import FleetCheckpointPolicy
 from policies.fleet_evaluation import evaluate_fleet
 from policies.fleet_training import (
-    FleetCheckpointPolicy,
     FleetTrainConfig,
     train_fleet,
 )
