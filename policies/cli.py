@@ -191,35 +191,6 @@ def add_world_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def world_from_args(args: argparse.Namespace, default: str, area: object = None) -> object:
-    """The world ``--world``/``--world-set`` describe (``InputError`` naming a bad setting),
-    with ``--queueing`` and ``--episode-steps`` applied when given, over ``area``."""
-    from dataclasses import replace
-
-    from sim.config import NetworkConfig, check_environment
-    from sim.errors import InputError
-    from sim.world import get_world, world_with
-
-    world = get_world(args.world or default)
-    overrides: dict[str, object] = {}
-    if area is not None:
-        overrides["area"] = area
-    if getattr(args, "queueing", None):
-        overrides["network"] = NetworkConfig().with_queueing(args.queueing)
-    steps = getattr(args, "episode_steps", None)
-    if steps is not None:
-        if steps < 1:
-            raise InputError(f"--episode-steps: must be at least 1, got {steps}")
-        overrides["episode_steps"] = steps
-    if overrides:
-        world = replace(world, **overrides)
-    settings = list(args.world_set)
-    if getattr(args, "environment", None) is not None:
-        check_environment(args.environment, "--environment", on_disk=True)
-        settings.append(f"environment={args.environment}")
-    return world_with(world, settings)
-
-
 def check_scenarios_in(world: Any, scenarios: Sequence[Any], path: Path) -> None:
     """Every scenario's users can stand in the world's area: on a site given by
     ``--environment`` or ``--world-set`` (not by the file, whose loading checked it), none
@@ -233,6 +204,7 @@ def check_scenarios_in(world: Any, scenarios: Sequence[Any], path: Path) -> None
 def _eval(args: argparse.Namespace) -> int:
     from policies.evaluation import evaluate_policy, format_results
     from policies.registry import POLICY_NAMES, close_names, resolve_policy, unknown_name
+    from policies.world_options import world_from_args
     from sim.errors import InputError
     from sim.files import atomic_write_json, load_scenarios
 
@@ -331,6 +303,7 @@ def _eval_fleet(args: argparse.Namespace) -> int:
         evaluate_fleet,
         format_fleet_results,
     )
+    from policies.world_options import world_from_args
     from sim.errors import InputError
     from sim.files import atomic_write_json, load_scenarios
     from sim.fleet import FleetConfig

@@ -38,9 +38,9 @@ def evaluate_slice(payload: dict[str, Any]) -> dict[str, Any]:
 
 
 def _evaluate_slice(payload: dict[str, Any]) -> dict[str, Any]:
-    from policies.cli import world_from_args
     from policies.evaluation import evaluate_policy
     from policies.registry import resolve_policy
+    from policies.world_options import world_from_args
     from sim.files import load_scenarios
 
     area, scenarios = load_scenarios(Path(payload["scenarios"]))
