@@ -18,29 +18,18 @@ fleet figures and tables (:mod:`.fleet`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 from policies.report.altitude import FIGURE_FILE as ALTITUDE_FIGURE
 from policies.report.altitude import altitude_figure, altitude_lines, load_altitude_profiles
-from policies.report.checks import write_report_files
 from policies.report.figures import line_styles, render_figures
 from policies.report.inputs import Warn, load_inputs, stderr_warning
 from policies.report.markdown import render_markdown
+from policies.report.output import REPORT_FILE, ReportFiles, write_report_files
 from policies.report.stats import headlines, heterogeneity_bins
 from sim.errors import InputError
 
 __all__ = ["REPORT_FILE", "ReportFiles", "build_report"]
-
-REPORT_FILE = "results.md"
-
-
-@dataclass(frozen=True)
-class ReportFiles:
-    """What :func:`build_report` wrote: the files, and one headline line per compared policy."""
-
-    written: tuple[Path, ...]
-    headlines: tuple[str, ...]
 
 
 def build_report(results_dir: Path, out_dir: Path, warn: Warn = stderr_warning) -> ReportFiles:

@@ -54,25 +54,6 @@ def read_json(path: Path) -> Any:
         raise fail(str(path), "not valid JSON: nested too deeply") from None
 
 
-def write_report_files(out_dir: Path, files: dict[str, bytes | str]) -> list[Path]:
-    """Write a report's files into ``out_dir`` (created if missing), each atomically (figures
-    as bytes, text as UTF-8); InputError naming ``--out`` if it cannot be written."""
-    from sim.files import atomic_write_bytes, atomic_write_text
-
-    written = []
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        for name, data in files.items():
-            if isinstance(data, str):
-                atomic_write_text(out_dir / name, data)
-            else:
-                atomic_write_bytes(out_dir / name, data)
-            written.append(out_dir / name)
-    except OSError as exc:
-        raise InputError(f"--out: {out_dir}: cannot write: {exc.strerror or exc}") from None
-    return written
-
-
 def check_scenario_ids(ids: list[str], raw: dict[str, Any], label: str, where: str) -> None:
     """The rows' scenario ids are distinct, and ``n_scenarios`` (if given) counts them."""
     if len(set(ids)) != len(ids):

@@ -40,10 +40,10 @@ from policies.report.checks import (
     finite_number,
     non_empty_text,
     read_json,
-    write_report_files,
 )
 from policies.report.curves import LEARNING_CURVE_FILE
 from policies.report.inputs import Warn, _is_eval_document
+from policies.report.output import REPORT_FILE, ReportFiles, write_report_files
 from sim.errors import InputError
 from sim.fleet import MAX_UAVS
 
@@ -58,7 +58,6 @@ __all__ = [
 METRICS_FIGURE = "fleet_metrics.png"
 HETEROGENEITY_FIGURE = "fleet_utility_by_heterogeneity.png"
 FLEET_FIGURES = (METRICS_FIGURE, HETEROGENEITY_FIGURE)
-REPORT_FILE = "results.md"
 SETTINGS = ("world", "environment", "episode_steps", "replan_every", "seed", "channel_mode")
 BASELINES = ("kmeans-min-distance", "kmeans-load-weighted")
 _H_TOLERANCE = 1e-9
@@ -506,8 +505,7 @@ def _markdown(results: Sequence[FleetResult], results_dir: Path) -> str:
 def build_fleet_report(results_dir: Path, out_dir: Path, warn: Warn) -> Any:
     """Read the fleet eval files in ``results_dir`` and write the figures and ``results.md``
     to ``out_dir`` (created if missing); nothing is written on bad input. Returns
-    :class:`policies.report.ReportFiles` (one headline per policy)."""
-    from policies.report import ReportFiles
+    :class:`policies.report.output.ReportFiles` (one headline per policy)."""
 
     results_dir, out_dir = Path(results_dir), Path(out_dir)
     results = load_fleet_results(results_dir, warn)

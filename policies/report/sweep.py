@@ -37,6 +37,7 @@ import numpy as np
 
 from policies.report.curves import LEARNING_CURVE_FILE, load_learning_curve
 from policies.report.inputs import Warn, stderr_warning
+from policies.report.output import REPORT_FILE, ReportFiles
 from sim.errors import InputError
 
 FIGURE_FILE = "sweep_learning_curve.png"
@@ -95,8 +96,7 @@ class Version:
 
 def build_sweep_report(sweep_dir: Path, out_dir: Path, warn: Warn = stderr_warning) -> Any:
     """Merge the sweep in ``sweep_dir`` into ``out_dir`` (see the module doc); returns the
-    :class:`policies.report.ReportFiles` written."""
-    from policies.report import REPORT_FILE, ReportFiles
+    :class:`policies.report.output.ReportFiles` written."""
     from policies.sweep.state import read_state
     from sim.files import atomic_write_bytes, atomic_write_text
 
