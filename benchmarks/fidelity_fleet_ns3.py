@@ -56,8 +56,8 @@ from typing import Any
 import numpy as np
 
 from sim.association import received_power_dbm
+from sim.atomic import atomic_write_json
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
-from sim.files import atomic_write_json
 from sim.fleet import CHANNEL_MODES, FleetConfig, FleetModel
 from sim.utility import network_utility
 

@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.atomic import atomic_write_json
 from sim.dynamics import fly_accelerating
-from sim.files import atomic_write_json
 from sim.world import CLOSED_LOOP
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -513,7 +513,7 @@ def main(argv: list[str] | None = None) -> None:
         "latency": latency,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    from sim.files import atomic_write_json, atomic_write_text
+    from sim.atomic import atomic_write_json, atomic_write_text
 
     atomic_write_json(args.out, document)
     atomic_write_text(args.out.with_suffix(".md"), markdown(document))

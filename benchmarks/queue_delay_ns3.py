@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.atomic import atomic_write_json
 from sim.calibration.fit import HAND_SET
 from sim.config import NetworkConfig
-from sim.files import atomic_write_json
 from sim.network import NetworkModel
 from sim.ns3_backend import Ns3Runner, Ns3Settings, ns3_version, require_ns3
 from sim.scenarios import Case

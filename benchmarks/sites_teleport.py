@@ -200,10 +200,10 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=RESULTS / "sites_teleport.json")
     args = parser.parse_args()
 
+    from sim.atomic import atomic_write_json, atomic_write_text
     from sim.channel import area_site
     from sim.config import AreaConfig, check_environment
     from sim.errors import InputError
-    from sim.files import atomic_write_json, atomic_write_text
     from sim.scenarios import check_family_area
 
     try:

@@ -359,7 +359,7 @@ def run_demo(cfg: DemoConfig) -> dict[str, Any]:
             lp.close()
     summary = {"policy": policy_name, "config": _jsonable(asdict(cfg)), "scenarios": results}
     cfg.out_dir.mkdir(parents=True, exist_ok=True)
-    from sim.files import atomic_write_json
+    from sim.atomic import atomic_write_json
 
     atomic_write_json(cfg.out_dir / "demo.json", summary)
     plot_tracks(results, area, cfg.out_dir / "track.png", policy_name)

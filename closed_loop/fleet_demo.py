@@ -432,7 +432,7 @@ def run_fleet_demo(cfg: FleetDemoConfig) -> dict[str, Any]:
         "fleet_oracle_decision_s": oracle_s,
         "policies": results,
     }
-    from sim.files import atomic_write_json
+    from sim.atomic import atomic_write_json
 
     atomic_write_json(cfg.out_dir / "demo.json", summary)
     plot_fleet_tracks(summary, area, cfg.out_dir / "track.png")

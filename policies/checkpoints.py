@@ -31,9 +31,9 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from sim.atomic import atomic_write_bytes, atomic_write_json
 from sim.config import AreaConfig
 from sim.errors import InputError
-from sim.files import atomic_write_bytes, atomic_write_json
 from sim.observation import observation_shape as area_observation_shape
 
 CHECKPOINT_FORMAT = "tupa-checkpoint/1"
@@ -130,7 +130,7 @@ def git_commit() -> str | None:
 def save_checkpoint(model: Any, path: Path, metadata: dict[str, Any]) -> None:
     """Write ``model`` (an SB3 algorithm) to ``path`` and its metadata beside it, atomically.
 
-    The zip is built in memory and written with :func:`sim.files.atomic_write_bytes`; the JSON
+    The zip is built in memory and written with :func:`sim.atomic.atomic_write_bytes`; the JSON
     follows. A crash in between leaves the previous checkpoint's zip and JSON intact.
     """
     path = Path(path)

@@ -205,8 +205,9 @@ def _eval(args: argparse.Namespace) -> int:
     from policies.evaluation import evaluate_policy, format_results
     from policies.registry import POLICY_NAMES, close_names, resolve_policy, unknown_name
     from policies.world_options import world_from_args
+    from sim.atomic import atomic_write_json
     from sim.errors import InputError
-    from sim.files import atomic_write_json, load_scenarios
+    from sim.files import load_scenarios
 
     if args.uavs is not None:
         return _eval_fleet(args)
@@ -304,8 +305,9 @@ def _eval_fleet(args: argparse.Namespace) -> int:
         format_fleet_results,
     )
     from policies.world_options import world_from_args
+    from sim.atomic import atomic_write_json
     from sim.errors import InputError
-    from sim.files import atomic_write_json, load_scenarios
+    from sim.files import load_scenarios
     from sim.fleet import FleetConfig
 
     k = check_fleet_size(args.uavs)

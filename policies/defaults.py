@@ -98,7 +98,7 @@ def write_table(means_by_environment: dict[str, dict[str, float]], source: str) 
     """Write :data:`TABLE` from measured means (environment → policy → mean utility per step):
     each environment's :func:`rank`, and ``site`` (any site) from the sites measured together,
     their means averaged. Atomic."""
-    from sim.files import atomic_write_json
+    from sim.atomic import atomic_write_json
 
     defaults: dict[str, Any] = {}
     for environment, means in sorted(means_by_environment.items()):

@@ -66,6 +66,7 @@ from policies.presets import NetworkPreset, Preset, get_preset
 from policies.progress import Progress, format_duration
 from policies.registry import make_placement
 from policies.residual import ResidualActions, residual_metadata
+from sim.atomic import atomic_write_json
 from sim.config import (
     ENVIRONMENTS,
     AreaConfig,
@@ -76,7 +77,7 @@ from sim.config import (
 )
 from sim.envs import FapContinuousEnv, FapDiscreteEnv, ScenarioCycle, ScenariosByEnvironment
 from sim.errors import InputError
-from sim.files import atomic_write_json, load_scenarios, scenario_set_hash
+from sim.files import load_scenarios, scenario_set_hash
 from sim.observation import observation_shape
 from sim.scenarios import Scenario, ScenarioSampler, check_scenario_area, generate_scenarios
 from sim.world import World, get_world, world_with

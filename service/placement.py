@@ -80,10 +80,10 @@ from service.live_view import LiveFrame, LiveView, Moment
 from service.policy_runtime import load_policy
 from service.settings import ServiceSettings
 from service.vehicle_link import LinkConfig, LinkState, VehicleLink
+from sim.atomic import atomic_write_json
 from sim.config import AreaConfig
 from sim.envelope import Envelope
 from sim.errors import InputError
-from sim.files import atomic_write_json
 from sim.observation import UserReports
 from sim.world import World
 

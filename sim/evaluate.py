@@ -13,8 +13,9 @@ from typing import Any
 
 import numpy as np
 
+from sim.atomic import atomic_write_json
 from sim.config import NetworkConfig, Queueing, UtilityConfig
-from sim.files import atomic_write_json, load_cases
+from sim.files import load_cases
 from sim.network import NetworkModel
 from sim.scenarios import Case
 from sim.utility import network_utility

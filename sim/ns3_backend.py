@@ -84,6 +84,7 @@ from typing import Any
 
 import numpy as np
 
+from sim.atomic import atomic_write_json
 from sim.channel import (
     NO_LINK_LOSS_DB,
     environment_site,
@@ -102,7 +103,7 @@ from sim.config import (
 )
 from sim.errors import InputError
 from sim.evaluate import RESULTS_FORMAT, CaseMetrics
-from sim.files import atomic_write_json, cases_document, load_cases
+from sim.files import cases_document, load_cases
 from sim.fleet import CHANNEL_MODES, CHANNELS_5GHZ, MAX_UAVS
 from sim.scenarios import Case
 from sim.utility import network_utility

@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from policies.report.checks import fail, finite_number, non_empty_text, read_json
-from sim.files import atomic_write_json
+from sim.atomic import atomic_write_json
 
 LEARNING_CURVE_FORMAT = "tupa-learning-curve/1"
 LEARNING_CURVE_FILE = "learning_curve.json"

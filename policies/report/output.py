@@ -25,7 +25,7 @@ class ReportFiles:
 def write_report_files(out_dir: Path, files: dict[str, bytes | str]) -> list[Path]:
     """Write a report's files into ``out_dir`` (created if missing), each atomically (figures
     as bytes, text as UTF-8); InputError naming ``--out`` if it cannot be written."""
-    from sim.files import atomic_write_bytes, atomic_write_text
+    from sim.atomic import atomic_write_bytes, atomic_write_text
 
     written = []
     try:

@@ -98,7 +98,7 @@ def build_sweep_report(sweep_dir: Path, out_dir: Path, warn: Warn = stderr_warni
     """Merge the sweep in ``sweep_dir`` into ``out_dir`` (see the module doc); returns the
     :class:`policies.report.output.ReportFiles` written."""
     from policies.sweep.state import read_state
-    from sim.files import atomic_write_bytes, atomic_write_text
+    from sim.atomic import atomic_write_bytes, atomic_write_text
 
     sweep_dir, out_dir = Path(sweep_dir), Path(out_dir)
     state = read_state(sweep_dir)

@@ -28,30 +28,6 @@ WORLD_OPTIONS: tuple[str, ...] = ("world", "world_set", "environment", "queueing
 SLICES_PER_WORKER = 2
 
 
-def evaluate_slice(payload: dict[str, Any]) -> dict[str, Any]:
-    """A worker's part: ``evaluate_policy`` on scenarios ``start:stop`` of the file, on one
-    torch thread."""
-    from policies.sweep.trial import one_torch_thread
-
-    with one_torch_thread():
-        return _evaluate_slice(payload)
-
-
-def _evaluate_slice(payload: dict[str, Any]) -> dict[str, Any]:
-    from policies.evaluation import evaluate_policy
-    from policies.registry import resolve_policy
-    from policies.world_options import world_from_args
-    from sim.files import load_scenarios
-
-    area, scenarios = load_scenarios(Path(payload["scenarios"]))
-    world = world_from_args(Namespace(**payload["world_options"]), "paper", area)
-    policy = resolve_policy(payload["policy"], world)
-    start, stop = payload["start"], payload["stop"]
-    return evaluate_policy(
-        policy, scenarios[start:stop], world, seed=payload["seed"] + start, progress=False
-    )
-
-
 def merge_slices(parts: Sequence[dict[str, Any]], seed: int) -> dict[str, Any]:
     """One ``evaluate_policy`` result from its slices' results, in order."""
     rows = [row for part in parts for row in part["scenarios"]]

@@ -39,8 +39,8 @@ from policies.sweep.state import (
     is_sweep_dir,
 )
 from policies.sweep.trial import trial_payload
+from sim.atomic import atomic_write_json
 from sim.errors import InputError
-from sim.files import atomic_write_json
 
 SUMMARY_FORMAT = "tupa-sweep-summary/1"
 LOCK_FILE = ".sweep.lock"

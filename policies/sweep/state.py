@@ -29,8 +29,8 @@ from pathlib import Path
 from typing import Any
 
 from policies.sweep.spec import SweepSpec
+from sim.atomic import atomic_write_json
 from sim.errors import InputError
-from sim.files import atomic_write_json
 
 STATE_FORMAT = "tupa-sweep-state/1"
 STATE_FILE = "sweep.json"

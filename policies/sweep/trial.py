@@ -1,4 +1,6 @@
-"""What a worker runs for one trial: an ordinary training run, then the extra evaluations.
+"""What a worker runs (:func:`run_payload`): one trial, an ordinary training run then the extra
+evaluations (:func:`run_trial`), or a slice of a ``tupa eval`` fanned out over the same backends
+(:func:`evaluate_slice`).
 
 :func:`run_trial` takes a plain-JSON payload (so that any backend can ship it: a pipe to a
 spawned process, a Ray task's argument) and returns a plain-JSON result. It runs in a fresh
@@ -13,6 +15,7 @@ process on which host runs it (an operator can find, or kill, a trial's worker).
 
 from __future__ import annotations
 
+import argparse
 import os
 import shutil
 import socket
@@ -40,10 +43,8 @@ def trial_payload(
 
 def run_payload(payload: dict[str, Any]) -> dict[str, Any]:
     """What a backend's worker runs: a training trial, or (``"kind": "eval"``) a slice of a
-    ``tupa eval`` fanned out (:func:`policies.sweep.fanout.evaluate_slice`)."""
+    ``tupa eval`` fanned out (:func:`evaluate_slice`)."""
     if payload.get("kind") == "eval":
-        from policies.sweep.fanout import evaluate_slice
-
         return evaluate_slice(payload)
     return run_trial(payload)
 
@@ -55,6 +56,28 @@ def run_trial(payload: dict[str, Any]) -> dict[str, Any]:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     with one_torch_thread():
         return _train_and_evaluate(payload)
+
+
+def evaluate_slice(payload: dict[str, Any]) -> dict[str, Any]:
+    """A worker's part: ``evaluate_policy`` on scenarios ``start:stop`` of the file, on one
+    torch thread."""
+    with one_torch_thread():
+        return _evaluate_slice(payload)
+
+
+def _evaluate_slice(payload: dict[str, Any]) -> dict[str, Any]:
+    from policies.evaluation import evaluate_policy
+    from policies.registry import resolve_policy
+    from policies.world_options import world_from_args
+    from sim.files import load_scenarios
+
+    area, scenarios = load_scenarios(Path(payload["scenarios"]))
+    world = world_from_args(argparse.Namespace(**payload["world_options"]), "paper", area)
+    policy = resolve_policy(payload["policy"], world)
+    start, stop = payload["start"], payload["stop"]
+    return evaluate_policy(
+        policy, scenarios[start:stop], world, seed=payload["seed"] + start, progress=False
+    )
 
 
 @contextmanager
@@ -74,8 +97,8 @@ def one_torch_thread() -> Iterator[None]:
 
 def _train_and_evaluate(payload: dict[str, Any]) -> dict[str, Any]:
     from policies.training import TrainConfig, train
+    from sim.atomic import atomic_write_json
     from sim.errors import InputError
-    from sim.files import atomic_write_json
 
     sweep_dir = Path(payload["sweep_dir"])
     if not sweep_dir.is_dir():
@@ -113,7 +136,8 @@ def _evaluate_on(config: Any, scenario_file: Path, out_file: Path) -> dict[str, 
     in the run's world over that set's area; the result file has ``tupa eval``'s shape."""
     from policies.evaluation import evaluate_policy
     from policies.registry import resolve_policy
-    from sim.files import atomic_write_json, load_scenarios
+    from sim.atomic import atomic_write_json
+    from sim.files import load_scenarios
 
     area, scenarios = load_scenarios(scenario_file)
     world = config.eval_world(area)

@@ -115,9 +115,10 @@ from typing import Any
 
 import numpy as np
 
+from sim.atomic import atomic_write_json
 from sim.channel import area_site, mean_path_loss_db
 from sim.config import ENVIRONMENTS, AreaConfig, RadioConfig, site_path
-from sim.files import atomic_write_json, cases_document, load_cases
+from sim.files import cases_document, load_cases
 from sim.scenarios import Case, GeneratorConfig, Scenario, generate_scenarios, site_ground
 
 HERE = Path(__file__).resolve().parent

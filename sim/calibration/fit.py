@@ -45,9 +45,10 @@ from typing import Any
 
 import numpy as np
 
+from sim.atomic import atomic_write_json
 from sim.config import MacConfig, NetworkConfig, PhyConfig
 from sim.evaluate import evaluate_case
-from sim.files import atomic_write_json, load_cases
+from sim.files import load_cases
 from sim.network import NetworkModel
 from sim.scenarios import Case
 

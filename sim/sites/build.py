@@ -33,8 +33,8 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from sim.atomic import atomic_write_bytes, atomic_write_json
 from sim.errors import InputError
-from sim.files import atomic_write_bytes, atomic_write_json
 from sim.sites.format import NO_PATH_CODE, Site, quantise_loss_db, save_site
 
 CLEARANCE_M = 2.0

@@ -36,8 +36,8 @@ from typing import Any
 
 import numpy as np
 
+from sim.atomic import atomic_write_bytes, atomic_write_json
 from sim.errors import InputError
-from sim.files import atomic_write_bytes, atomic_write_json
 
 SITE_FORMAT = "tupa-site/1"
 LOSS_STEP_DB = 0.1

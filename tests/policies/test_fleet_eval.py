@@ -25,9 +25,10 @@ from policies.fleet_training import FleetTrainConfig, train_fleet
 from policies.interface import ReportedUsers
 from policies.report import build_report
 from service.cli import main
+from sim.atomic import atomic_write_json
 from sim.config import AreaConfig
 from sim.errors import InputError
-from sim.files import atomic_write_json, load_scenarios, save_scenarios
+from sim.files import load_scenarios, save_scenarios
 from sim.fleet import FleetConfig
 from sim.fleet_env import FleetParallelEnv
 from sim.geometry import assign_targets

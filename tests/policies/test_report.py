@@ -26,9 +26,9 @@ from policies.report.curves import (
 )
 from policies.report.inputs import load_eval_results
 from service.cli import main
+from sim.atomic import atomic_write_json
 from sim.config import AreaConfig, NetworkConfig
 from sim.errors import InputError
-from sim.files import atomic_write_json
 from sim.scenarios import generate_scenarios
 from sim.world import PAPER
 

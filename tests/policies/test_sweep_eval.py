@@ -10,7 +10,8 @@ import pytest
 
 from policies.evaluation import evaluate_policy
 from policies.registry import make_placement
-from policies.sweep.fanout import evaluate_slice, merge_slices
+from policies.sweep.fanout import merge_slices
+from policies.sweep.trial import evaluate_slice
 from service.cli import main
 from sim.config import AreaConfig
 from sim.files import load_scenarios, save_scenarios

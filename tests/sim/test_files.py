@@ -16,17 +16,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from service.cli import main
+from sim.atomic import atomic_write_bytes, atomic_write_json
 from sim.config import AreaConfig
 from sim.errors import InputError
-from sim.files import (
-    atomic_write_bytes,
-    atomic_write_json,
-    load_cases,
-    load_scenarios,
-    save_cases,
-    save_scenarios,
-    scenario_set_hash,
-)
+from sim.files import load_cases, load_scenarios, save_cases, save_scenarios, scenario_set_hash
 from sim.scenarios import Case, Scenario, generate_scenarios
 
 AREA = AreaConfig()
