@@ -327,7 +327,7 @@ def run_demo(cfg: DemoConfig) -> dict[str, Any]:
                 k: float(np.mean([r.utility for r in rs[LOOP_SCORED]])) for k, rs in records.items()
             }
             others = compare(scenario, start, world, cfg.seed + i, users_seed)
-            # The same policy in the loop and in the simulator (issue 40: within 0.01).
+            # The same policy in the loop and in the simulator (the target: within 0.01).
             loop_minus_sim = {
                 name: achieved[key] - others[name]
                 for key, name in (("served", policy_name), *((k, k) for k in LOOP_BASELINES))

@@ -25,7 +25,7 @@ from sim.errors import InputError
 TABLE = Path(__file__).resolve().parent / "served_defaults.json"
 FORMAT = "tupa-served-defaults/1"
 FALLBACK = "oracle"
-"""Served where the benchmark has not measured: the tracking oracle (issue 13's targets)."""
+"""Served where the benchmark has not measured: the tracking oracle."""
 TIE = 0.005
 """Means within this of the best are a tie (``benchmarks/closed_loop.py``'s tolerance)."""
 BY_COST = ("oracle", "load-weighted", "min-distance", "min-distance-env", "planning-oracle")

@@ -48,7 +48,7 @@ import numpy as np
 
 from policies.fleet_baselines import FLEET_BASELINES, KMeansPlacement
 from policies.fleet_checkpoint import FleetCheckpointPolicy
-from policies.fleet_oracle import FleetOracle, FleetOracleConfig
+from policies.fleet_oracle import FLEET_ORACLE, FleetOracle, FleetOracleConfig
 from policies.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
 from policies.interface import ReportedUsers
 from sim.errors import InputError
@@ -72,7 +72,6 @@ __all__ = [
 ]
 
 FLEET_EVAL_FORMAT = "tupa-fleet-eval/1"
-FLEET_ORACLE = "fleet-oracle"
 FLEET_EVAL_POLICIES: tuple[str, ...] = (*FLEET_BASELINES, KMEANS_SCORED, FLEET_ORACLE)
 """The fleet policies evaluated by name; anything else must be a fleet checkpoint."""
 FLEET_METRICS: tuple[str, ...] = (

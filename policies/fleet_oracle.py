@@ -64,6 +64,7 @@ from sim.flight import Flight, fly_many
 from sim.geometry import assign_targets, clip_to_volume, enforce_separation
 
 __all__ = [
+    "FLEET_ORACLE",
     "FleetOracle",
     "FleetOracleConfig",
     "FleetOracleResult",
@@ -227,6 +228,10 @@ def _take(state: FleetState, keep: np.ndarray) -> FleetState:
         state.association[keep],
         state.handovers[keep],
     )
+
+
+FLEET_ORACLE = "fleet-oracle"
+"""The fleet oracle's name, to evaluate (``tupa eval --uavs K``) and to serve."""
 
 
 @dataclass

@@ -24,7 +24,7 @@ import numpy as np
 
 from policies.adapters import default_name
 from policies.fleet_baselines import FLEET_BASELINES, KMeansPlacement
-from policies.fleet_oracle import FleetOracle, FleetOracleConfig
+from policies.fleet_oracle import FLEET_ORACLE, FleetOracle, FleetOracleConfig
 from policies.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
 from policies.interface import ReportedUsers
 from policies.registry import PLACEMENTS, close_names, unknown_name
@@ -44,7 +44,6 @@ __all__ = [
     "resolve_fleet_policy",
 ]
 
-FLEET_ORACLE = "fleet-oracle"
 FLEET_POLICIES: tuple[str, ...] = (*reversed(FLEET_BASELINES), KMEANS_SCORED, FLEET_ORACLE)
 """What a fleet can be served with: ``kmeans-load-weighted``, ``kmeans-min-distance``,
 ``kmeans-scored`` and ``fleet-oracle``."""

@@ -24,7 +24,7 @@ does not give DDPG's exploration noise or the dense layer sizes: the values belo
   episode only repeats "stay"; shorter episodes show the agent more scenarios per second;
 - a faster ε decay (0.05 per episode) matching the shorter episodes, and learning rate 5e-4.
 
-The ``ddqn-gen10k`` shipped until issue 13 (this preset, 2000 episodes, seed 1, trained on the
+The ``ddqn-gen10k`` shipped earlier (this preset, 2000 episodes, seed 1, trained on the
 then current network model) reached 0.988 of the oracle (mean 0.987) on the same 100 test
 scenarios in 874 s, on a machine shared with other jobs. Its median learning curve was 0.81 /
 0.80 / 0.82 / 0.92 / 0.997 at 100 / 200 / 500 / 1000 / 2000 episodes.
@@ -45,7 +45,7 @@ scenarios):
   0.69 / 0.78 / 0.81 at 100 / 200 / 500 / 1000 / 2000 episodes and the final mean 0.808 of
   the oracle (756 s); with γ = 0 it was 0.45 / 0.47 / 0.84 / 0.999 / 0.999 and 0.987 of the
   oracle (mean 0.982, 568 s). These comparisons ran on the previous network model (hand-set
-  constants, no backoff stalls). On the current one ``ddpg-gen10k`` (seed 2, shipped until issue 13)
+  constants, no backoff stalls). On the current one ``ddpg-gen10k`` (seed 2, shipped earlier)
   reached 0.995 of the oracle (mean 0.993, 518 s); seed 1 collapsed, its tanh output saturated
   at one corner from the first evaluation on, so check a run's learning curve. γ = 0 makes
   ``fast`` DDPG a one-step (contextual-bandit) actor-critic; what it gives up is planning for

@@ -41,7 +41,7 @@ SHIPPED_FLEET = SHIPPED_CHECKPOINTS / "fleet" / "fleet-ddpg-residual-scored.zip"
 DEFAULT_POLICY = "oracle"
 """The ``policy`` setting's default, and what is served where the closed-loop benchmark has
 measured nothing: the tracking oracle, which meets every closed-loop target of
-``benchmarks/closed_loop.py`` in the open field (issue 13). Without ``--policy`` the service
+``benchmarks/closed_loop.py`` in the open field. Without ``--policy`` the service
 serves the served default for its environment (:meth:`ServiceSettings.served_policy_spec`,
 ``policies/served_defaults.json``, written by ``benchmarks/planning_oracle.py``): the planning
 oracle over the towns and sites it was measured on, the tracking oracle in the open field, where

@@ -34,7 +34,7 @@ other's transmissions for carrier sense and collisions) the loss stays free spac
 them to ns-3 alone. The LoS state itself is not drawn in ns-3 (nor in the expected mode): what
 the comparison checks is the MAC on a given mean channel, not the Al-Hourani model.
 
-On a site (``environment`` ``site:NAME`` or ``site:PATH``, issue 38) the per-user loss is the
+On a site (``environment`` ``site:NAME`` or ``site:PATH``) the per-user loss is the
 site's ray-traced mean loss at the UAV's exact position, :func:`sim.channel.site_link_channel`
 in expected mode (the numbers :class:`sim.network.NetworkModel` uses there), set per pair the
 same way and followed by the same Nakagami fading (the fast model's Rician/Rayleigh split by
@@ -49,7 +49,7 @@ would add them to ns-3 alone.
 how FqCoDel delays grow). A user that sends but receives nothing in a window gets the fast
 model's ``unserved_delay_s`` (1 s) as its delay.
 
-K access points (issue 16): :class:`FleetCase` holds K UAV positions (1..8), the users and
+K access points: :class:`FleetCase` holds K UAV positions (1..8), the users and
 each user's AP (given: ns-3 is not asked to pick one, so that it and
 :class:`sim.fleet.FleetModel` compare the same cells), and the channel mode: ``distinct`` (AP k
 on channel 36 + 4k, each on its own ns-3 channel object, so cells are independent) or
@@ -349,7 +349,7 @@ def _request(case: Case, settings: Ns3Settings, index: int) -> dict[str, Any]:
 
 @dataclass(frozen=True)
 class FleetCase:
-    """A case with K access points (issue 16): UAV k at ``uav_xyz_m[k]`` (K, 3) carries AP k;
+    """A case with K access points: UAV k at ``uav_xyz_m[k]`` (K, 3) carries AP k;
     user i, at ``users_xy_m[i]`` offering ``load_bps[i]``, is a station of AP
     ``association[i]`` (0..K−1: given, not decided in ns-3, so that ns-3 and the fast model
     compare the same cells; a user that hears no AP is given one all the same and, out of

@@ -16,7 +16,7 @@ in Python. Between cases it destroys the simulator (which also empties the node 
 resets the global IPv4 address generator, so each case starts from the same state.
 
 Everything the network is made of, with the ns-3 3.44 attribute names (see
-docs/network-model.md and issue 3):
+docs/network-model.md):
 
 * AP–STA infrastructure, ``WIFI_STANDARD_80211ac``, ``WifiPhy::ChannelSettings`` =
   ``{36, 20, BAND_5GHZ, 0}``, ``TxPowerStart`` = ``TxPowerEnd`` = 20 dBm, ``RxNoiseFigure``

@@ -1,4 +1,4 @@
-"""Build the ns-3 calibration set and run it through ns-3 (issue 3).
+"""Build the ns-3 calibration set and run it through ns-3.
 
 Two steps, both deterministic::
 
@@ -21,7 +21,7 @@ keys (ignored by ``load_cases``) that say what each case is for:
   positions each, for placement agreement (does the fast model pick the position ns-3 rates
   best?).
 
-**Urban cases** (issue 15): ``cases`` also writes one file per urban environment,
+**Urban cases**: ``cases`` also writes one file per urban environment,
 ``cases_<environment>.json`` (its top-level ``environment`` set: ``suburban``, ``urban``,
 ``dense-urban``, ``highrise-urban``), 58 cases each (:func:`make_urban_cases`). The geometry
 is scaled to each environment's coverage radius R (:func:`coverage_radius_m`: the farthest
@@ -52,7 +52,7 @@ The MAC constants are not refitted on them (``fit.py`` reads ``cases.json`` only
 fidelity benchmark reports their errors per environment. ns-3 gets the fast model's per-user
 mean path loss (:mod:`sim.ns3_backend`), so these cases check the MAC on the urban channel.
 
-**Site cases** (issue 38): ``site-cases`` writes ``cases_site_munich.json`` (its top-level
+**Site cases**: ``site-cases`` writes ``cases_site_munich.json`` (its top-level
 ``environment`` ``site:munich``, the shipped ray-traced district; :func:`make_site_cases`), 52
 cases, every user on the site's walkable ground (the scenario generator's rule on a site) and
 every UAV at least :data:`SITE_ROOF_CLEARANCE_M` above the roof under it:
@@ -78,7 +78,7 @@ Held out: ``ssingle`` cases 3, 6, 9 and 12 (every 3rd), the odd groups (``sgrp1`
 given the site's per-user loss (:mod:`sim.ns3_backend`). Seeds 3800–3806, 3812 and 3820 are
 this set's own.
 
-**Few-station cases** (issue 19): ``few-stations-cases`` writes ``cases_few_stations.json``
+**Few-station cases**: ``few-stations-cases`` writes ``cases_few_stations.json``
 (:func:`make_few_station_cases`: 1–4 stations, heavy users 250–500 m from the UAV, light ones
 near or, ``fmid``, 150–400 m away; 152 cases, all held out, never fitted) and
 ``run-few-stations`` simulates it (both variants, seeds 0 and 1, every ns-3 counter kept;
@@ -274,7 +274,7 @@ def make_cases() -> tuple[list[Case], dict[str, Any]]:
     held_out = [case_id for i, case_id in enumerate(individual) if i % 4 == 3]
     held_out += [case_id for g, ids in groups.items() if int(g[3:]) % 2 == 1 for case_id in ids]
     meta = {
-        "description": "ns-3 calibration set (issue 3); see sim/calibration/build.py",
+        "description": "ns-3 calibration set; see sim/calibration/build.py",
         "family": family,
         "held_out": held_out,
         "groups": groups,
@@ -385,8 +385,7 @@ def make_urban_cases(environment: str) -> tuple[list[Case], dict[str, Any]]:
     held_out += [case_id for i, case_id in enumerate(crowds) if i % 2 == 1]
     held_out += [case_id for g, ids in groups.items() if int(g[4:]) % 2 == 1 for case_id in ids]
     meta = {
-        "description": f"ns-3 calibration set, {environment} (issue 15); see "
-        "sim/calibration/build.py",
+        "description": f"ns-3 calibration set, {environment}; see sim/calibration/build.py",
         "coverage_radius_m": radius_m,
         "family": family,
         "held_out": held_out,
@@ -489,7 +488,7 @@ def make_site_cases(environment: str = "site:munich") -> tuple[list[Case], dict[
     held_out += [case_id for i, case_id in enumerate(crowds) if i % 2 == 1]
     held_out += [case_id for g, ids in groups.items() if int(g[4:]) % 2 == 1 for case_id in ids]
     meta = {
-        "description": f"ns-3 calibration set, {environment} (issue 38); see "
+        "description": f"ns-3 calibration set, {environment} over the site; see "
         "sim/calibration/build.py",
         "single_ground_point_m": [float(hub[0]), float(hub[1])],
         "single_distance_m": single_distance_m,
@@ -545,7 +544,7 @@ def _few_station_users(
 
 
 def make_few_station_cases() -> tuple[list[Case], dict[str, Any]]:
-    """Issue 19's regime: 1–4 stations, one or two heavy users 250–500 m from the UAV, light
+    """The few-station regime: 1–4 stations, one or two heavy users 250–500 m from the UAV, light
     ones near it (or, ``fmid``, not near). Held out entirely (no fit reads it); 152 cases:
 
     * ``few-n<U>-h<H>-<i>`` (80): U = 1..4 stations, H = 1 or 2 heavy (15–45 Mbit/s, 250–500 m
@@ -614,8 +613,8 @@ def make_few_station_cases() -> tuple[list[Case], dict[str, Any]]:
         cases.append(case)
         family[case.id] = "fmid"
     meta = {
-        "description": "issue 19's regime (1-4 stations, heavy users 250-500 m away, light ones "
-        "near), held out entirely; see sim/calibration/build.py make_few_station_cases",
+        "description": "the few-station regime (1-4 stations, heavy users 250-500 m away, light "
+        "ones near), held out entirely; see sim/calibration/build.py make_few_station_cases",
         "family": family,
         "held_out": [c.id for c in cases],
         "groups": groups,

@@ -1,4 +1,4 @@
-"""Fit the fast model's free constants to the ns-3 calibration set (issue 3).
+"""Fit the fast model's free constants to the ns-3 calibration set.
 
 ::
 
@@ -7,9 +7,10 @@
 Only the *fit* part of the calibration set is used (``cases.json`` minus its ``held_out``
 list); the held-out part is evaluated once, after the search, with the constants found, and
 reported beside the same figures for the hand-set constants the search starts from
-(:data:`HAND_SET`, issue 2's values). Each candidate is a :class:`~sim.config.NetworkConfig`
-passed to :class:`~sim.network.NetworkModel`, and ``fitted.json`` records the values so that
-:func:`fitted_config` can rebuild that configuration. The model's defaults in
+(:data:`HAND_SET`, the first single-user values). Each candidate is a
+:class:`~sim.config.NetworkConfig` passed to :class:`~sim.network.NetworkModel`, and
+``fitted.json`` records the values so that :func:`fitted_config` can rebuild that
+configuration. The model's defaults in
 ``sim/config.py`` are the fitted values; ``tests/sim/test_calibration_fit.py`` fails when the
 two drift apart (refit → copy the ``config_fields`` of ``fitted.json`` into ``sim/config.py``).
 ``benchmarks/fidelity_ns3.py`` reports both sets of constants.
@@ -112,7 +113,7 @@ FREE: tuple[FreeConstant, ...] = (
         "with CWmax 1023), which stands in for ns-3's slot-by-slot EDCA",
     ),
 )
-# The constants set by hand in issue 2 (single-user checks against ns-3): the fit's start and
+# The constants set by hand first (single-user checks against ns-3): the fit's start and
 # the base its offsets apply to.
 HAND_SET = NetworkConfig(
     phy=replace(
@@ -273,7 +274,7 @@ def figures(calib: Calibration, config: NetworkConfig, part: str) -> dict[str, A
 def falls_monotonically(config: NetworkConfig) -> bool:
     """Whether one user offering 40 Mbit/s gets less, never more, the farther it is (1-700 m
     horizontally, 1 m apart, UAV at 25 and 100 m): the constraint the hand-set constants of
-    issue 2 met (tests/sim/test_network.py). Constants that break it make the rate manager
+    the first model met (tests/sim/test_network.py). Constants that break it make the rate manager
     switch to a slower MCS that carries more, which neither ns-3's curve nor placement wants."""
     model = NetworkModel(config)
     distance_m = np.arange(1.0, 701.0)
@@ -355,7 +356,8 @@ def run_fit(
 ) -> dict[str, Any]:
     """Fit on the fit cases, score both parts, write ``path``; returns the document.
 
-    ``start``: ``hand-set`` (issue 2's constants) or ``fitted`` (the values in ``path`` now).
+    ``start``: ``hand-set`` (the first hand-set constants) or ``fitted`` (the values in
+    ``path`` now).
     ``rounds=0`` with ``start="fitted"`` keeps the constants and only re-scores them, which is
     what a model change that leaves the constants alone needs (the error figures move).
     """
@@ -436,7 +438,7 @@ def main(argv: list[str] | None = None) -> int:
         "--start",
         choices=("hand-set", "fitted"),
         default="hand-set",
-        help="where the search starts: issue 2's constants, or the values in --out now",
+        help="where the search starts: the first hand-set constants, or the values in --out now",
     )
     args = parser.parse_args(argv)
     if args.rounds < 0:

@@ -1,4 +1,4 @@
-"""Sites: real districts, ray-traced once, as channel environments (issue 38).
+"""Sites: real districts, ray-traced once, as channel environments.
 
 :mod:`sim.sites.format` (the ``tupa-site/1`` directory, its checks and hash),
 :mod:`sim.sites.lookup` (path loss at any UAV position, numpy only), :mod:`sim.sites.los`
