@@ -52,7 +52,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from typing import Any, Self
+from typing import Any, Self, TypeVar
 
 from service import mavlink_commands
 from service.fence import FencePlan
@@ -89,6 +89,8 @@ POSITION_ONLY_TYPE_MASK = (
     | mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
 )
 """SET_POSITION_TARGET_LOCAL_NED type_mask: use x, y, z only (ignore velocity, accel, yaw)."""
+
+T = TypeVar("T")
 
 VEHICLE_MESSAGES = frozenset(
     {
@@ -602,24 +604,17 @@ class MavlinkLink(VehicleLinkBase):
         result, or None."""
         with self._cond:
             seq_before = self._ack_seq  # only an ACK newer than this answers us
-        ask_until = time.monotonic() + timeout_s
-        while not self._stop.is_set():
+
+        def send() -> None:
             with self._cond:
                 self.counters["commands_sent"] += 1
             self._send_command_long(command, params)
-            resend_at = min(ask_until, time.monotonic() + COMMAND_RESEND_S)
-            with self._cond:
-                while not self._stop.is_set():
-                    seq, result = self._acks.get(command, (0, -1))
-                    if seq > seq_before:
-                        return result
-                    remaining = resend_at - time.monotonic()
-                    if remaining <= 0:
-                        break
-                    self._cond.wait(remaining)
-            if time.monotonic() >= ask_until:
-                return None
-        return None
+
+        def answer() -> int | None:
+            seq, result = self._acks.get(command, (0, -1))
+            return result if seq > seq_before else None
+
+        return self._resend_until(send, answer, timeout_s)
 
     def _param_float(self, name: str, value: float | None, timeout_s: float) -> float | None:
         """PARAM_SET of ``value`` (None: PARAM_REQUEST_READ), re-sent every
@@ -634,15 +629,30 @@ class MavlinkLink(VehicleLinkBase):
             request = mavlink.MAVLink_param_set_message(
                 sys_id, comp_id, name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32
             )
+
+        def answer() -> float | None:
+            seq, reported = self._param_values.get(name, (0, math.nan))
+            return float(reported) if seq > seq_before else None
+
+        return self._resend_until(
+            lambda: self._send(lambda mav: mav.send(request)), answer, timeout_s
+        )
+
+    def _resend_until(
+        self, send: Callable[[], object], answer: Callable[[], T | None], timeout_s: float
+    ) -> T | None:
+        """``send()`` every ``COMMAND_RESEND_S`` until ``answer()`` (called under
+        ``self._cond``, woken by every message taken in) is not None, or ``timeout_s`` passes
+        (None)."""
         ask_until = time.monotonic() + timeout_s
         while not self._stop.is_set():
-            self._send(lambda mav: mav.send(request))
+            send()
             resend_at = min(ask_until, time.monotonic() + COMMAND_RESEND_S)
             with self._cond:
                 while not self._stop.is_set():
-                    seq, reported = self._param_values.get(name, (0, math.nan))
-                    if seq > seq_before:
-                        return float(reported)
+                    got = answer()
+                    if got is not None:
+                        return got
                     remaining = resend_at - time.monotonic()
                     if remaining <= 0:
                         break
