@@ -94,10 +94,11 @@ Scenarios:
   PX4's modes are recorded. Pass: PX4 took the mode, the service let go within 5 s naming
   ``pilot`` or ``autopilot``, and sent no setpoint, mode request or command after it let go
   (tap; the metrics), and PX4 never showed OFFBOARD armed again. The speed limit too: the
-  ground station reads ``MPC_XY_VEL_MAX`` before the service starts, just before the takeover
+  ground station reads ``MPC_XY_VEL_MAX`` (and ``MPC_XY_CRUISE``, ``MPC_VEL_MANUAL``, which PX4
+  lowers to it) before the service starts, just before the takeover
   and after ``--observe-s``; pass when it was the envelope's (``--max-speed-mps``, default the
-  area envelope's 10 m/s; the vehicle's own if lower) while the service flew, PX4's own again
-  after, and the 5 Hz track never went faster than the envelope's limit
+  area envelope's 10 m/s; the vehicle's own if lower) while the service flew, all three PX4's
+  own again after, and the 5 Hz track never went faster than the envelope's limit
   (+ :data:`SPEED_TOLERANCE_MPS`) while the service flew.
 
 Every process (PX4, ``tupa serve``) is started in its own session, killed by the kernel if this
@@ -211,6 +212,8 @@ POSITION_ONLY_MASK = 0b0000_1101_1111_1000  # position + yaw (PX4 wants a yaw or
 TAKEOVER_MODES = {"hold": "AUTO.LOITER", "land": "AUTO.LAND", "posctl": "POSCTL"}
 SERVE_TAIL = 150
 SPEED_PARAM = "MPC_XY_VEL_MAX"
+SPEED_PARAMS = (SPEED_PARAM, "MPC_XY_CRUISE", "MPC_VEL_MANUAL")
+"""The limit and the speeds PX4 lowers to it (cruise, the pilot's), read before, during, after."""
 ENVELOPE_DEFAULT_SPEED_MPS = Envelope.for_area(AreaConfig()).max_speed_mps
 """``handback`` flies the area's envelope: this is its speed limit."""
 SPEED_TOLERANCE_MPS = 0.5
@@ -1203,7 +1206,7 @@ class Run:
                 wanted["COM_OBL_RC_ACT"] = float(args.obl_rc_act)
             self.set_px4_params(wanted)
         if args.scenario == "handback":
-            self.result["speed_param_before"] = self.station.read_params([SPEED_PARAM])
+            self.result["speed_params_before"] = self.station.read_params(list(SPEED_PARAMS))
         self.start_service(serve_log_path)
         airborne = self.wait_airborne()
         if args.scenario == "fence":
@@ -1843,7 +1846,7 @@ class Run:
         st, api, tap, note = self.station, self.api, self.tap, self.note
         airborne = self.result["airborne_streaming_s"]
         time.sleep(self.args.fly_s)
-        speed_flying = st.read_params([SPEED_PARAM])
+        speed_flying = st.read_params(list(SPEED_PARAMS))
         flown_to = rel(self.t0)
         wanted = TAKEOVER_MODES[self.args.takeover]
         main_mode, sub_mode = set_mode_numbers("px4", wanted)
@@ -1893,21 +1896,22 @@ class Run:
                 "let_go_reason": let_go["reason"],
             }
         )
-        speed_after = st.read_params([SPEED_PARAM])
-        own_mps = self.result["speed_param_before"][SPEED_PARAM]
+        speed_after = st.read_params(list(SPEED_PARAMS))
+        before = self.result["speed_params_before"]
+        own_mps = before[SPEED_PARAM]
         fastest_mps = fastest_horizontal_mps(st.track, airborne, flown_to)
         limit_mps = self.args.max_speed_mps or ENVELOPE_DEFAULT_SPEED_MPS
         r.update(
             {
-                "speed_param_while_flying": speed_flying[SPEED_PARAM],
-                "speed_param_after_observing": speed_after[SPEED_PARAM],
+                "speed_params_while_flying": speed_flying,
+                "speed_params_after_observing": speed_after,
                 "envelope_max_speed_mps": limit_mps,
                 "fastest_horizontal_mps_while_flying": fastest_mps,
             }
         )
         note(
-            f"{SPEED_PARAM}: {own_mps} before, {speed_flying[SPEED_PARAM]} flying, "
-            f"{speed_after[SPEED_PARAM]} after; fastest {fastest_mps} m/s"
+            f"speeds: {before} before, {speed_flying} flying, {speed_after} after; "
+            f"fastest {fastest_mps} m/s"
         )
         self.result["handback"] = r
         took = r["first_mode_after_offboard"] == wanted
@@ -1925,8 +1929,7 @@ class Run:
             and speed_flying[SPEED_PARAM] == min(limit_mps, own_mps),
             "flew_within_the_envelope_speed": fastest_mps is not None
             and fastest_mps <= limit_mps + SPEED_TOLERANCE_MPS,
-            "own_speed_back_after_let_go": own_mps is not None
-            and speed_after[SPEED_PARAM] == own_mps,
+            "own_speeds_back_after_let_go": own_mps is not None and speed_after == before,
         }
         self.finish(checks)
 

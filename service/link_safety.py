@@ -45,6 +45,13 @@ ORIGIN_MOVED_M = 0.05
 """An origin that moves more than this after the fence was uploaded puts it on again."""
 PX4_SPEED_PARAM = "MPC_XY_VEL_MAX"
 """PX4's horizontal speed limit, in every mode (offboard included)."""
+PX4_CAPPED_PARAMS = ("MPC_XY_CRUISE", "MPC_VEL_MANUAL", "MPC_VEL_MAN_BACK", "MPC_VEL_MAN_SIDE")
+"""What PX4 lowers to that limit, and keeps (it commits them), when the limit is set below
+them ("Cruise speed has been constrained by max speed"): the missions' and returns' cruise
+speed and the pilot's. Read before the limit is lowered and set back after it is raised again
+(those a PX4 does not have are skipped)."""
+CAPPED_ANSWER_S = 1.0
+"""How long each of those is waited for when read (an older PX4 lacks the last two)."""
 SPEED_ANSWER_S = 3.0
 """How long a speed command or parameter waits for the vehicle's answer."""
 SPEED_GIVE_BACK_S = 2.0
@@ -111,71 +118,144 @@ class SafetyMixin(_Base):
 
     def _px4_speed_step(self, now: float) -> None:
         """PX4: while the service flies the vehicle in OFFBOARD, its ``MPC_XY_VEL_MAX`` (the
-        horizontal speed limit of every mode) is the envelope's ``max_speed_mps`` (never above
-        the vehicle's own value, read first); once the service no longer flies it (a hand-back,
-        a pilot's switch, a failsafe, a return, the service stopping) the vehicle's own value
-        is set back, at once. A vehicle whose own limit is already at or below the envelope's
-        is left alone."""
+        horizontal speed limit of every mode) is the envelope's ``max_speed_mps``, never above
+        the vehicle's own; once the service no longer flies it (a hand-back, a pilot's switch,
+        a failsafe, a return, the service stopping) the vehicle's own values are set back at
+        once: the limit, then the speeds PX4 lowered to it (:data:`PX4_CAPPED_PARAMS`). The own
+        values are read while nobody needs them (so that the limit goes on as soon as the
+        service flies), and checked again before the limit is lowered. A vehicle whose own
+        limit is already at or below the envelope's is left alone."""
         with self._cond:
             if self._speed_busy or self._health != "up":
                 return
-            own = self._speed_param_own_mps
+            own = self._speed_params_own
+            own_mps = None if own is None else own[PX4_SPEED_PARAM]
+            set_mps = self._speed_param_mps
             flying_it = (
                 not self._closing
                 and self._streaming_now()
                 and self._mode_locked() == GUIDED_MODE_NAME["px4"]
             )
-            wanted: float | None = None
             if flying_it:
                 wanted = self._routing.envelope.max_speed_mps
-                if own is not None and self._speed_param_mps == min(wanted, own):
+                if own_mps is not None and set_mps == min(wanted, own_mps):
                     return
-            elif own is None:
+                work, arg = self._px4_speed_set, wanted
+            elif set_mps is not None and set_mps != own_mps:
+                work, arg = self._px4_speed_give_back, None
+            elif set_mps is not None:  # left at its own: nothing to give back
+                self._speed_param_mps = None
                 return
-            elif self._speed_param_mps == own:  # never changed: nothing to give back
-                self._speed_param_own_mps = self._speed_param_mps = None
+            elif own is None and not self._closing:
+                work, arg = self._px4_speed_read, None
+            else:
                 return
             self._speed_busy = True
             self._speed_next_try = now + SPEED_RETRY_S
-        self._start_speed_worker(self._px4_speed_worker, wanted)
+        self._start_speed_worker(work, arg)
 
-    def _px4_speed_worker(self, wanted_mps: float | None) -> None:
-        """Put ``wanted_mps`` (capped by the vehicle's own value) on ``MPC_XY_VEL_MAX``, or give
-        the vehicle's own value back (``wanted_mps`` None)."""
+    def _px4_speed_read(self, _: float | None) -> None:
+        """Read the vehicle's own speeds ahead of need (a vehicle that does not answer is asked
+        again after ``SPEED_RETRY_S``)."""
+        own = self._read_px4_speeds()
         with self._cond:
-            own = self._speed_param_own_mps
-        if own is None:  # first read what the vehicle flies at by itself
-            own = self._param_float(PX4_SPEED_PARAM, None, SPEED_ANSWER_S)
-            if own is None or not math.isfinite(own):
-                self._speed_param_failed("could not read MPC_XY_VEL_MAX")
+            self._speed_busy = False
+            if own is not None and self._speed_params_own is None:
+                self._speed_params_own = own
+                self._speed_next_try = 0.0
+            self._cond.notify_all()
+        if own is None:
+            log.debug("%s: no answer", PX4_SPEED_PARAM)
+
+    def _px4_speed_set(self, wanted_mps: float | None) -> None:
+        """Put ``wanted_mps`` (capped by the vehicle's own value) on ``MPC_XY_VEL_MAX``, the
+        vehicle's own values read first (or checked, when read ahead)."""
+        assert wanted_mps is not None
+        with self._cond:
+            own, set_mps = self._speed_params_own, self._speed_param_mps
+        if own is not None and set_mps is None:  # read ahead: still its own?
+            now_mps = self._param_float(PX4_SPEED_PARAM, None, SPEED_ANSWER_S)
+            if now_mps is None or abs(now_mps - own[PX4_SPEED_PARAM]) > PARAM_TOLERANCE:
+                own = None
+        if own is None:
+            own = self._read_px4_speeds()
+            if own is None:
+                self._speed_param_failed(f"could not read {PX4_SPEED_PARAM}")
                 return
             with self._cond:
-                self._speed_param_own_mps = own
-        value = own if wanted_mps is None else min(wanted_mps, own)
+                self._speed_params_own = own
+        own_mps = own[PX4_SPEED_PARAM]
+        value = min(wanted_mps, own_mps)
         with self._cond:
-            unchanged = self._speed_param_mps in (None, own) and value == own
-            if unchanged and wanted_mps is not None:  # its own is the envelope's or lower
-                self._speed_param_mps = own
+            if set_mps in (None, own_mps) and value == own_mps:
+                self._speed_param_mps = own_mps  # its own is the envelope's or lower
                 self._speed_busy = False
                 return
-        reported = self._param_float(PX4_SPEED_PARAM, value, SPEED_ANSWER_S)
-        if reported is None or abs(reported - value) > PARAM_TOLERANCE:
-            self._speed_param_failed(f"MPC_XY_VEL_MAX {value:g} m/s not taken ({reported})")
+        if not self._px4_param_set(PX4_SPEED_PARAM, value):
+            self._speed_param_failed(f"{PX4_SPEED_PARAM} {value:g} m/s not taken")
             return
         with self._cond:
             self._speed_busy = False
             self._speed_next_try = 0.0
-            if wanted_mps is None:
-                self._speed_param_own_mps = self._speed_param_mps = None
-                self.counters["speed_limits_given_back"] += 1
-            else:
-                self.counters["speed_limits_set"] += value != self._speed_param_mps
-                self._speed_param_mps = value
+            self.counters["speed_limits_set"] += value != self._speed_param_mps
+            self._speed_param_mps = value
             self._cond.notify_all()
-        if wanted_mps is None:
-            log.info("MPC_XY_VEL_MAX is the vehicle's own %g m/s again", value)
-        else:
-            log.info("MPC_XY_VEL_MAX is the envelope's %g m/s (the vehicle's own: %g)", value, own)
+        log.info(
+            "%s is the envelope's %g m/s (the vehicle's own: %s)",
+            PX4_SPEED_PARAM,
+            value,
+            _params_text(own),
+        )
+
+    def _px4_speed_give_back(self, _: float | None) -> None:
+        """The vehicle's own speeds back: the limit first, then the speeds PX4 lowered to it."""
+        with self._cond:
+            own = self._speed_params_own
+        assert own is not None
+        why = self._give_back_px4_speeds(own)
+        if why is not None:
+            self._speed_param_failed(why)
+            return
+        with self._cond:
+            self._speed_busy = False
+            self._speed_next_try = 0.0
+            self._speed_params_own = self._speed_param_mps = None  # read afresh next time
+            self.counters["speed_limits_given_back"] += 1
+            self._cond.notify_all()
+        log.info("the vehicle's own speeds are back: %s", _params_text(own))
+
+    def _read_px4_speeds(self) -> dict[str, float] | None:
+        """The vehicle's own ``MPC_XY_VEL_MAX`` and those of :data:`PX4_CAPPED_PARAMS` it has;
+        None when the limit itself does not answer."""
+        limit = self._param_float(PX4_SPEED_PARAM, None, SPEED_ANSWER_S)
+        if limit is None or not math.isfinite(limit):
+            return None
+        own = {PX4_SPEED_PARAM: limit}
+        for name in PX4_CAPPED_PARAMS:
+            value = self._param_float(name, None, CAPPED_ANSWER_S)
+            if value is not None and math.isfinite(value):
+                own[name] = value
+        return own
+
+    def _give_back_px4_speeds(self, own: dict[str, float]) -> str | None:
+        """Set ``own`` back, the limit first (PX4 would cap the others again under a lower
+        one); a capped speed is set only when it is not its own any more. Why not, or None."""
+        if not self._px4_param_set(PX4_SPEED_PARAM, own[PX4_SPEED_PARAM]):
+            return f"{PX4_SPEED_PARAM} {own[PX4_SPEED_PARAM]:g} m/s not taken"
+        for name, value in own.items():
+            if name == PX4_SPEED_PARAM:
+                continue
+            now = self._param_float(name, None, CAPPED_ANSWER_S)
+            if now is not None and abs(now - value) <= PARAM_TOLERANCE:
+                continue
+            if not self._px4_param_set(name, value):
+                return f"{name} {value:g} not taken"
+        return None
+
+    def _px4_param_set(self, name: str, value: float) -> bool:
+        """Set a REAL32 parameter; whether the vehicle reported ``value`` back."""
+        reported = self._param_float(name, value, SPEED_ANSWER_S)
+        return reported is not None and abs(reported - value) <= PARAM_TOLERANCE
 
     def _speed_param_failed(self, why: str) -> None:
         with self._cond:
@@ -190,17 +270,18 @@ class SafetyMixin(_Base):
         not."""
         with self._cond:
             self._closing = True
-            if self._speed_param_own_mps is None or self._thread is None:
+            if self._speed_param_mps is None or self._thread is None:
                 return
             self._speed_next_try = 0.0
             self._cond.notify_all()
-            given_back = self._cond.wait_for(lambda: self._speed_param_own_mps is None, timeout_s)
-            own, now_mps = self._speed_param_own_mps, self._speed_param_mps
-        if not given_back:
+            given_back = self._cond.wait_for(lambda: self._speed_param_mps is None, timeout_s)
+            own, now_mps = self._speed_params_own, self._speed_param_mps
+        if not given_back and own is not None:
             log.error(
-                "MPC_XY_VEL_MAX stays %s m/s on the vehicle (its own was %g m/s): set it back",
+                "%s stays %s m/s on the vehicle: set its own back (%s)",
+                PX4_SPEED_PARAM,
                 now_mps,
-                own,
+                _params_text(own),
             )
 
     def _speed_limit_worker(self, speed_mps: float | None) -> None:
@@ -386,3 +467,7 @@ def _distance_m(a: GeoPoint, b: GeoPoint) -> float:
     """How far apart two origins are (m; flat-earth, as the frames are)."""
     north_m, east_m, down_m = global_to_ned(a, b)
     return math.hypot(north_m, east_m, down_m)
+
+
+def _params_text(values: dict[str, float]) -> str:
+    return ", ".join(f"{name} {value:g}" for name, value in values.items())

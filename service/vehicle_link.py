@@ -388,8 +388,9 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
         self._speed_set_at = -math.inf
         self._speed_next_try = 0.0
         self._speed_busy = False
-        # PX4's MPC_XY_VEL_MAX: the vehicle's own value while the service has changed it.
-        self._speed_param_own_mps: float | None = None
+        # PX4's MPC_XY_VEL_MAX and the speeds it caps: the vehicle's own values while the
+        # service has changed them (service.link_safety).
+        self._speed_params_own: dict[str, float] | None = None
         self._speed_param_mps: float | None = None  # what the service set it to
         self._closing = False
         self._origin: GeoPoint | None = None  # the local NED origin, from GPS_GLOBAL_ORIGIN

@@ -6,7 +6,9 @@ PX4 in m/s and m), so that a client reading them gets what it would from the rea
 come from the vehicle's configuration, which the command line sets: PARAM_SET of those is answered
 with the unchanged value. Two kinds are exceptions. PX4's ``MPC_XY_VEL_MAX`` (its horizontal
 speed limit in every mode, offboard included; 0-20 m/s as on PX4) sets the vehicle's speed
-limit, as ``MAV_CMD_DO_CHANGE_SPEED`` does. The uploaded fence's parameters (ArduPilot
+limit, as ``MAV_CMD_DO_CHANGE_SPEED`` does; as PX4 does, a limit below ``MPC_XY_CRUISE`` or
+``MPC_VEL_MANUAL`` lowers them to it and says so ("Cruise speed has been constrained by max
+speed"), and those two may be set (up to the limit). The uploaded fence's parameters (ArduPilot
 ``FENCE_ENABLE`` (0 at boot, as on ArduPilot), ``FENCE_TYPE``, ``FENCE_ACTION``,
 ``FENCE_ALT_MAX``, ``FENCE_ALT_MIN``, ``FENCE_MARGIN``, ``AVOID_ENABLE``; PX4 ``GF_ACTION``,
 ``GF_MAX_VER_DIST``): :func:`set_parameter` takes them (within their ranges) and PARAM_VALUE
@@ -19,6 +21,7 @@ from __future__ import annotations
 import math
 import struct
 
+from sitl_mock.flavours import Severity
 from sitl_mock.vehicle import Vehicle
 
 PARAM_TYPE_INT8 = 2
@@ -26,6 +29,11 @@ PARAM_TYPE_INT32 = 6
 PARAM_TYPE_REAL32 = 9
 PX4_XY_VEL_MAX_MPS = 20.0
 """The top of PX4's ``MPC_XY_VEL_MAX`` range."""
+PX4_CAPPED_TEXT = {
+    "MPC_XY_CRUISE": "Cruise speed has been constrained by max speed",
+    "MPC_VEL_MANUAL": "Manual speed has been constrained by max speed",
+}
+"""What PX4 says when its horizontal limit lowers one of the speeds it caps."""
 INT_TYPES = frozenset({1, 2, 3, 4, 5, 6})
 """MAV_PARAM_TYPE_UINT8 .. INT32."""
 
@@ -55,6 +63,7 @@ def parameter_table(vehicle: Vehicle, system_id: int) -> list[tuple[str, float, 
         table = [
             ("MAV_SYS_ID", system_id, PARAM_TYPE_INT32),
             ("MPC_XY_VEL_MAX", vehicle.max_speed_h_mps, PARAM_TYPE_REAL32),
+            *((n, v, PARAM_TYPE_REAL32) for n, v in vehicle.px4_capped_speeds_mps.items()),
             ("MPC_Z_VEL_MAX_UP", vehicle.max_speed_up_mps, PARAM_TYPE_REAL32),
             ("MPC_Z_VEL_MAX_DN", vehicle.max_speed_down_mps, PARAM_TYPE_REAL32),
             ("MPC_ACC_HOR", cfg.accel_h_mps2, PARAM_TYPE_REAL32),
@@ -91,5 +100,14 @@ def set_parameter(vehicle: Vehicle, name: str, value: float, param_type: int) ->
         if not 0.0 < value <= PX4_XY_VEL_MAX_MPS:
             return False
         vehicle.max_speed_h_mps = value
+        for capped, current in vehicle.px4_capped_speeds_mps.items():
+            if current > value:
+                vehicle.px4_capped_speeds_mps[capped] = value
+                vehicle.emit(Severity.CRITICAL, PX4_CAPPED_TEXT[capped])
+        return True
+    if vehicle.flavour.name == "px4" and name in vehicle.px4_capped_speeds_mps:
+        if not 0.0 < value <= PX4_XY_VEL_MAX_MPS:
+            return False
+        vehicle.px4_capped_speeds_mps[name] = min(value, vehicle.max_speed_h_mps)
         return True
     return vehicle.autopilot_fence.set_param(name, value)

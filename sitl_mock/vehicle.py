@@ -169,6 +169,12 @@ class Vehicle:
             cfg.takeoff_alt_m if cfg.takeoff_alt_m is not None else flavour.default_takeoff_alt_m
         )
         self.max_speed_h_mps = cfg.max_speed_h_mps
+        # PX4's speeds that its horizontal limit caps (sitl_mock/params.py): cruise (missions,
+        # returns) and the pilot's, PX4's defaults under the limit.
+        self.px4_capped_speeds_mps = {
+            "MPC_XY_CRUISE": min(5.0, cfg.max_speed_h_mps),
+            "MPC_VEL_MANUAL": cfg.max_speed_h_mps,
+        }
         self.max_speed_up_mps = cfg.max_speed_up_mps
         self.max_speed_down_mps = cfg.max_speed_down_mps
 
@@ -560,6 +566,10 @@ class Vehicle:
 
     def say(self, severity: Severity, text: str) -> None:
         """Queue a STATUSTEXT for every ground station (the protocol's own refusals use it)."""
+        self._emit(severity, text)
+
+    def emit(self, severity: Severity, text: str) -> None:
+        """A STATUSTEXT from the vehicle (for the protocol's helpers: sitl_mock/params.py)."""
         self._emit(severity, text)
 
     def _emit(self, severity: Severity, text: str) -> None:

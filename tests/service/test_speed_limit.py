@@ -43,6 +43,10 @@ def test_arducopter_flies_guided_at_the_envelopes_speed_and_takes_a_new_one(
     assert link.counters["speed_limit_failures"] == 0
 
 
+def _capped(mock: MockAutopilot) -> dict[str, float]:
+    return mock.with_vehicle(lambda v: dict(v.px4_capped_speeds_mps))
+
+
 def _fly_px4_offboard(mock: MockAutopilot, link: Any) -> None:
     link.arm_and_takeoff().result(timeout=30.0)
     link.set_target((60.0, 60.0, 15.0))
@@ -75,9 +79,12 @@ def test_px4_flies_offboard_at_the_envelopes_speed_and_gets_its_own_back(
     assert 3.0 < fastest_mps <= 4.0 + 1e-6, fastest_mps
     link.set_envelope(Envelope.for_area(AREA, max_speed_mps=6.0))
     wait_for(lambda: _speed(mock) == 6.0, 10.0, message="the new envelope's speed")
+    # As PX4 does, the lower limit lowered the cruise and the pilot's speeds to it.
+    assert _capped(mock) == {"MPC_XY_CRUISE": 4.0, "MPC_VEL_MANUAL": 4.0}
     link.release()
-    wait_for(lambda: _speed(mock) == own, 10.0, message="the vehicle's own speed back")
-    wait_for(lambda: link.counters["speed_limits_given_back"] == 1, 5.0, message="counted")
+    wait_for(lambda: link.counters["speed_limits_given_back"] == 1, 10.0, message="given back")
+    assert _speed(mock) == own
+    assert _capped(mock) == {"MPC_XY_CRUISE": 5.0, "MPC_VEL_MANUAL": 10.0}  # its own again
     assert link.counters["speed_limit_failures"] == 0
 
 
@@ -90,6 +97,7 @@ def test_closing_the_link_gives_px4_its_own_speed_back(
     wait_for(lambda: _speed(mock) == 4.0, 15.0, message="the envelope's speed on the vehicle")
     link.close()
     assert _speed(mock) == 10.0
+    assert _capped(mock) == {"MPC_XY_CRUISE": 5.0, "MPC_VEL_MANUAL": 10.0}
 
 
 def test_a_px4_slower_than_the_envelope_is_left_alone(
