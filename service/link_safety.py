@@ -50,7 +50,7 @@ PX4_CAPPED_PARAMS = ("MPC_XY_CRUISE", "MPC_VEL_MANUAL", "MPC_VEL_MAN_BACK", "MPC
 them ("Cruise speed has been constrained by max speed"): the missions' and returns' cruise
 speed and the pilot's. Read before the limit is lowered and set back after it is raised again
 (those a PX4 does not have are skipped)."""
-CAPPED_ANSWER_S = 1.0
+CAPPED_ANSWER_S = 0.5
 """How long each of those is waited for when read (an older PX4 lacks the last two)."""
 SPEED_ANSWER_S = 3.0
 """How long a speed command or parameter waits for the vehicle's answer."""
@@ -121,10 +121,10 @@ class SafetyMixin(_Base):
         horizontal speed limit of every mode) is the envelope's ``max_speed_mps``, never above
         the vehicle's own; once the service no longer flies it (a hand-back, a pilot's switch,
         a failsafe, a return, the service stopping) the vehicle's own values are set back at
-        once: the limit, then the speeds PX4 lowered to it (:data:`PX4_CAPPED_PARAMS`). The own
-        values are read while nobody needs them (so that the limit goes on as soon as the
-        service flies), and checked again before the limit is lowered. A vehicle whose own
-        limit is already at or below the envelope's is left alone."""
+        once: the limit, then the speeds PX4 lowered to it (:data:`PX4_CAPPED_PARAMS`), all read
+        when the service starts flying it (again at every start: a pilot may have changed
+        them). A vehicle whose own limit is already at or below the envelope's is left
+        alone."""
         with self._cond:
             if self._speed_busy or self._health != "up":
                 return
@@ -144,39 +144,20 @@ class SafetyMixin(_Base):
             elif set_mps is not None and set_mps != own_mps:
                 work, arg = self._px4_speed_give_back, None
             elif set_mps is not None:  # left at its own: nothing to give back
-                self._speed_param_mps = None
+                self._speed_params_own = self._speed_param_mps = None
                 return
-            elif own is None and not self._closing:
-                work, arg = self._px4_speed_read, None
             else:
                 return
             self._speed_busy = True
             self._speed_next_try = now + SPEED_RETRY_S
         self._start_speed_worker(work, arg)
 
-    def _px4_speed_read(self, _: float | None) -> None:
-        """Read the vehicle's own speeds ahead of need (a vehicle that does not answer is asked
-        again after ``SPEED_RETRY_S``)."""
-        own = self._read_px4_speeds()
-        with self._cond:
-            self._speed_busy = False
-            if own is not None and self._speed_params_own is None:
-                self._speed_params_own = own
-                self._speed_next_try = 0.0
-            self._cond.notify_all()
-        if own is None:
-            log.debug("%s: no answer", PX4_SPEED_PARAM)
-
     def _px4_speed_set(self, wanted_mps: float | None) -> None:
         """Put ``wanted_mps`` (capped by the vehicle's own value) on ``MPC_XY_VEL_MAX``, the
-        vehicle's own values read first (or checked, when read ahead)."""
+        vehicle's own values read first."""
         assert wanted_mps is not None
         with self._cond:
             own, set_mps = self._speed_params_own, self._speed_param_mps
-        if own is not None and set_mps is None:  # read ahead: still its own?
-            now_mps = self._param_float(PX4_SPEED_PARAM, None, SPEED_ANSWER_S)
-            if now_mps is None or abs(now_mps - own[PX4_SPEED_PARAM]) > PARAM_TOLERANCE:
-                own = None
         if own is None:
             own = self._read_px4_speeds()
             if own is None:

@@ -175,6 +175,8 @@ class Vehicle:
             "MPC_XY_CRUISE": min(5.0, cfg.max_speed_h_mps),
             "MPC_VEL_MANUAL": cfg.max_speed_h_mps,
         }
+        # The pilot's backward and sideways speeds: PX4's -1, "MPC_VEL_MANUAL's".
+        self.px4_manual_sides_mps = {"MPC_VEL_MAN_BACK": -1.0, "MPC_VEL_MAN_SIDE": -1.0}
         self.max_speed_up_mps = cfg.max_speed_up_mps
         self.max_speed_down_mps = cfg.max_speed_down_mps
 
