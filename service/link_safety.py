@@ -246,9 +246,9 @@ class SafetyMixin(_Base):
         log.warning("the envelope's speed limit on the vehicle: %s", why)
 
     def _give_back_speed_param(self, timeout_s: float) -> None:
-        """Before the link closes: the vehicle's own ``MPC_XY_VEL_MAX`` back if the service
-        changed it, waiting up to ``timeout_s`` (the I/O loop does it); says so if it could
-        not."""
+        """Before the link closes: a PX4's own speeds back if the service changed them
+        (:meth:`_px4_speed_give_back`, run by the I/O loop), waited for up to ``timeout_s``;
+        says so if they could not be."""
         with self._cond:
             self._closing = True
             if self._speed_param_mps is None or self._thread is None:
