@@ -15,6 +15,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from functools import partial
 from typing import TYPE_CHECKING
 
 from service import control as vehicle_control
@@ -105,14 +106,10 @@ class SafetyMixin(_Base):
                 return
             self._speed_busy = True
             self._speed_next_try = now + SPEED_RETRY_S
-        self._start_speed_worker(self._speed_limit_worker, wanted_mps)
+        self._start_speed_worker(partial(self._speed_limit_worker, wanted_mps))
 
-    def _start_speed_worker(
-        self, target: Callable[[float | None], None], arg: float | None
-    ) -> None:
-        worker = threading.Thread(
-            target=target, args=(arg,), name=f"{self._thread_name}-speed", daemon=True
-        )
+    def _start_speed_worker(self, work: Callable[[], None]) -> None:
+        worker = threading.Thread(target=work, name=f"{self._thread_name}-speed", daemon=True)
         self._workers.append(worker)
         worker.start()
 
@@ -136,13 +133,14 @@ class SafetyMixin(_Base):
                 and self._streaming_now()
                 and self._mode_locked() == GUIDED_MODE_NAME["px4"]
             )
+            work: Callable[[], None]
             if flying_it:
                 wanted = self._routing.envelope.max_speed_mps
                 if own_mps is not None and set_mps == min(wanted, own_mps):
                     return
-                work, arg = self._px4_speed_set, wanted
+                work = partial(self._px4_speed_set, wanted)
             elif set_mps is not None and set_mps != own_mps:
-                work, arg = self._px4_speed_give_back, None
+                work = self._px4_speed_give_back
             elif set_mps is not None:  # left at its own: nothing to give back
                 self._speed_params_own = self._speed_param_mps = None
                 return
@@ -150,12 +148,11 @@ class SafetyMixin(_Base):
                 return
             self._speed_busy = True
             self._speed_next_try = now + SPEED_RETRY_S
-        self._start_speed_worker(work, arg)
+        self._start_speed_worker(work)
 
-    def _px4_speed_set(self, wanted_mps: float | None) -> None:
+    def _px4_speed_set(self, wanted_mps: float) -> None:
         """Put ``wanted_mps`` (capped by the vehicle's own value) on ``MPC_XY_VEL_MAX``, the
         vehicle's own values read first."""
-        assert wanted_mps is not None
         with self._cond:
             own, set_mps = self._speed_params_own, self._speed_param_mps
         if own is None:
@@ -188,7 +185,7 @@ class SafetyMixin(_Base):
             _params_text(own),
         )
 
-    def _px4_speed_give_back(self, _: float | None) -> None:
+    def _px4_speed_give_back(self) -> None:
         """The vehicle's own speeds back: the limit first, then the speeds PX4 lowered to it."""
         with self._cond:
             own = self._speed_params_own
@@ -265,8 +262,7 @@ class SafetyMixin(_Base):
                 _params_text(own),
             )
 
-    def _speed_limit_worker(self, speed_mps: float | None) -> None:
-        assert speed_mps is not None
+    def _speed_limit_worker(self, speed_mps: float) -> None:
         command = mavlink_commands.change_speed(speed_mps)
         result = self._ask(mavlink.MAV_CMD_DO_CHANGE_SPEED, command, SPEED_ANSWER_S)
         new = False

@@ -104,7 +104,7 @@ def set_parameter(vehicle: Vehicle, name: str, value: float, param_type: int) ->
         for capped, current in vehicle.px4_capped_speeds_mps.items():
             if current > value:
                 vehicle.px4_capped_speeds_mps[capped] = value
-                vehicle.emit(Severity.CRITICAL, PX4_CAPPED_TEXT[capped])
+                vehicle.say(Severity.CRITICAL, PX4_CAPPED_TEXT[capped])
         return True
     if vehicle.flavour.name == "px4" and name in vehicle.px4_capped_speeds_mps:
         if not 0.0 < value <= PX4_XY_VEL_MAX_MPS:

@@ -570,10 +570,6 @@ class Vehicle:
         """Queue a STATUSTEXT for every ground station (the protocol's own refusals use it)."""
         self._emit(severity, text)
 
-    def emit(self, severity: Severity, text: str) -> None:
-        """A STATUSTEXT from the vehicle (for the protocol's helpers: sitl_mock/params.py)."""
-        self._emit(severity, text)
-
     def _emit(self, severity: Severity, text: str) -> None:
         if text:
             self._events.append(StatusText(severity, text))
