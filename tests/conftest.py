@@ -6,6 +6,8 @@ fixtures it uses)."""
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 from collections import Counter
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -15,6 +17,7 @@ from hypothesis import settings
 
 from sitl_mock.config import VehicleConfig
 from sitl_mock.server import MockAutopilot
+from tests.machine_room import EXCLUSIVE_GROUP, ROOM_ENV, MachineRoom, room_from_environment
 from tests.tiers import GROUP_ATTRIBUTE, NEEDS_ATTRIBUTE, TIERS, needs
 
 # Property tests: a failure prints the blob that reproduces it (@reproduce_failure), and CI runs
@@ -122,6 +125,57 @@ def _set_nodeid(item: pytest.Item, nodeid: str) -> None:
     else:
         item._nodeid = nodeid
     assert item.nodeid == nodeid, (item.nodeid, nodeid)
+
+
+_ROOM_FOLDER = pytest.StashKey[str]()
+_room: MachineRoom | None = None
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """The xdist controller makes the folder of the run's machine room (:mod:`tests.machine_room`:
+    one test at a time beside a ``timing`` test); its workers, started after this, inherit its
+    name."""
+    if hasattr(config, "workerinput") or not getattr(config.option, "numprocesses", None):
+        return
+    folder = tempfile.mkdtemp(prefix="tupa-test-room-")
+    config.stash[_ROOM_FOLDER] = folder
+    os.environ[ROOM_ENV] = folder
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    folder = config.stash.get(_ROOM_FOLDER, None)
+    if folder is not None:
+        shutil.rmtree(folder, ignore_errors=True)
+        os.environ.pop(ROOM_ENV, None)
+
+
+def _runs_alone(item: pytest.Item) -> bool:
+    mark = item.get_closest_marker("xdist_group")
+    if mark is None:
+        return False
+    return (mark.args[0] if mark.args else mark.kwargs.get("name")) == EXCLUSIVE_GROUP
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Any:
+    """A ``timing`` test takes the machine room's gate (setup, call, teardown; kept while its
+    next test is one too); any other test waits while the gate is held, but one at a time may
+    run beside it (:mod:`tests.machine_room`)."""
+    global _room
+    if _room is None:
+        _room = room_from_environment()
+    if _room is None:
+        return (yield)
+    alone = _runs_alone(item)
+    if alone:
+        _room.enter_alone()
+    else:
+        _room.enter()
+    try:
+        return (yield)
+    finally:
+        if not (alone and nextitem is not None and _runs_alone(nextitem)):
+            _room.leave()
 
 
 NO_NS3 = "ns-3 is not installed (pip install 'tupa[ns3]'): the ns-3 backend is optional"
