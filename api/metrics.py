@@ -94,14 +94,16 @@ class ServiceCollector(Collector):
             "Operator-view frames a slow client lost (its queue was full)",
             value=hub.dropped,
         )
-        if service.is_fleet:
-            yield CounterMetricFamily(
-                "tupa_fleet_decisions_degraded",
-                "Fleet decisions taken without every vehicle (degraded mode)",
-                value=counters.get("decisions_degraded", 0),
-            )
+        yield CounterMetricFamily(
+            "tupa_fleet_decisions_degraded",
+            "Fleet decisions taken without every vehicle (degraded mode; 0 for one vehicle)",
+            value=counters.get("decisions_degraded", 0),
+        )
+        sole = service.sole_vehicle_id()
+        if sole is None:
             return
-        state = service.vehicle()
+        # One vehicle: its link's families unlabelled too, as before there were fleets.
+        state = service.links[sole].state()
         link_counters = state.counters
         yield CounterMetricFamily(
             "tupa_setpoints_sent",

@@ -82,9 +82,9 @@ def _service(request: Request) -> PlacementService:
 
 
 def _single_vehicle(request: Request, fleet_route: str) -> PlacementService:
-    """The service, when it drives one vehicle; 409 naming ``fleet_route`` for a fleet."""
+    """The service, when it drives one vehicle; 409 naming ``fleet_route`` when it drives more."""
     service = _service(request)
-    if service.is_fleet:
+    if service.sole_vehicle_id() is None:
         raise HTTPException(
             status.HTTP_409_CONFLICT,
             detail=f"this service drives {len(service.links)} vehicles: {fleet_route}",
@@ -105,32 +105,27 @@ def _target(xyz_m: tuple[float, float, float]) -> Target:
     return Target(x_m=x, y_m=y, z_m=z)
 
 
-def _decision_out(decision: Decision | None) -> DecisionOut:
-    if decision is None:
-        return DecisionOut(target=None, source="none", policy=None, decided_at=None)
-    return DecisionOut(
-        target=_target(decision.target_m),
-        source=decision.source,  # type: ignore[arg-type]
-        policy=decision.policy,
-        decided_at=decision.decided_at,
-    )
-
-
-def _setpoint_out(service: PlacementService) -> DecisionOut:
-    """The current target (one vehicle), or every commanded vehicle's (a fleet)."""
-    if not service.is_fleet:
-        return _decision_out(service.current_decision())
-    decisions = service.decisions()  # type: ignore[attr-defined]
+def _setpoint_out(decisions: dict[str, Decision], sole_id: str | None) -> DecisionOut:
+    """A setpoint, one shape for any number of vehicles: ``targets``, the target of each
+    commanded vehicle it is about, by id; ``target``, vehicle ``sole_id``'s (the one vehicle
+    of a single-vehicle service, or the one a per-vehicle route names; None for a fleet's);
+    the decisions' source and policy, and the latest one's time."""
     if not decisions:
         return DecisionOut(target=None, source="none", policy=None, decided_at=None, targets={})
     first = next(iter(decisions.values()))
+    sole = decisions.get(sole_id) if sole_id is not None else None
     return DecisionOut(
-        target=None,
-        source=first.source,
+        target=None if sole is None else _target(sole.target_m),
+        source=first.source,  # type: ignore[arg-type]
         policy=first.policy,
         decided_at=max(d.decided_at for d in decisions.values()),
         targets={vid: _target(d.target_m) for vid, d in decisions.items()},
     )
+
+
+def _vehicle_setpoint_out(view: VehicleView) -> DecisionOut:
+    """One vehicle's setpoint (``GET /v1/vehicles``, ``GET /v1/vehicles/ID/setpoint``)."""
+    return _setpoint_out({} if view.decision is None else {view.id: view.decision}, view.id)
 
 
 def _vehicle_out(state: LinkState) -> VehicleOut:
@@ -178,7 +173,7 @@ def _fleet_vehicle_out(view: VehicleView) -> FleetVehicleOut:
         commanded=view.problem is None and view.decision is not None,
         problem=view.problem,
         vehicle=_vehicle_out(view.state),
-        setpoint=_decision_out(view.decision),
+        setpoint=_vehicle_setpoint_out(view),
     )
 
 
@@ -251,7 +246,7 @@ async def post_report(body: ReportIn, request: Request) -> ReportOut:
         receipt = await run_in_threadpool(service.receipt, accepted)
     else:
         receipt = service.receipt(accepted)
-    out = _setpoint_out(service) if service.is_fleet else _decision_out(receipt.decision)
+    out = _setpoint_out(service.receipt_decisions(receipt), service.sole_vehicle_id())
     return ReportOut(**dict(out), report_outcome=receipt.outcome)
 
 
@@ -259,7 +254,8 @@ async def post_report(body: ReportIn, request: Request) -> ReportOut:
 async def get_setpoint(request: Request) -> DecisionOut:
     """The target being streamed to the vehicle and when it was decided; for a fleet,
     ``targets`` has each commanded vehicle's."""
-    return _setpoint_out(_service(request))
+    service = _service(request)
+    return _setpoint_out(service.decisions(), service.sole_vehicle_id())
 
 
 _FLEET_CONFLICT: dict[int | str, dict[str, Any]] = {
@@ -282,9 +278,8 @@ async def get_vehicles(request: Request) -> FleetOut:
     no position yet, a system id that is not its own). A single-vehicle service lists one,
     ``uav1``. While a vehicle is lost the others cover its users (degraded mode)."""
     service = _service(request)
-    separation = service.fleet.separation_m if service.is_fleet else None  # type: ignore[attr-defined]
     return FleetOut(
-        separation_m=separation,
+        separation_m=service.separation_m,
         vehicles=[_fleet_vehicle_out(view) for view in service.vehicles()],
     )
 
@@ -318,7 +313,7 @@ async def get_fleet_vehicle(vehicle_id: str, request: Request) -> FleetVehicleOu
     responses=_NO_SUCH_VEHICLE,
 )
 async def get_fleet_setpoint(vehicle_id: str, request: Request) -> DecisionOut:
-    return _decision_out(_one_vehicle(_service(request), vehicle_id).decision)
+    return _vehicle_setpoint_out(_one_vehicle(_service(request), vehicle_id))
 
 
 _CONTROL_RESPONSES: dict[int | str, dict[str, Any]] = {
@@ -508,7 +503,7 @@ async def readyz(request: Request, response: Response) -> Readiness:
         reasons=reasons,
         policy=service.policy.name,
         link=views[0].state.link,
-        vehicles={v.id: v.state.link for v in views} if service.is_fleet else None,
+        vehicles={v.id: v.state.link for v in views},
     )
 
 

@@ -101,7 +101,7 @@ class Target(_Strict):
 
 
 class DecisionOut(BaseModel):
-    """The UAV's target and where it came from."""
+    """The vehicles' targets and where they came from (one shape for any number of vehicles)."""
 
     model_config = ConfigDict(
         json_schema_extra={
@@ -111,21 +111,25 @@ class DecisionOut(BaseModel):
                     "source": "policy",
                     "policy": "oracle",
                     "decided_at": 1_764_000_001.2,
+                    "targets": {"uav1": {"x_m": 187.5, "y_m": 162.5, "z_m": 25.0}},
                 }
             ]
         }
     )
 
     target: Target | None = Field(
-        description="None until the first decision (and always for a fleet: see targets)"
+        description="The vehicle's target: the one vehicle of a single-vehicle service, or the "
+        "vehicle a per-vehicle route names; None until it is decided, and always for a fleet's "
+        "setpoint (see targets)"
     )
     source: Literal["policy", "restored", "none"]
     policy: str | None
     decided_at: float | None = Field(description="Unix time of the decision, seconds")
-    targets: dict[str, Target] | None = Field(
-        default=None,
-        description="A fleet: the target of each commanded vehicle, by vehicle id (a vehicle "
-        "that cannot be commanded now has none); None for a single vehicle",
+    targets: dict[str, Target] = Field(
+        default_factory=dict,
+        description="The target of each commanded vehicle, by vehicle id, for any number of "
+        'vehicles (one vehicle: {"uav1": ...}; a vehicle that cannot be commanded now has '
+        "none)",
     )
 
 
@@ -140,6 +144,7 @@ class ReportOut(DecisionOut):
                     "source": "policy",
                     "policy": "oracle",
                     "decided_at": 1_764_000_001.2,
+                    "targets": {"uav1": {"x_m": 187.5, "y_m": 162.5, "z_m": 25.0}},
                     "report_outcome": "decided",
                 }
             ]
@@ -413,8 +418,8 @@ class Readiness(BaseModel):
     reasons: list[str]
     policy: str
     link: str = Field(description="The (first) vehicle's MAVLink link")
-    vehicles: dict[str, str] | None = Field(
-        default=None, description="A fleet: each vehicle's MAVLink link, by id"
+    vehicles: dict[str, str] = Field(
+        description="Each vehicle's MAVLink link, by id (one vehicle: uav1)"
     )
 
 

@@ -70,9 +70,11 @@ from service.placement import (
     STATE_FORMAT,
     Decision,
     PlacementService,
+    ReportReceipt,
     VehicleView,
     link_problem,
     restored_decision,
+    vehicle_notes,
 )
 from service.policy_runtime import synthetic_report
 from service.settings import ServiceSettings
@@ -171,10 +173,6 @@ class FleetPlacementService(PlacementService):
 
     # ------------------------------------------------------------------ outputs
 
-    @property
-    def is_fleet(self) -> bool:
-        return True
-
     def vehicles(self) -> list[VehicleView]:
         """Every vehicle, in the fleet's order: state, current target, why not commanded."""
         decisions = self.decisions()
@@ -199,6 +197,14 @@ class FleetPlacementService(PlacementService):
         with self._lock:
             return dict(self._decisions)
 
+    def receipt_decisions(self, receipt: ReportReceipt) -> dict[str, Decision]:
+        """The fleet's targets now (a receipt carries one decision; a fleet's is K)."""
+        return self.decisions()
+
+    @property
+    def separation_m(self) -> float | None:
+        return self.fleet.separation_m
+
     def current_decision(self) -> Decision | None:
         """The latest decision's first target (the fleet's targets: :meth:`decisions`)."""
         decisions = self.decisions()
@@ -210,11 +216,9 @@ class FleetPlacementService(PlacementService):
         states = {vid: link.state() for vid, link in self.links.items()}
         flying, problems = self._commandable(states)
         reasons = [f"{vid}: {problem}" for vid, problem in problems.items()]
-        for vid, state in states.items():
-            if state.takeoff == "running":
-                reasons.append(f"{vid}: take-off in progress: {state.takeoff_phase}")
-            elif state.takeoff.startswith("failed"):
-                reasons.append(f"{vid}: take-off {state.takeoff}")
+        reasons += [
+            f"{vid}: {note}" for vid, state in states.items() for note in vehicle_notes(state)
+        ]
         return bool(flying), reasons
 
     def _can_decide(self) -> bool:

@@ -230,6 +230,37 @@ def link_problem(state: LinkState) -> str | None:
     return None
 
 
+def vehicle_notes(state: LinkState) -> list[str]:
+    """What else keeps a vehicle from being ready, besides :func:`link_problem`: a take-off in
+    progress (its phase, attempt and last refusal) or failed, messages that failed the signing
+    check, a vehicle that signs while no key is configured. The same for one vehicle and for
+    each of a fleet's (``/readyz``)."""
+    notes = []
+    if state.takeoff == "running":
+        refusal = (
+            f"; last refusal: {state.takeoff_last_refusal}" if state.takeoff_last_refusal else ""
+        )
+        notes.append(
+            f"take-off in progress: {state.takeoff_phase} "
+            f"(attempt {state.takeoff_attempts}){refusal}"
+        )
+    elif state.takeoff.startswith("failed"):
+        notes.append(f"take-off {state.takeoff}")
+    signing_failures = state.counters.get("signing_failures", 0)
+    if signing_failures and state.link != "up":
+        notes.append(
+            f"mavlink signing failed: {signing_failures} messages from the vehicle failed "
+            "the signature check (check TUPA_MAVLINK_SIGNING_KEY against the vehicle's key); "
+            "the vehicle is not commanded"
+        )
+    if state.counters.get("signed_vehicle_without_key", 0):
+        notes.append(
+            "mavlink signing: the vehicle signs its messages but no signing key is "
+            "configured (TUPA_MAVLINK_SIGNING_KEY); it will ignore our setpoints"
+        )
+    return notes
+
+
 class OutOfOrderReportError(ValueError):
     """A report older than the last accepted one."""
 
@@ -512,10 +543,26 @@ class PlacementService:
     def vehicle(self) -> LinkState:
         return self.link.state()
 
+    def sole_vehicle_id(self) -> str | None:
+        """The id of the one vehicle this service drives (``uav1``); None when it drives more.
+        What the single-vehicle routes (``GET /v1/vehicle``, ...) and fields (``target``) need."""
+        return next(iter(self.links)) if len(self.links) == 1 else None
+
+    def decisions(self) -> dict[str, Decision]:
+        """The target of each commanded vehicle, by id (one vehicle: its one, once decided)."""
+        decision = self.current_decision()
+        return {} if decision is None else {next(iter(self.links)): decision}
+
+    def receipt_decisions(self, receipt: ReportReceipt) -> dict[str, Decision]:
+        """The targets to answer a report with (``POST /v1/reports``), by vehicle id: the
+        decision the receipt carries (taken from that report, when ``decided``)."""
+        decision = receipt.decision
+        return {} if decision is None else {next(iter(self.links)): decision}
+
     @property
-    def is_fleet(self) -> bool:
-        """Whether this service drives a fleet (:mod:`service.fleet_placement`)."""
-        return False
+    def separation_m(self) -> float | None:
+        """The minimum 3-D distance kept between any two vehicles' targets (None: one vehicle)."""
+        return None
 
     def vehicles(self) -> list[VehicleView]:
         """The one vehicle as a fleet of one (``GET /v1/vehicles``), id ``uav1``."""
@@ -531,30 +578,7 @@ class PlacementService:
         state = self.link.state()
         problem = link_problem(state)
         reasons = [problem] if problem else []
-        if state.takeoff == "running":
-            refusal = (
-                f"; last refusal: {state.takeoff_last_refusal}"
-                if state.takeoff_last_refusal
-                else ""
-            )
-            reasons.append(
-                f"take-off in progress: {state.takeoff_phase} "
-                f"(attempt {state.takeoff_attempts}){refusal}"
-            )
-        elif state.takeoff.startswith("failed"):
-            reasons.append(f"take-off {state.takeoff}")
-        signing_failures = state.counters.get("signing_failures", 0)
-        if signing_failures and state.link != "up":
-            reasons.append(
-                f"mavlink signing failed: {signing_failures} messages from the vehicle failed "
-                "the signature check (check TUPA_MAVLINK_SIGNING_KEY against the vehicle's key); "
-                "the vehicle is not commanded"
-            )
-        if state.counters.get("signed_vehicle_without_key", 0):
-            reasons.append(
-                "mavlink signing: the vehicle signs its messages but no signing key is "
-                "configured (TUPA_MAVLINK_SIGNING_KEY); it will ignore our setpoints"
-            )
+        reasons += vehicle_notes(state)
         return not reasons, reasons
 
     def _count(self, name: str) -> None:

@@ -396,6 +396,7 @@ def test_metrics_in_prometheus_text(client: TestClient) -> None:
         "tupa_setpoints_sent_total",
         "tupa_geofence_clamps_total",
         'tupa_link_state{state="up"} 1.0',
+        "tupa_fleet_decisions_degraded_total 0.0",  # the same families for any number
     ):
         assert name in text
 
@@ -424,7 +425,7 @@ def test_report_while_the_link_is_down_is_accepted_and_waits() -> None:
             "source": "none",
             "policy": None,
             "decided_at": None,
-            "targets": None,
+            "targets": {},
             "report_outcome": "held",  # kept, and decided once the link is back
         }
         ready = test_client.get("/readyz")

@@ -65,6 +65,7 @@ def test_a_lost_vehicle_shows_why_and_the_fleet_stays_ready(
     assert 'tupa_vehicle_commanded{vehicle="uav3"} 0.0' in metrics
     assert 'tupa_vehicle_commanded{vehicle="uav1"} 1.0' in metrics
     assert "tupa_fleet_decisions_degraded_total 1.0" in metrics
+    assert "tupa_setpoints_sent_total" not in metrics  # one vehicle's unlabelled families
 
 
 def test_routes_for_one_vehicle_point_a_fleet_to_vehicles(
@@ -88,14 +89,20 @@ def test_a_single_vehicle_service_lists_its_one_vehicle() -> None:
 
     with TestClient(create_app(settings, service_factory=factory)) as client:
         decision = client.post("/v1/reports", json=report_body(), headers=AUTH).json()
-        assert decision["targets"] is None and decision["target"] is not None
+        # One shape for any number of vehicles: targets by id, and the one vehicle's target.
+        assert decision["target"] is not None and decision["targets"] == {
+            "uav1": decision["target"]
+        }
+        assert client.get("/v1/setpoint", headers=AUTH).json() == {
+            k: v for k, v in decision.items() if k != "report_outcome"
+        }
         vehicles = client.get("/v1/vehicles", headers=AUTH).json()
         assert vehicles["separation_m"] is None
         (only,) = vehicles["vehicles"]
         assert only["id"] == "uav1" and only["commanded"] and only["system_id"] == 1
         assert decision.pop("report_outcome") == "decided"  # the report's answer only
         assert only["setpoint"] == decision
-        assert client.get("/readyz").json()["vehicles"] is None
+        assert client.get("/readyz").json()["vehicles"] == {"uav1": "up"}
 
 
 def test_the_operator_view_shows_every_vehicle_with_its_target(

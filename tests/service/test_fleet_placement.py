@@ -161,6 +161,26 @@ def test_a_lost_vehicle_is_covered_by_the_others_and_rejoins_when_it_returns(
     )
 
 
+def test_a_fleets_readiness_names_what_a_single_vehicles_names_for_each_vehicle(
+    make_fleet: Callable[..., Fleet],
+) -> None:
+    # One readiness for one vehicle and for each of a fleet's (service.placement.vehicle_notes):
+    # signing failures and a vehicle that signs without our key are named per vehicle too.
+    service, links = make_fleet(3)
+    links["uav2"].counters["signed_vehicle_without_key"] = 4
+    links["uav3"].set_link(False)
+    links["uav3"].counters["signing_failures"] = 7
+    ready, reasons = service.readiness()
+    assert ready  # two vehicles can be commanded (uav2 is up: it is commanded, and deaf)
+    assert reasons == [
+        "uav3: mavlink link is link_lost",
+        "uav2: mavlink signing: the vehicle signs its messages but no signing key is configured "
+        "(TUPA_MAVLINK_SIGNING_KEY); it will ignore our setpoints",
+        "uav3: mavlink signing failed: 7 messages from the vehicle failed the signature check "
+        "(check TUPA_MAVLINK_SIGNING_KEY against the vehicle's key); the vehicle is not commanded",
+    ]
+
+
 def test_a_vehicle_sent_home_by_its_battery_is_covered_by_the_others_until_handed_back(
     make_fleet: Callable[..., Fleet],
 ) -> None:
@@ -247,7 +267,8 @@ def test_a_fleet_uses_its_own_default_policy_unless_one_is_named(tmp_path: Any) 
     path.write_text("vehicles: [{id: a, mavlink: 'tcp:127.0.0.1:1'}]\n")
     service = FleetPlacementService.from_settings(ServiceSettings(fleet_file=path, insecure=True))
     try:
-        assert service.policy.name == "kmeans-scored" and service.is_fleet
+        assert service.policy.name == "kmeans-scored"
+        assert service.sole_vehicle_id() == "a"  # a fleet file of one vehicle: one vehicle
     finally:
         service.close_links()
     with pytest.raises(InputError, match="policy: a fleet is served by one of"):
