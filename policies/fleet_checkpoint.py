@@ -19,7 +19,7 @@ from policies.residual import residual_radius
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet import MAX_UAVS, FleetConfig
-from sim.fleet_env import FLEET_MAPS
+from sim.fleet_observation import FLEET_MAPS
 from sim.geometry import (
     enforce_separation,
     move_masks,

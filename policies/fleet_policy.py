@@ -31,7 +31,7 @@ from policies.registry import PLACEMENTS, close_names, unknown_name
 from sim.association import associate_at
 from sim.errors import InputError
 from sim.fleet import MAX_UAVS, FleetConfig
-from sim.fleet_env import fleet_observations
+from sim.fleet_observation import fleet_observations
 from sim.observation import UserReports
 from sim.world import World
 

@@ -25,7 +25,7 @@ The actor starts at ``delta = 0`` (its last layer zeroed), so an untrained fleet
 its prior, and training learns what the prior misses (contention within a cell, the interplay
 of cells, heavy users that need a cell of their own).
 :func:`fleet_residual_targets` is the one function both the training wrapper
-(:class:`FleetResidualActions`) and serving
+(:class:`policies.fleet_residual_env.FleetResidualActions`) and serving
 (:class:`policies.fleet_checkpoint.FleetCheckpointPolicy`) use, so they agree to the bit.
 """
 
@@ -33,11 +33,9 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import replace
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
-from gymnasium import spaces
-from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from policies.fleet_baselines import KMeansPlacement
 from policies.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
@@ -46,7 +44,6 @@ from policies.residual import RESIDUAL_RADIUS_M
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig
-from sim.fleet_env import FleetParallelEnv
 from sim.flight import Flight
 from sim.geometry import assign_targets, clip_to_volume, enforce_separation
 from sim.observation import UserReports
@@ -56,7 +53,6 @@ __all__ = [
     "DEFAULT_PRIOR",
     "PRIORS",
     "FleetPrior",
-    "FleetResidualActions",
     "KMeansPrior",
     "ScoredPrior",
     "fleet_residual_targets",
@@ -201,48 +197,3 @@ def fleet_residual_targets(
     z = area.z_min_m + np.maximum(d[:, 2], 0.0) * (area.z_max_m - area.z_min_m)
     targets = np.column_stack([mine[:, :2] + d[:, :2] * radius_m, z])
     return enforce_separation(clip_to_volume(targets, area), separation_m, area)
-
-
-class FleetResidualActions(BaseParallelWrapper):
-    """A :class:`sim.fleet_env.FleetParallelEnv` whose agents act with residual actions in
-    [-1, 1]³ (module doc): each step, the K deltas become K targets through
-    :func:`fleet_residual_targets` around ``prior`` (:data:`PRIORS`; ``kmeans-scored`` scores
-    over ``score_steps`` decisions of the env's world) from the report the decision sees and
-    the APs in it, and go to :meth:`~sim.fleet_env.FleetParallelEnv.step_to`."""
-
-    def __init__(
-        self,
-        env: FleetParallelEnv,
-        radius_m: float = RESIDUAL_RADIUS_M,
-        prior: str = DEFAULT_PRIOR,
-        score_steps: int = 100,
-    ) -> None:
-        super().__init__(env)
-        self.radius_m = float(radius_m)
-        fleet: FleetConfig = env.fleet
-        self._prior = make_prior(prior, env.area, fleet.separation_m, env.world, score_steps, fleet)
-        self._space = spaces.Box(-1.0, 1.0, (3,), dtype=np.float32)
-
-    def action_space(self, agent: str) -> spaces.Space:
-        return self._space
-
-    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
-        env: FleetParallelEnv = self.env  # type: ignore[assignment]
-        try:
-            deltas = np.stack([np.asarray(actions[a], dtype=float) for a in env.possible_agents])
-        except KeyError as missing:
-            raise ValueError(f"actions: no action for agent {missing}") from None
-        if deltas.shape != (env.n_uavs, 3) or not np.all(np.isfinite(deltas)):
-            raise ValueError("actions: each agent's must be 3 finite numbers in [-1, 1]")
-        targets = fleet_residual_targets(
-            deltas,
-            env.reports,
-            env.uav_xyz_m,
-            env.area,
-            env.fleet.separation_m,
-            self.radius_m,
-            self._prior,
-            env.reported_association,
-            env.world.flight,
-        )
-        return env.step_to(targets)

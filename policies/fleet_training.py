@@ -56,11 +56,8 @@ from policies.fleet_imitation import (
     collect_teacher_data,
     fit_actor,
 )
-from policies.fleet_residual import (
-    DEFAULT_PRIOR,
-    PRIORS,
-    FleetResidualActions,
-)
+from policies.fleet_residual import DEFAULT_PRIOR, PRIORS
+from policies.fleet_residual_env import FleetResidualActions
 from policies.presets import PRESET_NAMES, Preset, get_preset
 from policies.residual import RESIDUAL_RADIUS_M, residual_metadata
 from policies.training import TRAIN_SEED_OFFSET, build_model, episode_bar, zero_actor_output

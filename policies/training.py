@@ -65,7 +65,8 @@ from policies.networks import ZoneMapsCNN
 from policies.presets import NetworkPreset, Preset, get_preset
 from policies.progress import Progress, format_duration
 from policies.registry import make_placement
-from policies.residual import ResidualActions, residual_metadata
+from policies.residual import residual_metadata
+from policies.residual_env import ResidualActions
 from sim.atomic import atomic_write_json
 from sim.config import (
     ENVIRONMENTS,

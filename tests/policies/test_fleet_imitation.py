@@ -32,7 +32,7 @@ from policies.fleet_training import (
 from policies.training import build_model
 from sim.config import AreaConfig
 from sim.errors import InputError
-from sim.fleet_env import fleet_observations
+from sim.fleet_observation import fleet_observations
 from sim.geometry import MOVES, assign_targets, move_masks, move_targets, zone_indices
 from sim.observation import UserReports
 from sim.scenarios import ScenarioSampler

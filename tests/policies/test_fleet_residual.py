@@ -18,12 +18,12 @@ from policies.fleet_baselines import KMeansPlacement
 from policies.fleet_checkpoint import FleetCheckpointPolicy, fleet_observation_shape
 from policies.fleet_evaluation import evaluate_fleet
 from policies.fleet_residual import (
-    FleetResidualActions,
     KMeansPrior,
     ScoredPrior,
     fleet_residual_targets,
     make_prior,
 )
+from policies.fleet_residual_env import FleetResidualActions
 from policies.fleet_scored import ScoredKMeansPlacement
 from policies.fleet_training import (
     FleetTrainConfig,
