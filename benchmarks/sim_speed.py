@@ -190,9 +190,9 @@ def batch_evaluations_per_s(repeats: int) -> tuple[float, int]:
 
 
 def oracle_search_s(repeats: int) -> float:
-    from policies.oracle import OraclePolicy
+    from policies.oracle import OraclePlacement
 
-    oracle = OraclePolicy()
+    oracle = OraclePlacement()
     scenarios = generate_scenarios(repeats, 3, seed=3)
     oracle.place(scenarios[0])
     times = []

@@ -186,7 +186,7 @@ def _optimal_users(
 
 
 @dataclass(frozen=True)
-class MinDistancePolicy:
+class MinDistancePlacement:
     """The paper's baseline: minimum mean distance to the users, at the minimum altitude.
 
     ``load_weighted=True`` weights each user's distance by its offered load (``load-weighted``).

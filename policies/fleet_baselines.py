@@ -2,7 +2,7 @@
 
 The field's usual extension of a single-UAV placement to K UAVs (and the paper's baseline
 carried over): cluster the users' ground positions into K groups with k-means, then place one
-UAV per cluster with :class:`policies.baselines.MinDistancePolicy` over that cluster's users
+UAV per cluster with :class:`policies.baselines.MinDistancePlacement` over that cluster's users
 (minimum mean 3-D distance at the lowest altitude). Two variants:
 
 * ``kmeans-min-distance``: plain k-means, plain min-distance per cluster (traffic-blind);
@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from policies.baselines import MinDistancePolicy
+from policies.baselines import MinDistancePlacement
 from policies.interface import Placement, UsersLike
 from sim.config import AreaConfig
 from sim.errors import InputError
@@ -106,7 +106,7 @@ class KMeansPlacement:
 
     ``per_cluster``: the single-UAV placement flown over each cluster's users instead (its
     ``place(users)`` gets the cluster's positions and loads); ``None``, the default, is
-    :class:`~policies.baselines.MinDistancePolicy`, load-weighted when ``load_weighted``."""
+    :class:`~policies.baselines.MinDistancePlacement`, load-weighted when ``load_weighted``."""
 
     n_uavs: int = 3
     area: AreaConfig = field(default_factory=AreaConfig)
@@ -134,7 +134,9 @@ class KMeansPlacement:
         """Positions (K, 3) in metres, area frame, separated, inside the volume."""
         xy = np.asarray(users.users_xy_m, dtype=float)
         load = np.asarray(users.load_bps, dtype=float)
-        single = self.per_cluster or MinDistancePolicy(self.area, load_weighted=self.load_weighted)
+        single = self.per_cluster or MinDistancePlacement(
+            self.area, load_weighted=self.load_weighted
+        )
         _, labels = kmeans(
             xy, self.n_uavs, load if self.load_weighted else None, self.seed, self.n_init
         )

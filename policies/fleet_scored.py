@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from policies.baselines import MinDistancePolicy
+from policies.baselines import MinDistancePlacement
 from policies.fleet_baselines import KMeansPlacement, kmeans, place_groups
 from policies.fleet_oracle import FleetStart, fleet_episode_utility
 from policies.interface import UsersLike
@@ -89,7 +89,7 @@ class ScoredKMeansPlacement:
         k, sep, area = self.n_uavs, self.fleet.separation_m, self.area
         placed = [KMeansPlacement(k, area, False, sep, self.seed).place(users)]
         names = ["kmeans-min-distance"]
-        single = MinDistancePolicy(area, load_weighted=True)
+        single = MinDistancePlacement(area, load_weighted=True)
         for alpha in ALPHAS:
             weights = load**alpha
             _, labels = kmeans(xy, k, weights, self.seed)

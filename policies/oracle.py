@@ -31,7 +31,7 @@ the time went. That and the speculative neighbours change no result; with the st
 well, the search returned bit for bit what it returned before on every scenario compared (1,000
 with 3 users, 200 each with 8 and 12, 200 with ``mac-only`` queueing).
 
-**Tracking** (:meth:`OraclePolicy.track`) re-optimises every decision of a closed loop whose
+**Tracking** (:meth:`OraclePlacement.track`) re-optimises every decision of a closed loop whose
 users move a little between decisions, from the last answer: a pattern search from
 ``previous_m`` (first step ``track_step_m``, a quarter zone), scored in one batch with the
 baselines and the best ``track_top_k`` of a coarse screen (every ``track_screen_stride``-th zone,
@@ -68,7 +68,7 @@ from typing import Literal
 
 import numpy as np
 
-from policies.baselines import MinDistancePolicy
+from policies.baselines import MinDistancePlacement
 from policies.interface import UsersLike
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
 from sim.geometry import clip_to_volume
@@ -97,7 +97,7 @@ class OracleConfig:
     min_step_m: float = 1.0  # stop refining when the step falls below this
     max_refine_iterations: int = 40  # bound on pattern-search iterations
     improvement_tol: float = 1e-9  # a move must raise the score by more than this
-    # Tracking (:meth:`OraclePolicy.track`).
+    # Tracking (:meth:`OraclePlacement.track`).
     track_full_every: int = 10  # a full search every this many (uncached) calls; 1: always
     track_screen_stride: int = 4  # the cheap path screens every this many zones in x and y
     track_top_k: int = 4  # of that screen, positions scored over the full episode
@@ -145,7 +145,7 @@ class OracleResult:
     """Outcome of one search: the best position (3,) in metres, its expected episode utility,
     the best grid position and its utility (before refinement), and the number of positions
     whose full episode was simulated (the screen not counted). ``source`` says how it was
-    found: ``"search"`` (:meth:`OraclePolicy.search`, or a tracking call that ran one),
+    found: ``"search"`` (:meth:`OraclePlacement.search`, or a tracking call that ran one),
     ``"track"`` (the tracking's cheap re-search) or ``"cache"`` (a repeated input; the fields
     are the first answer's)."""
 
@@ -277,7 +277,7 @@ class _Episodes:
 
 
 @dataclass
-class OraclePolicy:
+class OraclePlacement:
     """The oracle as a :class:`~policies.interface.Placement` (``name = "oracle"``).
 
     ``network`` must be the configuration the evaluation runs (queueing in particular), and
@@ -295,8 +295,8 @@ class OraclePolicy:
         self._grid_m = self.area.grid_positions_m()
         self._coarse_grid_m = coarse_grid_positions_m(self.area, self.config.track_screen_stride)
         self._baselines = (
-            MinDistancePolicy(self.area),
-            MinDistancePolicy(self.area, load_weighted=True),
+            MinDistancePlacement(self.area),
+            MinDistancePlacement(self.area, load_weighted=True),
         )
         self.reset_tracking()
 
@@ -582,7 +582,7 @@ def _input_key(scenario: UsersLike) -> bytes:
 
 
 def _benchmark(argv: list[str] | None = None) -> None:
-    """Time :meth:`OraclePolicy.search` and :meth:`OraclePolicy.track` on generated scenarios
+    """Time :meth:`OraclePlacement.search` and :meth:`OraclePlacement.track` on generated scenarios
     (``python -m policies.oracle --help``); the module doc's figures come from it."""
     import argparse
     import time
@@ -599,7 +599,7 @@ def _benchmark(argv: list[str] | None = None) -> None:
     parser.add_argument("--walk-m", type=float, default=1.5, help="users' move per step")
     args = parser.parse_args(argv)
 
-    oracle = OraclePolicy()
+    oracle = OraclePlacement()
     scenarios = generate_scenarios(args.scenarios, args.users, seed=args.seed)
     oracle.search(scenarios[0])  # compiled kernels load from numba's cache
     rng = np.random.default_rng(args.seed)

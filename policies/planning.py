@@ -1,6 +1,6 @@
 """The planning oracle (``planning-oracle``): a receding-horizon planner over flown trajectories.
 
-The tracking oracle (:meth:`policies.oracle.OraclePolicy.track`, re-placed every decision) asks
+The tracking oracle (:meth:`policies.oracle.OraclePlacement.track`, re-placed every decision) asks
 *where is the best place to hold for an episode* and flies straight there. In a world that flies
 (``closed-loop``: 10 m/s over a 500 m area, so a far target is tens of decisions away) that
 ignores what the flight costs: the utility on the way, the backlog built while the vehicle is
@@ -50,7 +50,7 @@ tracking oracle assumes the same). In a world without episodes (the service, no
 
 1. *Go and stay* (``A`` held) for every final target A among: the tracking oracle's answer for
    the latest report (exactly the target the ``oracle`` policy would fly to: the same
-   :class:`~policies.adapters.StaticPolicy` over the same :class:`~policies.oracle.OraclePolicy`,
+   :class:`~policies.adapters.StaticPolicy` over the same :class:`~policies.oracle.OraclePlacement`,
    fed the same reports), the last decision's final target, where the vehicle is (stay), the
    ``min-distance``, ``load-weighted`` and ``min-distance-env`` positions, the best
    ``screen_top_k`` of a short screen of a coarse grid (every ``screen_stride``-th zone at
@@ -98,9 +98,9 @@ from typing import Any
 import numpy as np
 
 from policies.adapters import StaticPolicy
-from policies.baselines import MinDistancePolicy
+from policies.baselines import MinDistancePlacement
 from policies.interface import Placement, PolicyKind, ReportedUsers, UsersLike
-from policies.oracle import OracleConfig, OraclePolicy, coarse_grid_positions_m, episode_utility
+from policies.oracle import OracleConfig, OraclePlacement, coarse_grid_positions_m, episode_utility
 from sim.flight import fly_many
 from sim.geometry import clip_to_volume
 from sim.network import NetworkModel, QueueState
@@ -465,7 +465,7 @@ class PlanningPolicy:
         self.world = world
         area = world.area
         self.model = NetworkModel(world.network, area)
-        oracle = OraclePolicy(
+        oracle = OraclePlacement(
             area,
             world.network,
             world.utility,
@@ -473,9 +473,9 @@ class PlanningPolicy:
         )
         self._tracking = StaticPolicy(oracle, "oracle")
         self._baselines: tuple[Placement, ...] = (
-            MinDistancePolicy(area),
-            MinDistancePolicy(area, load_weighted=True),
-            MinDistancePolicy(
+            MinDistancePlacement(area),
+            MinDistancePlacement(area, load_weighted=True),
+            MinDistancePlacement(
                 area, altitude="best-snr", frequency_hz=world.network.radio.frequency_hz
             ),
         )
@@ -490,7 +490,7 @@ class PlanningPolicy:
         self._queues: QueueState | None = None
         self._last_final_m: np.ndarray | None = None
         oracle = self._tracking.placement
-        if isinstance(oracle, OraclePolicy):
+        if isinstance(oracle, OraclePlacement):
             oracle.reset_tracking()
 
     def _legal(self, points_m: np.ndarray) -> np.ndarray:

@@ -21,22 +21,22 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 from policies.adapters import CheckpointPolicy, StaticPolicy
-from policies.baselines import MinDistancePolicy
+from policies.baselines import MinDistancePlacement
 from policies.interface import Placement, Policy
 from sim.world import PAPER, World
 
 
 def _oracle(world: World) -> Placement:
-    from policies.oracle import OracleConfig, OraclePolicy
+    from policies.oracle import OracleConfig, OraclePlacement
 
     config = OracleConfig(episode_steps=world.episode_steps, step_s=world.step_s)
-    return OraclePolicy(world.area, world.network, world.utility, config)
+    return OraclePlacement(world.area, world.network, world.utility, config)
 
 
 PLACEMENTS: dict[str, Callable[[World], Placement]] = {
-    "min-distance": lambda world: MinDistancePolicy(world.area),
-    "load-weighted": lambda world: MinDistancePolicy(world.area, load_weighted=True),
-    "min-distance-env": lambda world: MinDistancePolicy(
+    "min-distance": lambda world: MinDistancePlacement(world.area),
+    "load-weighted": lambda world: MinDistancePlacement(world.area, load_weighted=True),
+    "min-distance-env": lambda world: MinDistancePlacement(
         world.area, altitude="best-snr", frequency_hz=world.network.radio.frequency_hz
     ),
     "oracle": _oracle,

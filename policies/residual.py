@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from policies.baselines import MinDistancePolicy
+from policies.baselines import MinDistancePlacement
 from policies.interface import ReportedUsers
 from sim.config import AreaConfig
 from sim.geometry import clip_to_volume
@@ -44,7 +44,7 @@ def residual_target(
 ) -> np.ndarray:
     """The target (3,), metres, for the residual action ``delta`` given the users' reports."""
     d = np.clip(np.asarray(delta, dtype=float).reshape(3), -1.0, 1.0)
-    prior = MinDistancePolicy(area, load_weighted=True).place(ReportedUsers.of(reports))
+    prior = MinDistancePlacement(area, load_weighted=True).place(ReportedUsers.of(reports))
     target = np.array(
         [
             prior[0] + d[0] * radius_m,

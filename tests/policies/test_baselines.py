@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from policies.baselines import MinDistancePolicy, geometric_median
+from policies.baselines import MinDistancePlacement, geometric_median
 from policies.interface import Placement
 from policies.registry import PLACEMENTS, make_placement
 from sim.config import AreaConfig
@@ -109,8 +109,8 @@ def test_load_weighted_moves_toward_the_heavy_user(points, heavy, factor) -> Non
     load = np.full(len(xy), 1e6)
     load[heavy] *= factor
     scenario = Scenario("s", xy, load)
-    plain = MinDistancePolicy(AREA).place(scenario)
-    weighted = MinDistancePolicy(AREA, load_weighted=True).place(scenario)
+    plain = MinDistancePlacement(AREA).place(scenario)
+    weighted = MinDistancePlacement(AREA, load_weighted=True).place(scenario)
     # Raising one user's weight never moves the (unique, 3-D) minimiser away from that user.
     assert np.linalg.norm(weighted[:2] - xy[heavy]) <= np.linalg.norm(plain[:2] - xy[heavy]) + 1e-3
 

@@ -94,11 +94,11 @@ class _Recording:
 
 
 def test_per_cluster_placement_keeps_the_partition_and_places_each_group() -> None:
-    from policies.baselines import MinDistancePolicy
+    from policies.baselines import MinDistancePlacement
 
     scenario = _hot_spots()
     # The default per-cluster placement, named explicitly, gives the baseline to the bit.
-    explicit = KMeansPlacement(3, load_weighted=True, per_cluster=MinDistancePolicy(
+    explicit = KMeansPlacement(3, load_weighted=True, per_cluster=MinDistancePlacement(
         AreaConfig(), load_weighted=True))  # fmt: skip
     np.testing.assert_array_equal(
         explicit.place(scenario), KMeansPlacement(3, load_weighted=True).place(scenario)

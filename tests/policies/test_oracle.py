@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from policies.evaluation import evaluate_policy
-from policies.oracle import OracleConfig, OraclePolicy, episode_utility
+from policies.oracle import OracleConfig, OraclePlacement, episode_utility
 from policies.registry import make_placement
 from sim.config import AreaConfig, NetworkConfig
 from sim.scenarios import Scenario, generate_scenarios
@@ -58,7 +58,7 @@ def test_oracle_is_never_beaten_by_the_baselines_on_the_expected_model(
 def test_oracle_score_is_the_environment_episode() -> None:
     """The oracle's own score of its position equals the expected-mode environment's episode."""
     scenarios = generate_scenarios(3, 3, seed=11, area=AREA)
-    oracle = OraclePolicy(AREA, config=OracleConfig(episode_steps=STEPS))
+    oracle = OraclePlacement(AREA, config=OracleConfig(episode_steps=STEPS))
     searched = [oracle.search(s).utility for s in scenarios]
     world = replace(PAPER, episode_steps=STEPS, stochastic=False)
     result = evaluate_policy(oracle, scenarios, world, progress=False)
@@ -68,7 +68,7 @@ def test_oracle_score_is_the_environment_episode() -> None:
 def test_oracle_matches_or_beats_the_exhaustive_grid() -> None:
     """Regression check of the screen: on these scenarios the short-horizon screen keeps the
     grid's best full-episode position, and refinement only adds to it."""
-    oracle = OraclePolicy(AREA, config=OracleConfig(episode_steps=STEPS))
+    oracle = OraclePlacement(AREA, config=OracleConfig(episode_steps=STEPS))
     grid = AREA.grid_positions_m()
     for scenario in generate_scenarios(3, 3, seed=5, area=AREA):
         exhaustive = episode_utility(oracle.model, grid, scenario, STEPS).max()
@@ -88,7 +88,7 @@ def test_oracle_position_lies_in_the_volume(area: AreaConfig) -> None:
         [30e6, 5e6, 5e6],
     )
     scenarios = [corner_users, *generate_scenarios(3, 4, seed=2, area=area)]
-    oracle = OraclePolicy(area, config=OracleConfig(episode_steps=10, initial_step_m=40.0))
+    oracle = OraclePlacement(area, config=OracleConfig(episode_steps=10, initial_step_m=40.0))
     for scenario in scenarios:
         assert in_volume(oracle.place(scenario), area)
 
@@ -96,7 +96,7 @@ def test_oracle_position_lies_in_the_volume(area: AreaConfig) -> None:
 def test_oracle_without_refinement_returns_a_candidate() -> None:
     scenario = generate_scenarios(1, 3, seed=3, area=AREA)[0]
     config = OracleConfig(episode_steps=10, refine_starts=0, include_baselines=False)
-    result = OraclePolicy(AREA, config=config).search(scenario)
+    result = OraclePlacement(AREA, config=config).search(scenario)
     assert any(np.array_equal(result.position_m, p) for p in AREA.grid_positions_m())
     assert result.utility == result.grid_utility
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from policies.baselines import MinDistancePolicy
+from policies.baselines import MinDistancePlacement
 from policies.oracle import (
     OracleConfig,
-    OraclePolicy,
+    OraclePlacement,
     coarse_grid_positions_m,
     episode_utility,
 )
@@ -91,8 +91,8 @@ def test_settled_positions_stop_being_simulated(monkeypatch) -> None:
 def test_staged_screen_keeps_the_full_screens_best(n_users: int) -> None:
     """Regression check of the successive-halving screen: on these scenarios its best
     ``top_k`` are the whole grid's, in the same order, with the same scores."""
-    staged = OraclePolicy(AREA, config=OracleConfig(episode_steps=STEPS))
-    whole = OraclePolicy(AREA, config=OracleConfig(episode_steps=STEPS, screen_keep=()))
+    staged = OraclePlacement(AREA, config=OracleConfig(episode_steps=STEPS))
+    whole = OraclePlacement(AREA, config=OracleConfig(episode_steps=STEPS, screen_keep=()))
     k = staged.config.top_k
     for scenario in generate_scenarios(4, n_users, seed=23, area=AREA):
         fast = staged._screen(staged._grid_m, scenario)
@@ -105,8 +105,8 @@ def test_staged_screen_keeps_the_full_screens_best(n_users: int) -> None:
 
 @pytest.mark.parametrize("n_users", [1, 3, 8])
 def test_search_and_track_are_never_worse_than_the_baselines(n_users: int) -> None:
-    oracle = OraclePolicy(AREA, config=OracleConfig(episode_steps=STEPS, track_full_every=4))
-    baselines = (MinDistancePolicy(AREA), MinDistancePolicy(AREA, load_weighted=True))
+    oracle = OraclePlacement(AREA, config=OracleConfig(episode_steps=STEPS, track_full_every=4))
+    baselines = (MinDistancePlacement(AREA), MinDistancePlacement(AREA, load_weighted=True))
     for scenario in generate_scenarios(3, n_users, seed=31 + n_users, area=AREA):
         oracle.reset_tracking()
         previous = None
@@ -127,8 +127,8 @@ def test_search_and_track_are_never_worse_than_the_baselines(n_users: int) -> No
 def test_track_follows_slowly_moving_users() -> None:
     """Users walking 1.5 m per decision: the cheap path does most of the work, stays in the
     volume, and scores within a small tolerance of a full search at every step."""
-    oracle = OraclePolicy(AREA, config=OracleConfig(episode_steps=STEPS))
-    reference = OraclePolicy(AREA, config=OracleConfig(episode_steps=STEPS))
+    oracle = OraclePlacement(AREA, config=OracleConfig(episode_steps=STEPS))
+    reference = OraclePlacement(AREA, config=OracleConfig(episode_steps=STEPS))
     sources = []
     for scenario in generate_scenarios(3, 3, seed=41, area=AREA):
         oracle.reset_tracking()
@@ -143,7 +143,7 @@ def test_track_follows_slowly_moving_users() -> None:
 
 
 def test_track_cache_answers_identical_input_without_simulating(monkeypatch) -> None:
-    oracle = OraclePolicy(AREA, config=OracleConfig(episode_steps=STEPS))
+    oracle = OraclePlacement(AREA, config=OracleConfig(episode_steps=STEPS))
     scenario = generate_scenarios(1, 3, seed=5, area=AREA)[0]
     first = oracle.track_search(scenario)
     assert first.source == "search"
@@ -165,7 +165,7 @@ def test_track_cache_answers_identical_input_without_simulating(monkeypatch) -> 
 
 
 def test_track_changes_with_the_input_and_forgets_on_reset() -> None:
-    oracle = OraclePolicy(AREA, config=OracleConfig(episode_steps=STEPS, track_cache_size=1))
+    oracle = OraclePlacement(AREA, config=OracleConfig(episode_steps=STEPS, track_cache_size=1))
     a, b = generate_scenarios(2, 3, seed=9, area=AREA)
     first = oracle.track_search(a)
     assert oracle.track_search(b, first.position_m).source != "cache"
@@ -177,7 +177,7 @@ def test_track_changes_with_the_input_and_forgets_on_reset() -> None:
 
 @pytest.mark.parametrize("every", [1, 3])
 def test_track_runs_a_full_search_periodically(every: int) -> None:
-    oracle = OraclePolicy(AREA, config=OracleConfig(episode_steps=STEPS, track_full_every=every))
+    oracle = OraclePlacement(AREA, config=OracleConfig(episode_steps=STEPS, track_full_every=every))
     scenario = generate_scenarios(1, 3, seed=13, area=AREA)[0]
     sources, previous = [], None
     for moved in walk(scenario, 8, 1.0, seed=3):
@@ -232,13 +232,13 @@ def test_oracle_config_keeps_screen_keep_a_tuple() -> None:
 
 @pytest.mark.parametrize("previous", [np.zeros(2), np.array([1.0, np.nan, 30.0])])
 def test_track_rejects_a_bad_previous_position(previous: np.ndarray) -> None:
-    oracle = OraclePolicy(AREA, config=OracleConfig(episode_steps=5))
+    oracle = OraclePlacement(AREA, config=OracleConfig(episode_steps=5))
     scenario = generate_scenarios(1, 2, seed=1, area=AREA)[0]
     with pytest.raises(ValueError, match="previous_m"):
         oracle.track(scenario, previous)
 
 
 def test_track_clips_a_previous_position_outside_the_volume() -> None:
-    oracle = OraclePolicy(AREA, config=OracleConfig(episode_steps=10))
+    oracle = OraclePlacement(AREA, config=OracleConfig(episode_steps=10))
     scenario = generate_scenarios(1, 3, seed=2, area=AREA)[0]
     assert in_volume(oracle.track(scenario, np.array([-50.0, 900.0, 500.0])))

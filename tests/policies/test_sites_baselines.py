@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from policies.baselines import (
-    MinDistancePolicy,
+    MinDistancePlacement,
     best_site_position_m,
     best_snr_altitude_m,
     site_mean_loss_db,
@@ -83,13 +83,13 @@ def test_min_distance_env_finds_the_least_mean_loss_of_the_whole_volume(
     least at a lattice point, so nothing in the volume beats the choice."""
     site = _random_site(seed)
     area = _area(site, tmp_path / "site")
-    placed = MinDistancePolicy(area, altitude="best-snr").place(Scenario("s", USERS, np.ones(5)))
+    placed = MinDistancePlacement(area, altitude="best-snr").place(Scenario("s", USERS, np.ones(5)))
     best = site_mean_loss_db(site, placed[None], USERS, None)[0]
     sample = _volume_sample(5000, seed)
     assert best <= site_mean_loss_db(site, sample, USERS, None).min() + 1e-9
     grid = np.stack(np.meshgrid(XS, XS, ZS, indexing="ij"), axis=-1).reshape(-1, 3)
     assert best <= site_mean_loss_db(site, grid, USERS, None).min() + 1e-9
-    plain = MinDistancePolicy(area).place(Scenario("s", USERS, np.ones(5)))
+    plain = MinDistancePlacement(area).place(Scenario("s", USERS, np.ones(5)))
     assert best < site_mean_loss_db(site, plain[None], USERS, None)[0]
     assert np.all(placed >= [0, 0, area.z_min_m]) and np.all(placed <= [200, 200, area.z_max_m])
 
@@ -120,7 +120,7 @@ def test_reaching_every_user_comes_first(tmp_path: Path) -> None:
     loss[:, :, XS < 200.0, row, column] = np.inf  # ... but user 0 only from x = 200 m
     site = replace(site, loss_code=quantise_loss_db(loss))
     area = _area(site, tmp_path / "site")
-    placed = MinDistancePolicy(area, altitude="best-snr").place(Scenario("s", USERS, np.ones(5)))
+    placed = MinDistancePlacement(area, altitude="best-snr").place(Scenario("s", USERS, np.ones(5)))
     assert np.isfinite(path_loss_db(site, placed, USERS)).all()
     assert placed[0] >= 175.0 - 1e-9  # within half a grid spacing of x = 200 m: covered
 
@@ -130,13 +130,13 @@ def test_min_distance_env_never_chooses_a_place_inside_a_building(tmp_path: Path
     under it: the choice leaves the tower's volume (above its roof or beside it)."""
     free = _random_site(5)
     scenario = Scenario("s", USERS, np.ones(5))
-    best = MinDistancePolicy(_area(free, tmp_path / "free"), altitude="best-snr").place(scenario)
+    best = MinDistancePlacement(_area(free, tmp_path / "free"), altitude="best-snr").place(scenario)
     height = np.zeros((CELLS, CELLS), np.float32)
     column, row = np.minimum(best[:2] // CELL_M, CELLS - 1).astype(int)
     height[max(row - 8, 0) : row + 9, max(column - 8, 0) : column + 9] = best[2]
     towered = replace(free, building_height_m=height, walkable=height == 0)
     area = _area(towered, tmp_path / "tower")
-    placed = MinDistancePolicy(area, altitude="best-snr").place(scenario)
+    placed = MinDistancePlacement(area, altitude="best-snr").place(scenario)
     column, row = np.minimum(placed[:2] // CELL_M, CELLS - 1).astype(int)
     assert placed[2] > height[row, column]
     assert not np.allclose(placed, best)
@@ -152,7 +152,7 @@ def test_load_weighted_env_on_a_site_follows_the_heavy_user(tmp_path: Path) -> N
     site = _random_site(6)
     area = _area(site, tmp_path / "site")
     load = np.array([1e-3, 1e-3, 1e-3, 1e-3, 1.0]) * 40e6
-    placed = MinDistancePolicy(area, load_weighted=True, altitude="best-snr").place(
+    placed = MinDistancePlacement(area, load_weighted=True, altitude="best-snr").place(
         Scenario("s", USERS, load)
     )
     alone = best_site_position_m(USERS[4:], area, site)
@@ -163,12 +163,12 @@ def test_load_weighted_env_on_a_site_follows_the_heavy_user(tmp_path: Path) -> N
 
 def test_open_field_and_towns_are_unchanged() -> None:
     scenario = Scenario("s", USERS * 2.5, np.array([1e6, 2e6, 3e6, 4e6, 30e6]))
-    plain = MinDistancePolicy(AreaConfig()).place(scenario)
+    plain = MinDistancePlacement(AreaConfig()).place(scenario)
     assert np.array_equal(
-        MinDistancePolicy(AreaConfig(), altitude="best-snr").place(scenario), plain
+        MinDistancePlacement(AreaConfig(), altitude="best-snr").place(scenario), plain
     )
     urban = AreaConfig(environment="urban")
-    placed = MinDistancePolicy(urban, altitude="best-snr").place(scenario)
+    placed = MinDistancePlacement(urban, altitude="best-snr").place(scenario)
     assert np.array_equal(placed[:2], plain[:2])
     z = best_snr_altitude_m(scenario.users_xy_m, plain[:2], urban, RadioConfig().frequency_hz)
     assert placed[2] == z
