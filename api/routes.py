@@ -42,15 +42,13 @@ from api.schemas import (
     ValidationErrorOut,
     VehicleOut,
 )
+from service.decisions import Decision, Report, VehicleView
 from service.errors import InputError
 from service.placement import (
-    Decision,
     FutureReportError,
     OutOfOrderReportError,
     PlacementService,
     PolicyBusyError,
-    Report,
-    VehicleView,
 )
 from service.vehicle_link import ControlRefused, LinkState, VehicleLink
 

@@ -29,8 +29,9 @@ from typing import Any
 import numpy as np
 
 from service import links
+from service.decisions import Report
 from service.frames import FrameConfig
-from service.placement import PlacementService, Report
+from service.placement import PlacementService
 from service.policy_runtime import load_policy
 from service.settings import ServiceSettings
 from service.vehicle_link import LinkConfig

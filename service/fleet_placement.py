@@ -57,6 +57,7 @@ from typing import Any
 import numpy as np
 
 from policies.fleet_policy import DEFAULT_FLEET_POLICY, FleetPolicy, resolve_fleet_policy
+from service.decisions import Decision, ReportReceipt, VehicleView, restored_decision
 from service.fleet_spec import FleetSpec
 from service.fleet_targets import (
     assign_targets,
@@ -66,16 +67,7 @@ from service.fleet_targets import (
     service_flight,
 )
 from service.live_view import Moment
-from service.placement import (
-    STATE_FORMAT,
-    Decision,
-    PlacementService,
-    ReportReceipt,
-    VehicleView,
-    link_problem,
-    restored_decision,
-    vehicle_notes,
-)
+from service.placement import STATE_FORMAT, PlacementService, link_problem, vehicle_notes
 from service.policy_runtime import synthetic_report
 from service.settings import ServiceSettings
 from service.vehicle_link import LinkConfig, LinkState, VehicleLink

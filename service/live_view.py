@@ -48,10 +48,11 @@ import threading
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from service.decisions import Decision, Report
 from service.live_site import buildings_layer, coverage_layer
 from service.pubsub import Hub
 from service.vehicle_link import LinkState
@@ -59,9 +60,6 @@ from sim.channel import area_site
 from sim.config import AreaConfig, UtilityConfig
 from sim.envelope import Envelope, area_envelope
 from sim.utility import network_utility
-
-if TYPE_CHECKING:
-    from service.placement import Decision, Report
 
 FORMAT = "tupa-live/1"
 VEHICLE_ID = "uav1"

@@ -285,7 +285,7 @@ def placement() -> Iterator[Any]:
 
 
 def test_the_service_streams_inside_the_geofence_whatever_it_is_fed(placement: Any) -> None:
-    from service.placement import Report
+    from service.decisions import Report
 
     timestamps = itertools.count(1)
 

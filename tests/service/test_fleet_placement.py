@@ -22,10 +22,10 @@ from policies.fleet_scored import ScoredKMeansPlacement
 from policies.fleet_training import FleetTrainConfig, train_fleet
 from policies.interface import ReportedUsers
 from policies.training import zero_actor_output
+from service.decisions import Report
 from service.errors import InputError
 from service.fleet_placement import FleetPlacementService, load_fleet_policy
 from service.fleet_spec import FleetSpec, VehicleSpec
-from service.placement import Report
 from service.policy_runtime import SHIPPED_CHECKPOINTS, SHIPPED_FLEET
 from service.settings import ServiceSettings
 from service.vehicle_link import LinkConfig

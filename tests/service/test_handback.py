@@ -29,7 +29,8 @@ from service.control import (
     handback_refusal,
     is_failsafe_text,
 )
-from service.placement import PlacementService, Report
+from service.decisions import Report
+from service.placement import PlacementService
 from service.policy_runtime import load_policy
 from service.settings import ServiceSettings
 from service.vehicle_link import ControlRefused, LinkConfig

@@ -12,8 +12,9 @@ import warnings
 import numpy as np
 import pytest
 
+from service.decisions import Report
 from service.live_view import TRACK_POINTS, LiveView, Moment
-from service.placement import PlacementService, Report
+from service.placement import PlacementService
 from service.policy_runtime import load_policy
 from service.pubsub import Hub, SubscriberLimitError
 from service.settings import ServiceSettings

@@ -30,7 +30,8 @@ from policies.checkpoints import load_checkpoint
 from policies.registry import make_placement
 from policies.residual import residual_radius
 from policies.residual_env import ResidualActions
-from service.placement import PlacementService, Report
+from service.decisions import Report
+from service.placement import PlacementService
 from service.policy_runtime import SHIPPED_CHECKPOINTS, load_policy
 from service.settings import ServiceSettings
 from service.vehicle_link import LinkState

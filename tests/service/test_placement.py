@@ -17,8 +17,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from service.decisions import Report
 from service.mavlink_link import MavlinkLink
-from service.placement import OutOfOrderReportError, PlacementService, Report
+from service.placement import OutOfOrderReportError, PlacementService
 from service.policy_runtime import SHIPPED_DDQN, load_policy
 from service.settings import ServiceSettings
 from service.vehicle_link import LinkConfig

@@ -20,15 +20,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from service.decisions import Report, ReportReceipt
 from service.fleet_placement import FleetPlacementService, load_fleet_policy
 from service.fleet_spec import FleetSpec, VehicleSpec
-from service.placement import (
-    REPORT_WAIT_PERIODS,
-    OutOfOrderReportError,
-    PlacementService,
-    Report,
-    ReportReceipt,
-)
+from service.placement import REPORT_WAIT_PERIODS, OutOfOrderReportError, PlacementService
 from service.settings import ServiceSettings
 from service.vehicle_link import LinkConfig
 from sim.config import AreaConfig
