@@ -41,7 +41,6 @@ __all__ = [
     "FleetCheckpointServing",
     "FleetPlacementPolicy",
     "FleetPolicy",
-    "ServedAssociation",
     "resolve_fleet_policy",
 ]
 
@@ -70,32 +69,6 @@ class FleetPolicy(Protocol):
     def describe(self) -> dict[str, Any]: ...
 
 
-class ServedAssociation:
-    """Which AP each reported user is on, for a served fleet policy: a report does not say, so
-    it is estimated with the fleet model's own rule (:func:`sim.association.associate_at`: the
-    strongest mean received power at the vehicles' positions, with the fleet's hysteresis),
-    remembered from one decision to the next as stations remember their AP, and started afresh
-    when the users or the number of vehicles change. One estimate for every served fleet
-    policy that needs one (the scored placements, the checkpoints)."""
-
-    def __init__(self, world: World) -> None:
-        self.world = world
-        self._association: np.ndarray | None = None
-        self._key: tuple[int, int] | None = None
-
-    def at(self, vehicles_xyz_m: np.ndarray, users_xy_m: np.ndarray) -> np.ndarray:
-        """The users' APs (U,): row indices of ``vehicles_xyz_m`` (K, 3), or
-        :data:`sim.association.NOT_ASSOCIATED`."""
-        key = (len(vehicles_xyz_m), len(users_xy_m))
-        current = self._association if key == self._key else None
-        association, _ = associate_at(
-            np.asarray(vehicles_xyz_m, dtype=float)[None], users_xy_m, self.world.area,
-            self.world.network.radio, current, FleetConfig().hysteresis_db,
-        )  # fmt: skip
-        self._association, self._key = association, key
-        return association[0]
-
-
 @dataclass
 class FleetPlacementPolicy:
     """A fleet placement (k-means baseline or search oracle) re-placed at every decision for
@@ -106,10 +79,8 @@ class FleetPlacementPolicy:
     separation_m: float = FleetConfig().separation_m
     kind: str = "placement"
     _placements: dict[int, Any] = field(default_factory=dict, init=False, repr=False)
-    _association: ServedAssociation = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        self._association = ServedAssociation(self.world)
         if self.spec not in FLEET_POLICIES:
             raise InputError(f"policy: a fleet is served by one of {', '.join(FLEET_POLICIES)}")
         if not (np.isfinite(self.separation_m) and self.separation_m > 0):
@@ -124,9 +95,8 @@ class FleetPlacementPolicy:
         if not 1 <= k <= MAX_UAVS:
             raise InputError(f"vehicles_xyz_m: 1..{MAX_UAVS} vehicles, got {k}")
         placement, users = self._placement(k), ReportedUsers.of(reports)
-        if hasattr(placement, "place_from"):  # it scores from where the fleet is, as it serves
-            association = self._association.at(vehicles_xyz_m, users.users_xy_m)
-            return placement.place_from(users, vehicles_xyz_m, association, self.world.flight)
+        if hasattr(placement, "place_from"):  # it scores from where the fleet is
+            return placement.place_from(users, vehicles_xyz_m, None, self.world.flight)
         return np.asarray(placement.place(users), dtype=float)
 
     def describe(self) -> dict[str, Any]:
@@ -164,7 +134,10 @@ class FleetCheckpointServing:
 
     The observation is the environments' (:func:`sim.fleet_env.fleet_observations`) at the
     vehicles' positions. Which AP each user is on (the fleet maps need it) is not in a report:
-    :class:`ServedAssociation` estimates it."""
+    it is estimated with the fleet model's own rule (:func:`sim.association.associate_at`: the
+    strongest mean received power, with the fleet's hysteresis), remembered from one decision
+    to the next as stations remember their AP, and started afresh when the users or the number
+    of vehicles change."""
 
     kind = "coordinates"
 
@@ -173,7 +146,8 @@ class FleetCheckpointServing:
         self.spec = spec
         self.world = world
         self.separation_m = policy.separation_m
-        self._association = ServedAssociation(world)
+        self._association: np.ndarray | None = None
+        self._association_key: tuple[int, int] | None = None
 
     @property
     def name(self) -> str:
@@ -183,9 +157,16 @@ class FleetCheckpointServing:
 
     def decide_fleet(self, reports: UserReports, vehicles_xyz_m: np.ndarray) -> np.ndarray:
         vehicles = np.asarray(vehicles_xyz_m, dtype=float)
-        association = self._association.at(vehicles, np.column_stack([reports.x_m, reports.y_m]))
-        observations = fleet_observations(vehicles, reports, association, self.world)
-        return self.policy.targets(observations, reports, vehicles, association)
+        xy = np.column_stack([reports.x_m, reports.y_m])
+        key = (len(vehicles), len(xy))
+        current = self._association if key == self._association_key else None
+        association, _ = associate_at(
+            vehicles[None], xy, self.world.area, self.world.network.radio, current,
+            FleetConfig().hysteresis_db,
+        )  # fmt: skip
+        self._association, self._association_key = association, key
+        observations = fleet_observations(vehicles, reports, association[0], self.world)
+        return self.policy.targets(observations, reports, vehicles, association[0])
 
     def describe(self) -> dict[str, Any]:
         return {
