@@ -132,7 +132,7 @@ class FleetCheckpointServing:
     (:class:`policies.fleet_checkpoint.FleetCheckpointPolicy`) deciding for the vehicles that
     fly now, from reports.
 
-    The observation is the environments' (:func:`sim.fleet_env.fleet_observations`) at the
+    The observation is the environments' (:func:`sim.fleet_observation.fleet_observations`) at the
     vehicles' positions. Which AP each user is on (the fleet maps need it) is not in a report:
     it is estimated with the fleet model's own rule (:func:`sim.association.associate_at`: the
     strongest mean received power, with the fleet's hysteresis), remembered from one decision

@@ -55,8 +55,9 @@ CAPPED_ANSWER_S = 0.5
 """How long each of those is waited for when read (an older PX4 lacks the last two)."""
 SPEED_ANSWER_S = 3.0
 """How long a speed command or parameter waits for the vehicle's answer."""
-SPEED_GIVE_BACK_S = 2.0
-"""How long closing the link waits for PX4's own speed limit to be set back."""
+SPEED_GIVE_BACK_S = SPEED_ANSWER_S + 2.0
+"""How long closing the link waits for PX4's own speeds to be set back (a limit still waiting
+for the vehicle's answer first: its PARAM_SET is not sent again after the give-back's)."""
 SPEED_RETRY_S = 5.0
 """After an unanswered or refused speed limit, how long until it is asked for again."""
 SPEED_AFTER_STREAM_S = 1.0
@@ -169,13 +170,17 @@ class SafetyMixin(_Base):
                 self._speed_param_mps = own_mps  # its own is the envelope's or lower
                 self._speed_busy = False
                 return
+            # From the PARAM_SET on, the vehicle may hold the new value before it says so, or
+            # its answer may be lost: until it answers, the limit on it is unknown (NaN, equal
+            # to no value), and it is given back as though it had changed.
+            self._speed_param_mps = math.nan
         if not self._px4_param_set(PX4_SPEED_PARAM, value):
             self._speed_param_failed(f"{PX4_SPEED_PARAM} {value:g} m/s not taken")
             return
         with self._cond:
             self._speed_busy = False
             self._speed_next_try = 0.0
-            self.counters["speed_limits_set"] += value != self._speed_param_mps
+            self.counters["speed_limits_set"] += value != set_mps
             self._speed_param_mps = value
             self._cond.notify_all()
         log.info(
@@ -256,9 +261,9 @@ class SafetyMixin(_Base):
             own, now_mps = self._speed_params_own, self._speed_param_mps
         if not given_back and own is not None:
             log.error(
-                "%s stays %s m/s on the vehicle: set its own back (%s)",
+                "%s stays %s on the vehicle: set its own back (%s)",
                 PX4_SPEED_PARAM,
-                now_mps,
+                "unconfirmed" if now_mps is None or math.isnan(now_mps) else f"{now_mps:g} m/s",
                 _params_text(own),
             )
 

@@ -100,6 +100,38 @@ def test_closing_the_link_gives_px4_its_own_speed_back(
     assert _capped(mock) == {"MPC_XY_CRUISE": 5.0, "MPC_VEL_MANUAL": 10.0}
 
 
+def _lose_the_answers_to(mock: MockAutopilot, name: str, value: float) -> None:
+    """The mock takes every PARAM_SET but its PARAM_VALUE answers for ``name`` at ``value`` are
+    lost on the way (the link never hears that the vehicle took it)."""
+    send = mock.protocol._send_param
+
+    def lossy(link: Any, param: str, index: int) -> None:
+        if param == name and mock.with_vehicle(lambda v: v.max_speed_h_mps) == value:
+            return
+        send(link, param, index)
+
+    mock.protocol._send_param = lossy  # type: ignore[method-assign]
+
+
+@pytest.mark.parametrize("close_at", ["while the set waits", "after it was refused"])
+def test_a_limit_whose_answer_is_lost_is_still_given_back(
+    start_mock: Callable[..., MockAutopilot], open_link: Callable[..., Any], close_at: str
+) -> None:
+    # The vehicle took 4 m/s but the link never heard it: the limit on the vehicle is unknown,
+    # so the link gives the vehicle its own back when it stops flying it (here: at close),
+    # rather than leaving it at a limit it cannot see.
+    mock = start_mock("px4", **FAST_VEHICLE)
+    _lose_the_answers_to(mock, "MPC_XY_VEL_MAX", 4.0)
+    link = open_link(tcp_url(mock), envelope=Envelope.for_area(AREA, max_speed_mps=4.0))
+    _fly_px4_offboard(mock, link)
+    wait_for(lambda: _speed(mock) == 4.0, 15.0, message="the envelope's speed on the vehicle")
+    if close_at == "after it was refused":
+        wait_for(lambda: link.counters["speed_limit_failures"] >= 1, 10.0, message="not taken")
+    link.close()
+    assert _speed(mock) == 10.0
+    assert _capped(mock) == {"MPC_XY_CRUISE": 5.0, "MPC_VEL_MANUAL": 10.0}
+
+
 def test_a_px4_slower_than_the_envelope_is_left_alone(
     start_mock: Callable[..., MockAutopilot], open_link: Callable[..., Any]
 ) -> None:
