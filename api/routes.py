@@ -250,8 +250,8 @@ async def post_report(body: ReportIn, request: Request) -> ReportOut:
 
 @v1.get("/setpoint", response_model=DecisionOut, summary="The current target(s)")
 async def get_setpoint(request: Request) -> DecisionOut:
-    """The target being streamed to the vehicle and when it was decided; for a fleet,
-    ``targets`` has each commanded vehicle's."""
+    """The target being streamed to the vehicle and when it was decided; ``targets`` has each
+    commanded vehicle's, by id (one vehicle: ``uav1``'s)."""
     service = _service(request)
     return _setpoint_out(service.decisions(), service.sole_vehicle_id())
 
