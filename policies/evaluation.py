@@ -7,7 +7,7 @@ Protocol (:func:`evaluate_policy`), for scenario i of the set, in a :class:`sim.
   :class:`policies.adapters.StaticPolicy`), run by :func:`run_episode` exactly as the service
   runs it: each step it decides a target from the report the decision sees
   (``info["reports"]``) and the vehicle's position, and the environment
-  (:meth:`sim.envs.FapEnvBase.step_to`) flies the vehicle toward it under the world's limits;
+  (:meth:`sim.envs.FapContinuousEnv.step_to`) flies the vehicle toward it under the world's limits;
 * ``reset(seed=seed + i)``: every policy sees the same fading draws, user motion and demand
   changes on the same scenario (the model draws the same number of random numbers per step
   wherever the UAV is), so differences between policies are the policies', not the dice's;

@@ -6,7 +6,7 @@ policy is asked for K targets with K the vehicles it may command at that moment,
 every user with them (the service's degraded mode). The placements of
 :mod:`policies.fleet_baselines` and :mod:`policies.fleet_oracle` take K at construction; a
 :class:`FleetPlacementPolicy` keeps one per K it has been asked for and re-places every decision,
-as :class:`policies.adapters.PlacementPolicy` does for one vehicle.
+as :class:`policies.adapters.StaticPolicy` does for one vehicle.
 
 Names (``tupa serve --policy``): :data:`FLEET_POLICIES`. The fleet oracle searches with the
 fleet network model (1.5 s with 2 UAVs and 20 users, 6 s with 3 and 50, 21 s with 4 and 100 on

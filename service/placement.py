@@ -16,7 +16,7 @@ is held) and the vehicle's position (link up; a report that arrives while the li
 kept, and the decision waits for the link: the paced thread retries every step, and in
 ``on-report`` mode the decision thread decides as soon as the link is back, if the report is
 still fresh). Every kind of policy decides every period while the vehicle flies: a discrete move
-applies to the zone the vehicle is in and replaces the target (:func:`sim.world.move_target`, the
+applies to the zone the vehicle is in and replaces the target (:func:`sim.geometry.move_target`, the
 environments' rule), so the service acts in the world the policy was trained in. Targets go
 through the link, which clamps them to the geofence.
 

@@ -1,7 +1,7 @@
 """Gymnasium environments: a UAV carrying a Wi-Fi access point over one scenario per episode.
 
 ``tupa/FapDiscrete-v0``   13 moves on the zone grid (stay; ±1 or ±5 zones along x, y, z), taken
-                          from the zone the vehicle is in (:func:`sim.world.move_target`); moves
+                          from the zone the vehicle is in (:func:`sim.geometry.move_target`); moves
                           that would leave the volume are masked (``action_masks()``,
                           ``info["action_mask"]``); one taken anyway targets the vehicle's own
                           zone and sets ``info["refused_move"]``.

@@ -87,7 +87,7 @@ _CONSTANTS: dict[int, tuple[weakref.ref, tuple[float, float, bool, float, float,
 def _constants(site: Site) -> tuple[float, float, bool, float, float, float]:
     """What the kernels take of a site besides its arrays, worked out once per site (the
     model calls :func:`site_links` every step): the tallest cell, the cell side, whether
-    :func:`sim.sites.lookup.cell_index` may take its fast path, the area's size, the users'
+    :func:`sim.sites.kernels.cell_index` may take its fast path, the area's size, the users'
     height."""
     known = _CONSTANTS.get(id(site))
     if known is not None and known[0]() is site:
