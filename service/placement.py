@@ -456,13 +456,15 @@ class PlacementService:
 
     def decisions(self) -> dict[str, Decision]:
         """The target of each commanded vehicle, by id (one vehicle: its one, once decided)."""
-        decision = self.current_decision()
-        return {} if decision is None else {next(iter(self.links)): decision}
+        return self._by_vehicle(self.current_decision())
 
     def receipt_decisions(self, receipt: ReportReceipt) -> dict[str, Decision]:
         """The targets to answer a report with (``POST /v1/reports``), by vehicle id: the
         decision the receipt carries (taken from that report, when ``decided``)."""
-        decision = receipt.decision
+        return self._by_vehicle(receipt.decision)
+
+    def _by_vehicle(self, decision: Decision | None) -> dict[str, Decision]:
+        """The one vehicle's ``decision`` by its id (none: empty)."""
         return {} if decision is None else {next(iter(self.links)): decision}
 
     @property

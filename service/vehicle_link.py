@@ -391,7 +391,8 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
         # PX4's MPC_XY_VEL_MAX and the speeds it caps: the vehicle's own values while the
         # service has changed them (service.link_safety).
         self._speed_params_own: dict[str, float] | None = None
-        self._speed_param_mps: float | None = None  # what the service set it to
+        # What the service set it to; NaN from a PARAM_SET until the vehicle confirms it.
+        self._speed_param_mps: float | None = None
         self._closing = False
         self._origin: GeoPoint | None = None  # the local NED origin, from GPS_GLOBAL_ORIGIN
         self._routing = LinkRoute(

@@ -103,9 +103,8 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.xdist_group(group))
     if getattr(config.option, "loadgroup", False):
         for item in items:
-            mark = item.get_closest_marker("xdist_group")
-            if mark is not None:
-                group = mark.args[0] if mark.args else mark.kwargs.get("name", "default")
+            group = _xdist_group(item)
+            if group is not None:
                 _set_nodeid(item, f"{item.nodeid}@{group}")
     if config.getoption("fast"):
         keep = [i for i in items if not any(i.get_closest_marker(t) for t in TIERS)]
@@ -113,6 +112,14 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         if dropped:
             config.hook.pytest_deselected(items=dropped)
             items[:] = keep
+
+
+def _xdist_group(item: pytest.Item) -> str | None:
+    """The name of the test's ``xdist_group`` (``default`` when the mark names none), or None."""
+    mark = item.get_closest_marker("xdist_group")
+    if mark is None:
+        return None
+    return mark.args[0] if mark.args else mark.kwargs.get("name", "default")
 
 
 def _set_nodeid(item: pytest.Item, nodeid: str) -> None:
@@ -150,10 +157,7 @@ def pytest_unconfigure(config: pytest.Config) -> None:
 
 
 def _runs_alone(item: pytest.Item) -> bool:
-    mark = item.get_closest_marker("xdist_group")
-    if mark is None:
-        return False
-    return (mark.args[0] if mark.args else mark.kwargs.get("name")) == EXCLUSIVE_GROUP
+    return _xdist_group(item) == EXCLUSIVE_GROUP
 
 
 @pytest.hookimpl(wrapper=True)
