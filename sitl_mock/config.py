@@ -34,6 +34,8 @@ class VehicleConfig:
     """PX4 OFFBOARD: setpoints older than this trigger the hold failsafe (PX4's COM_OF_LOSS_T)."""
     offboard_stream_min_s: float = 1.0
     """PX4: the setpoint stream must have run this long before OFFBOARD is accepted."""
+    offboard_stream_max_gap_s: float = 0.5
+    """PX4: setpoints further apart than this do not count as a stream (PX4 wants > 2 Hz)."""
     auto_disarm_s: float = 10.0
     """Armed on the ground without taking off for this long: disarm (ArduPilot DISARM_DELAY,
     PX4 COM_DISARM_PRFLT)."""
@@ -66,6 +68,7 @@ class VehicleConfig:
             "accel_v_mps2",
             "yaw_rate_max_dps",
             "offboard_timeout_s",
+            "offboard_stream_max_gap_s",
             "auto_disarm_s",
             "gcs_failsafe_s",
             "battery_capacity_mah",

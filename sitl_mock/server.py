@@ -10,8 +10,11 @@ wrapper around it)::
 
 One background thread runs a ``selectors`` loop: it accepts TCP clients, reads what every peer
 sends, steps the vehicle at ``physics_rate_hz`` (50 Hz) of wall-clock time and sends the telemetry
-that is due. All vehicle and protocol state is touched under one lock, so tests may read
-:meth:`MockAutopilot.state` or call :meth:`MockAutopilot.with_vehicle` from their own thread.
+that is due. The vehicle's own clock (its physics, its telemetry rates, its failsafe and arming
+timers: everything but the transport) runs ``speedup`` times the wall clock, as ArduPilot SITL's
+``--speedup`` does; 1 (the default) is real time. All vehicle and protocol state is touched
+under one lock, so tests may read :meth:`MockAutopilot.state` or call
+:meth:`MockAutopilot.with_vehicle` from their own thread.
 
 Listen specs (pymavlink-style):
 
@@ -28,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import selectors
 import socket
 import threading
@@ -78,6 +82,8 @@ MAX_OUTBUF_BYTES = 1 << 20
 UDP_PEER_TIMEOUT_S = 10.0
 MAX_STEP_S = 0.02
 MAX_CATCH_UP_S = 0.5
+MAX_SPEEDUP = 10.0
+"""The fastest a vehicle's clock may run against the wall clock (:attr:`MockAutopilot.speedup`)."""
 
 
 @dataclass(frozen=True)
@@ -144,11 +150,16 @@ class MockAutopilot:
         system_id: int = 1,
         component_id: int = 1,
         physics_rate_hz: float = 50.0,
+        speedup: float = 1.0,
     ) -> None:
         if not 1 <= system_id <= 255 or not 1 <= component_id <= 255:
             raise ValueError("system_id and component_id must be in 1..255")
         if not physics_rate_hz > 0:
             raise ValueError("physics_rate_hz must be positive")
+        if not (math.isfinite(speedup) and 0 < speedup <= MAX_SPEEDUP):
+            raise ValueError(f"speedup: must be in (0, {MAX_SPEEDUP:g}], got {speedup!r}")
+        self.speedup = float(speedup)
+        """Simulated seconds per wall-clock second (ArduPilot SITL's ``--speedup``)."""
         self.listen = parse_listen(listen)
         self.flavour = get_flavour(flavour) if isinstance(flavour, str) else flavour
         self.vehicle = Vehicle(self.flavour, config)
@@ -421,7 +432,7 @@ class MockAutopilot:
                             self._drain_wake()
                     now = time.monotonic()
                     if now >= next_tick:
-                        self._physics(min(now - last, MAX_CATCH_UP_S))
+                        self._physics(min(now - last, MAX_CATCH_UP_S) * self.speedup)
                         last = now
                         next_tick += self._tick_s
                         if next_tick < now:

@@ -64,8 +64,6 @@ FORCE_MAGIC = 21196
 # MAV_LANDED_STATE values.
 LANDED_ON_GROUND, LANDED_IN_AIR, LANDED_TAKEOFF, LANDED_LANDING = 1, 2, 3, 4
 
-SETPOINT_STREAM_MAX_GAP_S = 0.5
-"""Setpoints closer than this make a stream (PX4: more than 2 Hz)."""
 TAKEOFF_DONE_MARGIN_M = 0.25
 LIFTOFF_MIN_ALT_M = 0.5
 TOUCHDOWN_ALT_M = 0.05
@@ -606,13 +604,13 @@ class Vehicle:
         """PX4's offboard signal: setpoints at > 2 Hz, for at least ``offboard_stream_min_s``."""
         if self._last_setpoint_s is None or self._stream_started_s is None:
             return False
-        if self.time_s - self._last_setpoint_s > SETPOINT_STREAM_MAX_GAP_S:
+        if self.time_s - self._last_setpoint_s > self.config.offboard_stream_max_gap_s:
             return False
         return self.time_s - self._stream_started_s >= self.config.offboard_stream_min_s
 
     def _note_setpoint(self) -> None:
         last = self._last_setpoint_s
-        if last is None or self.time_s - last > SETPOINT_STREAM_MAX_GAP_S:
+        if last is None or self.time_s - last > self.config.offboard_stream_max_gap_s:
             self._stream_started_s = self.time_s
         self._last_setpoint_s = self.time_s
 

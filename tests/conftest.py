@@ -182,6 +182,22 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
             _room.leave()
 
 
+MOCK_SPEEDUP = 3.0
+"""How much faster than the wall clock a :func:`start_mock` vehicle's clock runs by default
+(``MockAutopilot``'s ``speedup``: its flight, its boot, its telemetry); a test that times the
+vehicle against the wall clock passes ``speedup=1.0``."""
+GROUND_STATION_TIMERS = (
+    "offboard_timeout_s",
+    "offboard_stream_max_gap_s",
+    "gcs_failsafe_s",
+    "auto_disarm_s",
+)
+"""The vehicle's timers that judge the ground station's wall-clock rates (its setpoint stream,
+its heartbeats, its commands after arming): :func:`start_mock` multiplies their defaults by the
+speedup (a test's own value is kept), so that the service under test has as many wall-clock
+seconds as in real time before one of them fires."""
+_DEFAULT_VEHICLE = VehicleConfig()
+
 NO_NS3 = "ns-3 is not installed (pip install 'tupa[ns3]'): the ns-3 backend is optional"
 
 
@@ -211,10 +227,15 @@ def start_mock() -> Iterator[Callable[..., MockAutopilot]]:
         flavour: str = "ardupilot",
         listen: str = "tcp:127.0.0.1:0",
         signing_key: bytes | None = None,
+        speedup: float = MOCK_SPEEDUP,
         **config: Any,
     ) -> MockAutopilot:
         config.setdefault("ready_delay_s", 0.3)
-        mock = MockAutopilot(listen, flavour, VehicleConfig(**config), signing_key=signing_key)
+        for name in GROUND_STATION_TIMERS:
+            config.setdefault(name, getattr(_DEFAULT_VEHICLE, name) * speedup)
+        mock = MockAutopilot(
+            listen, flavour, VehicleConfig(**config), signing_key=signing_key, speedup=speedup
+        )
         mocks.append(mock)
         return mock.start()
 

@@ -84,7 +84,7 @@ def fly_to_target_in_offboard(mock: MockAutopilot, link: VehicleLink) -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("backend", LINK_BACKENDS)
 def test_clearing_the_target_lets_px4_fail_safe_to_hold(start_mock, open_any_link, backend):
-    mock = start_mock("px4", offboard_timeout_s=OFFBOARD_TIMEOUT_S, **FAST_VEHICLE)
+    mock = start_mock("px4", speedup=1.0, offboard_timeout_s=OFFBOARD_TIMEOUT_S, **FAST_VEHICLE)
     link = open_any_link(backend, f"tcp:127.0.0.1:{mock.port}")
     fly_to_target_in_offboard(mock, link)
 
@@ -114,7 +114,7 @@ def test_clearing_the_target_lets_px4_fail_safe_to_hold(start_mock, open_any_lin
 @pytest.mark.slow
 @pytest.mark.parametrize("backend", LINK_BACKENDS)
 def test_closing_the_link_lets_px4_fail_safe_to_hold(start_mock, open_any_link, observer, backend):
-    mock = start_mock("px4", offboard_timeout_s=OFFBOARD_TIMEOUT_S, **FAST_VEHICLE)
+    mock = start_mock("px4", speedup=1.0, offboard_timeout_s=OFFBOARD_TIMEOUT_S, **FAST_VEHICLE)
     watcher = observer(mock)
     link = open_any_link(backend, f"tcp:127.0.0.1:{mock.port}")
     fly_to_target_in_offboard(mock, link)

@@ -60,7 +60,7 @@ def test_px4_flies_offboard_at_the_envelopes_speed_and_gets_its_own_back(
     """PX4's offboard mode flies at MPC_XY_VEL_MAX: the service puts the envelope's limit there
     while it flies the vehicle, a new envelope's at once, and the vehicle's own value back the
     moment an operator takes the vehicle."""
-    mock = start_mock("px4", **FAST_VEHICLE)
+    mock = start_mock("px4", speedup=1.0, **FAST_VEHICLE)
     own = _speed(mock)
     assert own == 10.0
     link = open_link(

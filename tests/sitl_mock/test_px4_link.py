@@ -53,7 +53,13 @@ def test_px4_streams_telemetry_by_default_and_reports_its_modes(start_mock, conn
 def test_px4_offboard_switch_needs_a_running_stream_and_fails_safe_when_it_stops(
     start_mock, connect
 ):
-    mock = start_mock("px4", offboard_stream_min_s=0.5, offboard_timeout_s=0.5, accel_v_mps2=5.0)
+    mock = start_mock(
+        "px4",
+        speedup=1.0,
+        offboard_stream_min_s=0.5,
+        offboard_timeout_s=0.5,
+        accel_v_mps2=5.0,
+    )
     client = connect(mock)
     client.wait("STATUSTEXT", lambda m: m.text == "Ready for takeoff!")
     # Switching before any setpoint streams is refused, with a reason.
