@@ -400,7 +400,7 @@ def load_checkpoint(
     zip's expanded size is bounded by ``max_bytes`` too, :func:`check_archive`), and the model
     is loaded from those bytes, never from the path again. ``observation_shape``: the shape
     the network must take when it is not the single-UAV observation of ``area`` (a fleet
-    agent's ``(9, n_x, n_y)``: :mod:`policies.fleet_training`).
+    agent's ``(9, n_x, n_y)``: :mod:`policies.training.fleet_training`).
     """
     files = read_checkpoint(path, allowed_dirs, max_bytes)
     shown, meta = files.shown, files.metadata
@@ -467,7 +467,7 @@ def export_checkpoint(
     metadata says ``"serving_only": true``.
 
     ``observation_shape``: what the network must take, as for :func:`load_checkpoint` (a fleet
-    checkpoint's: :func:`policies.fleet_checkpoint.fleet_observation_shape`).
+    checkpoint's: :func:`policies.learned.fleet_checkpoint.fleet_observation_shape`).
     """
     model, meta = load_checkpoint(source, area, device="cpu", observation_shape=observation_shape)
     for name in model._get_torch_save_params()[0]:
@@ -513,11 +513,11 @@ def export_checkpoint(
 
 def algorithm_class(algorithm: str) -> type:
     if algorithm == "ddqn":
-        from policies.ddqn import MaskedDoubleDQN
+        from policies.learned.ddqn import MaskedDoubleDQN
 
         return MaskedDoubleDQN
     if algorithm == "ddpg":
-        from policies.ddpg import IntervalTargetDDPG
+        from policies.learned.ddpg import IntervalTargetDDPG
 
         return IntervalTargetDDPG
     raise ValueError(f"algorithm: expected 'ddqn' or 'ddpg', got {algorithm!r}")
