@@ -59,6 +59,8 @@ from policies.learned.checkpoints import (
     RUN_FILE,
     algorithm_class,
     git_commit,
+    load_replay_buffer,
+    moved_objects,
     save_checkpoint,
 )
 from policies.learned.networks import ZoneMapsCNN
@@ -670,10 +672,12 @@ def _train(config: TrainConfig, resume: bool) -> dict[str, Any]:
         )
     latest = config.out_dir / LATEST_CHECKPOINT
     if resume:
-        model = algorithm_class(config.algorithm).load(latest, env=env, device="auto")
+        model = algorithm_class(config.algorithm).load(
+            latest, env=env, device="auto", custom_objects=moved_objects(latest)
+        )
         replay = latest.with_name(REPLAY_BUFFER)
         if replay.exists():
-            model.load_replay_buffer(replay)
+            load_replay_buffer(model, replay)
         elif config.progress:
             print(
                 f"resuming {config.out_dir} with an empty replay buffer (none was saved: "

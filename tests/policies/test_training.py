@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
+import sys
 import threading
+import types
 from dataclasses import replace
 from pathlib import Path
 
@@ -291,6 +294,45 @@ def test_export_keeps_the_weights_and_drops_the_optimizer_state(tmp_path, random
         original.policy.state_dict().items(), copy.policy.state_dict().items(), strict=True
     ):
         assert k1 == k2 and th.equal(v1, v2)
+
+
+def test_a_checkpoint_saved_before_the_folders_loads_and_acts_as_saved(
+    tmp_path, random_ddqn, monkeypatch
+):
+    """A checkpoint and a replay buffer pickled when the CNN was ``policies.networks.ZoneMapsCNN``
+    and the DDQN's buffer ``policies.ddqn.MaskedReplayBuffer`` (before ``policies/`` went into
+    folders; the shipped checkpoints were): loading finds both at their current paths, and the
+    network is the one saved."""
+    from gymnasium import spaces
+
+    from policies.learned import ddqn, networks
+    from policies.learned.checkpoints import load_replay_buffer, moved_objects
+
+    source, replay = tmp_path / "old.zip", tmp_path / "old_replay.pkl"
+    moved = {"policies.networks": networks.ZoneMapsCNN, "policies.ddqn": ddqn.MaskedReplayBuffer}
+    with monkeypatch.context() as before:
+        for name, cls in moved.items():
+            module = types.ModuleType(name)
+            setattr(module, cls.__name__, cls)
+            before.setitem(sys.modules, name, module)
+            before.setattr(cls, "__module__", name)
+        meta = {"algorithm": "ddqn", "strategy": "spec", "observation_shape": [6, 20, 20]}
+        save_checkpoint(random_ddqn, source, meta)
+        buffer = ddqn.MaskedReplayBuffer(16, random_ddqn.observation_space, spaces.Discrete(13))
+        replay.write_bytes(pickle.dumps(buffer))  # as SB3's save_replay_buffer writes it
+    assert not set(moved) & set(sys.modules)
+    assert sorted(moved_objects(source)) == ["policy_kwargs", "replay_buffer_class"]
+    model, _ = load_checkpoint(source, AREA)
+    assert model.policy_kwargs["features_extractor_class"] is networks.ZoneMapsCNN
+    assert type(model.replay_buffer) is ddqn.MaskedReplayBuffer
+    obs = th.rand(4, *model.observation_space.shape)
+    with th.no_grad():
+        assert th.equal(model.policy.q_net(obs), random_ddqn.policy.q_net(obs))
+    load_replay_buffer(model, replay)
+    assert type(model.replay_buffer) is ddqn.MaskedReplayBuffer
+    assert model.replay_buffer.buffer_size == 16
+    save_checkpoint(model, tmp_path / "new.zip", meta)
+    assert moved_objects(tmp_path / "new.zip") == {}  # saved since: nothing to look up
 
 
 @pytest.mark.parametrize("algorithm", ["ddpg", "ddqn"])
