@@ -2,8 +2,8 @@
 
 For each test set (a family x a user count, generated with seeds never used in training) and
 each world (``closed-loop``: static users; ``closed-loop-moving``: walking users and changing
-demand), it runs ``tupa eval``'s protocol (:func:`policies.evaluation.evaluate_policy`) for the
-shipped default policy, both shipped checkpoints, ``min-distance`` and ``load-weighted``
+demand), it runs ``tupa eval``'s protocol (:func:`policies.evaluation.evaluation.evaluate_policy`)
+for the shipped default policy, both shipped checkpoints, ``min-distance`` and ``load-weighted``
 re-placed every step, and the tracking oracle; then the teleport protocol (``paper`` world) on
 the 3-user sets. It checks the targets of issue 13 and writes
 ``benchmarks/results/closed_loop.json`` (every number, each target met or missed) and
@@ -62,7 +62,7 @@ def _run(job: tuple[str, str, int, str, int]) -> dict[str, Any]:
     import torch
 
     torch.set_num_threads(1)
-    from policies.evaluation import evaluate_policy
+    from policies.evaluation.evaluation import evaluate_policy
     from policies.registry import resolve_policy
     from sim.world import get_world
 
@@ -88,7 +88,7 @@ def summarise(result: dict[str, Any]) -> dict[str, Any]:
 
 def judge_set(results: dict[str, dict[str, Any]], default: str, teleport: bool) -> list[dict]:
     """The targets of one set for the default policy: a list of {target, value, met}."""
-    from policies.evaluation import heterogeneity_bin
+    from policies.evaluation.evaluation import heterogeneity_bin
 
     def utilities(name: str) -> np.ndarray:
         return np.array([row["utility"] for row in results[name]["scenarios"]])

@@ -2,8 +2,8 @@
 
 For each environment of :data:`sim.config.ENVIRONMENTS` (the paper's ``open`` field and ITU-R's
 urban classes, :mod:`sim.channel`) and each held-out scenario family, it runs ``tupa eval``'s
-protocol (:func:`policies.evaluation.evaluate_policy`) in a world (``paper``: the teleport
-protocol, or ``closed-loop``) for ``min-distance``, ``load-weighted``, ``min-distance-env``
+protocol (:func:`policies.evaluation.evaluation.evaluate_policy`) in a world (``paper``: the
+teleport protocol, or ``closed-loop``) for ``min-distance``, ``load-weighted``, ``min-distance-env``
 (min-distance at the altitude of best mean SNR), the shipped checkpoints and the oracle, and
 records each policy's mean utility, its ratio to the oracle, the oracle's gain over
 min-distance, and the altitudes the policies end at. Writes
@@ -47,7 +47,7 @@ def _run(job: tuple[str, str, str, int, int, str]) -> dict[str, Any]:
     torch.set_num_threads(1)
     from dataclasses import replace
 
-    from policies.evaluation import evaluate_policy
+    from policies.evaluation.evaluation import evaluate_policy
     from policies.registry import resolve_policy
     from sim.config import AreaConfig
     from sim.scenarios import generate_scenarios
@@ -88,7 +88,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from policies.adapters import default_name
-    from policies.checkpoints import read_metadata
+    from policies.learned.checkpoints import read_metadata
     from service.policy_runtime import SHIPPED_CHECKPOINTS
     from sim.config import ENVIRONMENTS
 

@@ -27,9 +27,9 @@ from typing import Any
 
 import numpy as np
 
-from policies.fleet_checkpoint import FleetCheckpointPolicy
-from policies.fleet_evaluation import build_fleet_candidate, evaluate_fleet
-from policies.fleet_scored import KMEANS_SCORED
+from policies.evaluation.fleet_evaluation import build_fleet_candidate, evaluate_fleet
+from policies.learned.fleet_checkpoint import FleetCheckpointPolicy
+from policies.placements.fleet_scored import KMEANS_SCORED
 from sim.fleet import MAX_UAVS, FleetConfig
 from sim.fleet_env import FleetParallelEnv
 from sim.scenarios import generate_scenarios
@@ -44,11 +44,12 @@ FAMILIES = ("uniform", "hotspots", "mixture")
 
 Candidate = Callable[[int, World, FleetConfig], Any]
 """What to fly for a fleet size, world and fleet: a checkpoint or a placement, as
-:func:`policies.fleet_evaluation.evaluate_fleet` takes it."""
+:func:`policies.evaluation.fleet_evaluation.evaluate_fleet` takes it."""
 
 
 def built(name: str) -> Candidate:
-    """The candidate :func:`policies.fleet_evaluation.build_fleet_candidate` makes of ``name``."""
+    """The candidate :func:`policies.evaluation.fleet_evaluation.build_fleet_candidate` makes of
+    ``name``."""
     return lambda k, world, fleet: build_fleet_candidate(name, k, world, fleet)[1]
 
 

@@ -1,10 +1,10 @@
 """Where does the search oracle's margin over k-means come from: where each UAV hovers over its
 group of users, or which users form the groups?
 
-The k-means baselines (:mod:`policies.fleet_baselines`) split the users into K groups, then
-place one UAV per group with the one-line single-UAV placement. Here the split stays and the
-placement per group becomes the single-UAV search oracle (:mod:`policies.oracle`, the best
-single-UAV position for that group's users on the network model):
+The k-means baselines (:mod:`policies.placements.fleet_baselines`) split the users into K groups,
+then place one UAV per group with the one-line single-UAV placement. Here the split stays and the
+placement per group becomes the single-UAV search oracle (:mod:`policies.placements.oracle`, the
+best single-UAV position for that group's users on the network model):
 ``KMeansPlacement(per_cluster=oracle)``. If that flies no better than k-means, no policy that
 only places a UAV over its k-means group (a single-UAV policy per cluster, learned or not) can
 close the gap to the fleet oracle: the gap is in the partition.
@@ -37,7 +37,7 @@ from fleet_checkpoints import (
     validation_utilities,
 )
 
-from policies.fleet_baselines import KMeansPlacement
+from policies.placements.fleet_baselines import KMeansPlacement
 from policies.registry import make_placement
 from sim.fleet import MAX_UAVS
 

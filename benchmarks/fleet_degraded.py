@@ -6,8 +6,8 @@ Measures, from the service's own API (``GET /v1/vehicles``, polled at 10 Hz):
 * how long until the service calls the link lost (its heartbeat timeout, 3 s), and until the
   fleet re-places for K - 1 vehicles (in decision periods after the loss was detected);
 * the utility of where the K - 1 flying vehicles *are* (the fleet network model's episode
-  utility, :meth:`policies.fleet_oracle.FleetOracle.score`, with the decision period as the
-  model's step, as the service's world has it) against the search oracle's for
+  utility, :meth:`policies.placements.fleet_oracle.FleetOracle.score`, with the decision period as
+  the model's step, as the service's world has it) against the search oracle's for
   K - 1 vehicles over the same users, and when it comes within 0.02 of it; the same for where
   their targets are (what the policy chose, before flight time);
 * how long until the returning vehicle is commanded again, and the utility with K once more.
@@ -50,8 +50,8 @@ from closed_loop.processes import (  # noqa: E402
     start_mock_fleet,
     start_service,
 )
-from policies.fleet_oracle import FleetOracle, FleetOracleConfig  # noqa: E402
 from policies.interface import ReportedUsers  # noqa: E402
+from policies.placements.fleet_oracle import FleetOracle, FleetOracleConfig  # noqa: E402
 from service.frames import FrameConfig, GeoPoint  # noqa: E402
 from sim.fleet import FleetConfig  # noqa: E402
 from sim.world import get_world  # noqa: E402

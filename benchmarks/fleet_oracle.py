@@ -7,11 +7,11 @@ Writes benchmarks/results/fleet_oracle.json (and prints the same):
    K = 3 on a coarser one (every 5th zone: 64 positions, 41,664 placements); 3 and 6 users,
    uniform and hot-spot families; each scenario solved exhaustively (every placement scored
    over the episode, expected mode). Against it, the search oracle
-   (:class:`policies.fleet_oracle.FleetOracle`) restricted to the same grid (``candidates_m``,
-   no refinement), with and without its pair moves: its score over the optimum's, the worst
-   gap, how often it reaches the optimum. For K = 2 the pair moves on that grid are themselves
-   exhaustive, so the case without them is the test of coordinate descent; for K = 3 neither
-   is. And the default oracle (finer grid, refinement) over the same optimum (it may exceed
+   (:class:`policies.placements.fleet_oracle.FleetOracle`) restricted to the same grid
+   (``candidates_m``, no refinement), with and without its pair moves: its score over the optimum's,
+   the worst gap, how often it reaches the optimum. For K = 2 the pair moves on that grid are
+   themselves exhaustive, so the case without them is the test of coordinate descent; for K = 3
+   neither is. And the default oracle (finer grid, refinement) over the same optimum (it may exceed
    it: it is not restricted to the coarse grid).
 2. **k-means baselines vs the oracle** on cells of K = 2 and 3, 20 and 50 users, uniform,
    hot-spot and mixture families: mean utility of ``kmeans-min-distance``,
@@ -36,9 +36,14 @@ from pathlib import Path
 
 import numpy as np
 
-from policies.fleet_baselines import KMeansPlacement
-from policies.fleet_oracle import FleetOracle, FleetOracleConfig, fleet_episode_utility, separated
-from policies.oracle import coarse_grid_positions_m
+from policies.placements.fleet_baselines import KMeansPlacement
+from policies.placements.fleet_oracle import (
+    FleetOracle,
+    FleetOracleConfig,
+    fleet_episode_utility,
+    separated,
+)
+from policies.placements.oracle import coarse_grid_positions_m
 from sim.config import AreaConfig
 from sim.fleet import FleetConfig, FleetModel
 from sim.scenarios import Scenario, generate_scenarios

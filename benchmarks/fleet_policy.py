@@ -7,28 +7,28 @@ mixture families (``--per-family`` each, Λ = 40 Mbit/s per UAV, seeds from ``--
 cell, never the training's), one episode of the fleet environment in that world (its decision
 period and episode length; ``--episode-steps`` shortens it) from the fleet's homes, for:
 
-* the checkpoint (:class:`policies.fleet_checkpoint.FleetCheckpointPolicy`), deciding every step
-  (``--checkpoint``; without it the placements alone);
+* the checkpoint (:class:`policies.learned.fleet_checkpoint.FleetCheckpointPolicy`), deciding every
+  step (``--checkpoint``; without it the placements alone);
 * ``kmeans-min-distance``, ``kmeans-load-weighted``, ``kmeans-scored``
-  (:class:`policies.fleet_scored.ScoredKMeansPlacement`) and the search oracle
-  (:class:`policies.fleet_oracle.FleetOracle` over the world's network and episode), each
+  (:class:`policies.placements.fleet_scored.ScoredKMeansPlacement`) and the search oracle
+  (:class:`policies.placements.fleet_oracle.FleetOracle` over the world's network and episode), each
   placed once on the first report the decision sees and held when users stand still; when they
   move, k-means re-places every decision and the oracle every ``--oracle-replan``.
   ``kmeans-scored`` re-places every decision in both worlds, as the service flies it: it scores
   from where the fleet is, so its pick can change on the way (flown so, it is also what a
   residual checkpoint on the ``kmeans-scored`` prior flies with its actor's output at zero).
 
-The evaluation is ``tupa eval --uavs K``'s (:func:`policies.fleet_evaluation.evaluate_fleet`,
-the policies built by :func:`policies.fleet_evaluation.build_fleet_candidate`). Per policy:
-mean utility, served-user fraction, Jain fairness, minimum user throughput (means over the
-episode's steps, then over scenarios), handovers per episode, per family, the policy's ratio to
-the oracle, and every scenario's row (``rows``: family, id, H, the five metrics). The vehicles
-fly there at the world's speed, so every policy pays the same transit.
-Summaries overall, per world, K, user count and family, and issue 16's targets checked
-(``targets``, for the checkpoint and ``kmeans-scored``: ≥ 0.95 × the oracle's mean utility; ≥
-both k-means baselines in mean and in every H bin with ``--min-bin`` scenarios or more).
-Run: ``.venv/bin/python benchmarks/fleet_policy.py --checkpoint DIR --uavs 2,3,4 --users
-20,50,100 --world closed-loop,closed-loop-moving``.
+The evaluation is ``tupa eval --uavs K``'s
+(:func:`policies.evaluation.fleet_evaluation.evaluate_fleet`, the policies built by
+:func:`policies.evaluation.fleet_evaluation.build_fleet_candidate`). Per policy: mean utility,
+served-user fraction, Jain fairness, minimum user throughput (means over the episode's steps, then
+over scenarios), handovers per episode, per family, the policy's ratio to the oracle, and every
+scenario's row (``rows``: family, id, H, the five metrics). The vehicles fly there at the world's
+speed, so every policy pays the same transit. Summaries overall, per world, K, user count and
+family, and issue 16's targets checked (``targets``, for the checkpoint and ``kmeans-scored``: ≥
+0.95 × the oracle's mean utility; ≥ both k-means baselines in mean and in every H bin with
+``--min-bin`` scenarios or more). Run: ``.venv/bin/python benchmarks/fleet_policy.py --checkpoint
+DIR --uavs 2,3,4 --users 20,50,100 --world closed-loop,closed-loop-moving``.
 """
 
 from __future__ import annotations
@@ -46,8 +46,12 @@ from typing import Any
 import numpy as np
 from fleet_checkpoints import int_list
 
-from policies.fleet_evaluation import FLEET_EVAL_POLICIES, build_fleet_candidate, evaluate_fleet
-from policies.fleet_scored import KMEANS_SCORED
+from policies.evaluation.fleet_evaluation import (
+    FLEET_EVAL_POLICIES,
+    build_fleet_candidate,
+    evaluate_fleet,
+)
+from policies.placements.fleet_scored import KMEANS_SCORED
 from sim.fleet import FleetConfig
 from sim.scenarios import generate_scenarios
 from sim.world import get_world

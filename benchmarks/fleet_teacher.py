@@ -1,11 +1,11 @@
-"""The imitation teacher (``policies/fleet_imitation.py``): is the cheap search good enough, and
-how far are its placements from the k-means prior the residual actor corrects?
+"""The imitation teacher (``policies/training/fleet_imitation.py``): is the cheap search good
+enough, and how far are its placements from the k-means prior the residual actor corrects?
 
 1. **The teachers against the full search, flown.** K = 2, 3, 4 with 20, 50 and 100 users in
    hot spots (``--per-case`` scenarios each, total load 40 Mbit/s per UAV), closed-loop world:
-   one fleet episode per scenario (``policies.fleet_evaluation.evaluate_fleet``, the oracle
-   searching from where the fleet is) with the full search (``fleet-oracle``), each teacher's
-   (:data:`policies.fleet_imitation.TEACHERS`: ``teacher-search``, ``teacher-local``) and
+   one fleet episode per scenario (``policies.evaluation.fleet_evaluation.evaluate_fleet``, the
+   oracle searching from where the fleet is) with the full search (``fleet-oracle``), each teacher's
+   (:data:`policies.training.fleet_imitation.TEACHERS`: ``teacher-search``, ``teacher-local``) and
    load-weighted k-means; mean utility and seconds per scenario.
 2. **Distance to the prior.** On ``--prior-scenarios`` training scenarios (K = 3, 20–100 users,
    the three families), the horizontal distance from each UAV's k-means place to the
@@ -27,11 +27,11 @@ from typing import Any
 
 import numpy as np
 
-from policies.fleet_evaluation import build_fleet_candidate, evaluate_fleet
-from policies.fleet_imitation import TEACHERS, teacher_oracle
-from policies.fleet_residual import KMeansPrior
-from policies.fleet_training import FleetTrainConfig
+from policies.evaluation.fleet_evaluation import build_fleet_candidate, evaluate_fleet
 from policies.interface import ReportedUsers
+from policies.learned.fleet_residual import KMeansPrior
+from policies.training.fleet_imitation import TEACHERS, teacher_oracle
+from policies.training.fleet_training import FleetTrainConfig
 from sim.fleet import FleetConfig
 from sim.fleet_env import FleetParallelEnv
 from sim.geometry import assign_targets

@@ -1,5 +1,5 @@
-"""The planning oracle (``planning-oracle``, :mod:`policies.planning`): how close it is to an
-exhaustive search, how it does in the closed loop against the tracking oracle and the
+"""The planning oracle (``planning-oracle``, :mod:`policies.placements.planning`): how close it is
+to an exhaustive search, how it does in the closed loop against the tracking oracle and the
 baselines, and what a decision costs.
 
 Writes ``benchmarks/results/planning_oracle.json`` and ``planning_oracle.md``:
@@ -8,15 +8,16 @@ Writes ``benchmarks/results/planning_oracle.json`` and ``planning_oracle.md``:
     episode (``--exhaustive-steps`` steps left, 30) in the ``closed-loop`` world's flight — where
     every sequence of H targets from a 3 × 3 × 3 lattice over the volume, the tracking oracle's
     answer and staying put (29 targets; 841 trajectories for H = 2, 24,389 for H = 3) is scored
-    on the planner's own objective (:meth:`~policies.planning.PlanningPolicy.score`), against
-    the planner's plan with the same H. The gap is (best − planner) / best, per case, where the
-    best is above 0.01 per step (below, nothing is served wherever the vehicle goes); the
+    on the planner's own objective (:meth:`~policies.placements.planning.PlanningPolicy.score`),
+    against the planner's plan with the same H. The gap is (best − planner) / best, per case, where
+    the best is above 0.01 per step (below, nothing is served wherever the vehicle goes); the
     tracking oracle's trajectory is measured the same way.
-``closed_loop`` (b): ``tupa eval``'s protocol (:func:`policies.evaluation.evaluate_policy`) for
-    planning-oracle, oracle (the tracking oracle), min-distance, load-weighted and
-    min-distance-env, in the worlds ``closed-loop`` and ``closed-loop-moving``, environments
-    ``open``, ``urban`` and ``site:munich``, on generated held-out scenarios (3 and 10 users,
-    ``--scenarios`` per set, seeds used nowhere else), the stochastic world as evaluated.
+``closed_loop`` (b): ``tupa eval``'s protocol
+    (:func:`policies.evaluation.evaluation.evaluate_policy`) for planning-oracle, oracle (the
+    tracking oracle), min-distance, load-weighted and min-distance-env, in the worlds
+    ``closed-loop`` and ``closed-loop-moving``, environments ``open``, ``urban`` and
+    ``site:munich``, on generated held-out scenarios (3 and 10 users, ``--scenarios`` per set,
+    seeds used nowhere else), the stochastic world as evaluated.
     Ratios are of means measured in the same run.
 ``latency`` (c): wall time of each planning-oracle decision in (b) (and of the tracking
     oracle's, for comparison; after two untimed decisions that compile the model's kernels),
@@ -73,7 +74,7 @@ def _exhaustive_case(job: tuple[str, int, int, int]) -> dict[str, Any]:
     from dataclasses import replace
 
     from policies.interface import ReportedUsers
-    from policies.planning import PlanningConfig, PlanningPolicy
+    from policies.placements.planning import PlanningConfig, PlanningPolicy
     from sim.config import AreaConfig
     from sim.scenarios import generate_scenarios
     from sim.world import CLOSED_LOOP
@@ -198,14 +199,14 @@ def _warm_up(policy: Any, scenario: Any, world: Any) -> None:
     process) is not counted as a decision's time."""
     from dataclasses import replace
 
-    from policies.evaluation import run_episode
+    from policies.evaluation.evaluation import run_episode
 
     run_episode(policy, scenario, replace(world, episode_steps=2), seed=0)
 
 
 def _closed_loop_job(job: tuple[str, str, int, int, str]) -> dict[str, Any]:
     """One policy on one held-out set in one world and environment (a worker process)."""
-    from policies.evaluation import evaluate_policy
+    from policies.evaluation.evaluation import evaluate_policy
     from policies.registry import resolve_policy
 
     world_name, environment, users, n, spec = job

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from policies.adapters import CheckpointPolicy
-from policies.evaluation import evaluate_policy, heterogeneity_bin
+from policies.evaluation.evaluation import evaluate_policy, heterogeneity_bin
 from policies.registry import make_placement
 from sim.config import AreaConfig
 from sim.scenarios import generate_scenarios

@@ -190,7 +190,7 @@ def batch_evaluations_per_s(repeats: int) -> tuple[float, int]:
 
 
 def oracle_search_s(repeats: int) -> float:
-    from policies.oracle import OraclePlacement
+    from policies.placements.oracle import OraclePlacement
 
     oracle = OraclePlacement()
     scenarios = generate_scenarios(repeats, 3, seed=3)

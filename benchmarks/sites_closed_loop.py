@@ -102,7 +102,7 @@ def _summary(path: Path, site: str, users: int, world: str) -> dict[str, Any]:
 def _bins(paths: list[Path], site: str) -> list[dict[str, Any]]:
     """Each policy's mean utility per heterogeneity bin over every episode of ``paths`` (one
     site's sets), for the bins holding at least :data:`MIN_BIN_EPISODES`."""
-    from policies.evaluation import HETEROGENEITY_BIN_WIDTH, heterogeneity_bin
+    from policies.evaluation.evaluation import HETEROGENEITY_BIN_WIDTH, heterogeneity_bin
 
     values: dict[int, dict[str, list[float]]] = {}
     learned = ""

@@ -6,8 +6,8 @@ family (default the site families ``streets``, ``squares``, ``crowd`` and ``mixt
 paper's layouts on walkable ground) and user count (default 3, 10, 30) — with seeds
 ``TEST_SEED + crc32("family/users") mod 100_000``, i.e. in [38_400_000, 38_500_000), a range no
 other benchmark, test set or training run uses. Each set is evaluated with ``tupa eval``'s
-protocol (:func:`policies.evaluation.evaluate_policy`) in the ``paper`` world — the teleport
-protocol: a static placement starts at its own position and is re-placed every step, 100
+protocol (:func:`policies.evaluation.evaluation.evaluate_policy`) in the ``paper`` world — the
+teleport protocol: a static placement starts at its own position and is re-placed every step, 100
 stochastic steps, the same fading draws for every policy — for ``min-distance`` (the paper's
 baseline), ``load-weighted``, ``min-distance-env`` (the least mean path loss the site gives)
 and ``oracle`` (the best static position found with the model). Scenarios are binned by
@@ -74,7 +74,7 @@ def _run(job: tuple[str, str, int, int, int]) -> dict[str, Any]:
     torch.set_num_threads(1)
     from dataclasses import replace
 
-    from policies.evaluation import evaluate_policy
+    from policies.evaluation.evaluation import evaluate_policy
     from policies.registry import resolve_policy
     from sim.config import AreaConfig
     from sim.scenarios import generate_scenarios
@@ -127,7 +127,7 @@ def _ratios(utility: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, Any]:
 def summarise(done: list[dict[str, Any]]) -> dict[str, Any]:
     """The tables of the document from the sets' results: overall, by H bin, by family, by
     user count."""
-    from policies.evaluation import HETEROGENEITY_BIN_WIDTH, heterogeneity_bin
+    from policies.evaluation.evaluation import HETEROGENEITY_BIN_WIDTH, heterogeneity_bin
 
     h = np.concatenate([d["heterogeneity"] for d in done])
     utility = {name: np.concatenate([d["utility"][name] for d in done]) for name in POLICIES}

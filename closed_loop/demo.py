@@ -131,7 +131,7 @@ def compare(
     """The baselines, the tracking and planning oracles and the shipped checkpoints, each flown
     in ``world`` from ``start_m`` by the simulator, with the users the loop had (same motion and
     demand): mean utility, and each one's last target."""
-    from policies.evaluation import run_episode
+    from policies.evaluation.evaluation import run_episode
     from policies.registry import resolve_policy
     from service.policy_runtime import SHIPPED_CHECKPOINTS
     from sim.geometry import clip_to_volume

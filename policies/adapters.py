@@ -12,7 +12,7 @@ the same objects, so they decide alike (``tests/service/test_parity.py``).
   vehicle's position; a DDQN move is chosen among the valid ones and becomes a target with
   :func:`sim.geometry.move_target` (from the zone the vehicle is in, as the discrete environment
   does); a DDPG action becomes a target with :func:`sim.geometry.unit_to_m`, or, for a residual
-  checkpoint, with :func:`policies.residual.residual_target`.
+  checkpoint, with :func:`policies.learned.residual.residual_target`.
 """
 
 from __future__ import annotations
@@ -25,9 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from policies.checkpoints import load_checkpoint
 from policies.interface import Placement, PolicyKind, ReportedUsers, UsersLike
-from policies.residual import residual_radius, residual_target
+from policies.learned.checkpoints import load_checkpoint
+from policies.learned.residual import residual_radius, residual_target
 from sim.geometry import move_target, unit_to_m, valid_moves
 from sim.observation import UserReports, build_observation
 from sim.world import PAPER, World
@@ -111,7 +111,7 @@ class CheckpointPolicy:
     ) -> CheckpointPolicy:
         """Load a checkpoint (``CheckpointError``, an ``InputError``, naming the file and the
         problem if it is unusable). ``allowed_dirs`` and ``max_bytes`` restrict which files
-        may be loaded (see :func:`policies.checkpoints.read_checkpoint`)."""
+        may be loaded (see :func:`policies.learned.checkpoints.read_checkpoint`)."""
         model, metadata = load_checkpoint(
             path, world.area, device=device, allowed_dirs=allowed_dirs, max_bytes=max_bytes
         )

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from policies.sweep.cli import register as register_sweep
-from policies.train_cli import register as register_train
+from policies.training.train_cli import register as register_train
 
 _EVAL_DESCRIPTION = """\
 Evaluate placement policies on a scenario set: one episode per scenario in a world (--world:
@@ -50,10 +50,10 @@ re-placed every --replan-every decisions (default: once per episode). Per scenar
 served_fraction, jain_fairness, min_throughput_bps (episode means), handovers (over the
 episode), heterogeneity. Output: one "tupa-fleet-eval/1" document per policy (several:
 {"format", "results": [...]}), with ratio_to_oracle when fleet-oracle is among the policies
-(policies/fleet_evaluation.py); tupa report draws the fleet figures from them.
+(policies/evaluation/fleet_evaluation.py); tupa report draws the fleet figures from them.
 with several, {"results": [object, ...]} in the order given; --altitude-profiles N adds
 "altitude_profiles": [{"id", "environment", "altitudes_m", "best_utility", "best_xy_m"}] beside
-them (policies/altitude.py). The file is written atomically,
+them (policies/placements/altitude.py). The file is written atomically,
 and not at all on an error. Prints a summary table and the mean utility per heterogeneity bin
 (width 0.05) with each policy's gain over min-distance.
 """
@@ -202,7 +202,7 @@ def check_scenarios_in(world: Any, scenarios: Sequence[Any], path: Path) -> None
 
 
 def _eval(args: argparse.Namespace) -> int:
-    from policies.evaluation import evaluate_policy, format_results
+    from policies.evaluation.evaluation import evaluate_policy, format_results
     from policies.registry import POLICY_NAMES, close_names, resolve_policy, unknown_name
     from policies.world_options import world_from_args
     from sim.atomic import atomic_write_json
@@ -256,7 +256,7 @@ def _eval(args: argparse.Namespace) -> int:
         _add_ratio_to_oracle(results, scenarios, world, args)
     document = results[0] if len(results) == 1 else {"results": results}
     if args.altitude_profiles:
-        from policies.altitude import altitude_profile
+        from policies.placements.altitude import altitude_profile
 
         document["altitude_profiles"] = [
             altitude_profile(scenario, world).to_dict()
@@ -278,7 +278,7 @@ def _eval(args: argparse.Namespace) -> int:
 def _latest_of_interrupted(spec: str) -> str:
     """``spec``, or for the directory of an interrupted training run (no ``model.zip``) its
     latest checkpoint, said on standard error."""
-    from policies.checkpoints import training_run
+    from policies.learned.checkpoints import training_run
     from policies.registry import POLICY_NAMES
 
     if spec in POLICY_NAMES or spec == "default":
@@ -295,8 +295,9 @@ def _latest_of_interrupted(spec: str) -> str:
 
 
 def _eval_fleet(args: argparse.Namespace) -> int:
-    """``tupa eval --uavs K``: fleet policies on a scenario file (policies/fleet_evaluation.py)."""
-    from policies.fleet_evaluation import (
+    """``tupa eval --uavs K``: fleet policies on a scenario file
+    (policies/evaluation/fleet_evaluation.py)."""
+    from policies.evaluation.fleet_evaluation import (
         FLEET_EVAL_FORMAT,
         add_ratio_to_oracle,
         build_fleet_candidate,
@@ -428,7 +429,7 @@ def _add_ratio_to_oracle(
 ) -> None:
     """Add each scenario's ``ratio_to_oracle`` (utility / the oracle's on that scenario) to every
     result; the oracle is evaluated on the side when it is not among the policies."""
-    from policies.evaluation import evaluate_policy
+    from policies.evaluation.evaluation import evaluate_policy
     from policies.registry import make_placement
 
     oracle = next((r for r in results if r["policy"] == "oracle"), None)

@@ -4,9 +4,9 @@ target per vehicle out, for however many vehicles fly *now*.
 A fleet in the air loses and regains vehicles (a lost link, a battery swap), so a served fleet
 policy is asked for K targets with K the vehicles it may command at that moment, and must cover
 every user with them (the service's degraded mode). The placements of
-:mod:`policies.fleet_baselines` and :mod:`policies.fleet_oracle` take K at construction; a
-:class:`FleetPlacementPolicy` keeps one per K it has been asked for and re-places every decision,
-as :class:`policies.adapters.StaticPolicy` does for one vehicle.
+:mod:`policies.placements.fleet_baselines` and :mod:`policies.placements.fleet_oracle` take K at
+construction; a :class:`FleetPlacementPolicy` keeps one per K it has been asked for and re-places
+every decision, as :class:`policies.adapters.StaticPolicy` does for one vehicle.
 
 Names (``tupa serve --policy``): :data:`FLEET_POLICIES`. The fleet oracle searches with the
 fleet network model (1.5 s with 2 UAVs and 20 users, 6 s with 3 and 50, 21 s with 4 and 100 on
@@ -23,10 +23,10 @@ from typing import Any, Protocol
 import numpy as np
 
 from policies.adapters import default_name
-from policies.fleet_baselines import FLEET_BASELINES, KMeansPlacement
-from policies.fleet_oracle import FLEET_ORACLE, FleetOracle, FleetOracleConfig
-from policies.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
 from policies.interface import ReportedUsers
+from policies.placements.fleet_baselines import FLEET_BASELINES, KMeansPlacement
+from policies.placements.fleet_oracle import FLEET_ORACLE, FleetOracle, FleetOracleConfig
+from policies.placements.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
 from policies.registry import PLACEMENTS, close_names, unknown_name
 from sim.association import associate_at
 from sim.errors import InputError
@@ -129,8 +129,8 @@ class FleetPlacementPolicy:
 
 class FleetCheckpointServing:
     """A shared-parameter fleet checkpoint
-    (:class:`policies.fleet_checkpoint.FleetCheckpointPolicy`) deciding for the vehicles that
-    fly now, from reports.
+    (:class:`policies.learned.fleet_checkpoint.FleetCheckpointPolicy`) deciding for the vehicles
+    that fly now, from reports.
 
     The observation is the environments' (:func:`sim.fleet_observation.fleet_observations`) at the
     vehicles' positions. Which AP each user is on (the fleet maps need it) is not in a report:
@@ -206,8 +206,8 @@ def resolve_fleet_policy(
             f"policy: a fleet is served by one of {', '.join(FLEET_POLICIES)} or a fleet "
             f"checkpoint, got {spec!r} (single-vehicle policies cannot drive a fleet)"
         )
-    from policies.checkpoints import CheckpointError
-    from policies.fleet_checkpoint import FleetCheckpointPolicy
+    from policies.learned.checkpoints import CheckpointError
+    from policies.learned.fleet_checkpoint import FleetCheckpointPolicy
 
     try:
         policy = FleetCheckpointPolicy.load(

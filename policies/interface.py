@@ -2,7 +2,8 @@
 
 * :class:`Placement`: a *static* placement. Users' ground positions and offered loads in (what
   the users' reports carry), one UAV position out. ``min-distance``, ``load-weighted``
-  (:mod:`policies.baselines`) and the ``oracle`` (:mod:`policies.oracle`) are placements.
+  (:mod:`policies.placements.baselines`) and the ``oracle`` (:mod:`policies.placements.oracle`) are
+  placements.
 * :class:`Policy`: what the evaluation and the service run. It decides the vehicle's next
   target from the latest reports and where the vehicle is, once per decision period. A
   placement becomes one by being re-placed every decision, a trained checkpoint by acting on

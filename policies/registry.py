@@ -1,12 +1,12 @@
 """Names and checkpoint paths to policies: the one place that knows what ``--policy`` may say.
 
 * :data:`PLACEMENTS`: the static placements by name — ``min-distance`` (the paper's baseline),
-  ``load-weighted``, ``min-distance-env`` (:mod:`policies.baselines`) and ``oracle``
-  (:mod:`policies.oracle`: the model's own exhaustive search). :func:`make_placement` builds
-  one for a world.
+  ``load-weighted``, ``min-distance-env`` (:mod:`policies.placements.baselines`) and ``oracle``
+  (:mod:`policies.placements.oracle`: the model's own exhaustive search). :func:`make_placement`
+  builds one for a world.
 * :data:`NAMED_POLICIES`: policies by name that are not placements (they decide from where the
-  vehicle is, not only from the users) — ``planning-oracle`` (:mod:`policies.planning`: the
-  receding-horizon planner over flown trajectories). :data:`POLICY_NAMES` is every name
+  vehicle is, not only from the users) — ``planning-oracle`` (:mod:`policies.placements.planning`:
+  the receding-horizon planner over flown trajectories). :data:`POLICY_NAMES` is every name
   ``--policy`` may say, placements first: what the error messages list.
 * :func:`resolve_policy`: a :class:`~policies.interface.Policy` from a spec — a placement's name
   (re-placed every decision: :class:`~policies.adapters.StaticPolicy`), a named policy, or a
@@ -21,13 +21,13 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 from policies.adapters import CheckpointPolicy, StaticPolicy
-from policies.baselines import MinDistancePlacement
 from policies.interface import Placement, Policy
+from policies.placements.baselines import MinDistancePlacement
 from sim.world import PAPER, World
 
 
 def _oracle(world: World) -> Placement:
-    from policies.oracle import OracleConfig, OraclePlacement
+    from policies.placements.oracle import OracleConfig, OraclePlacement
 
     config = OracleConfig(episode_steps=world.episode_steps, step_s=world.step_s)
     return OraclePlacement(world.area, world.network, world.utility, config)
@@ -45,7 +45,7 @@ PLACEMENTS: dict[str, Callable[[World], Placement]] = {
 
 
 def _planning_oracle(world: World) -> Policy:
-    from policies.planning import PlanningPolicy
+    from policies.placements.planning import PlanningPolicy
 
     return PlanningPolicy(world)
 
@@ -103,9 +103,9 @@ def resolve_policy(
     """The policy ``spec`` names: a key of :data:`PLACEMENTS` or :data:`NAMED_POLICIES`, else a
     checkpoint path.
 
-    A checkpoint that cannot be used raises :class:`~policies.checkpoints.CheckpointError` (an
-    ``InputError`` naming the file and the problem); ``allowed_dirs`` and ``max_bytes`` restrict
-    which files may be loaded (:func:`policies.checkpoints.read_checkpoint`).
+    A checkpoint that cannot be used raises :class:`~policies.learned.checkpoints.CheckpointError`
+    (an ``InputError`` naming the file and the problem); ``allowed_dirs`` and ``max_bytes`` restrict
+    which files may be loaded (:func:`policies.learned.checkpoints.read_checkpoint`).
     """
     text = str(spec)
     if text in PLACEMENTS:

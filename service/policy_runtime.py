@@ -9,7 +9,7 @@ object ``tupa eval`` runs, so the service decides exactly as the evaluation does
 synthetic report) before anyone may swap it in, so a bad file never replaces a working policy.
 A checkpoint is a pickle: for a client's choice (``PUT /v1/policy``) or the state file's, it is
 loaded only from the allowed directories, read once through a descriptor checked as opened, and
-only up to a size limit (:func:`policies.checkpoints.read_checkpoint`). Its errors tell the
+only up to a size limit (:func:`policies.learned.checkpoints.read_checkpoint`). Its errors tell the
 problem without paths or library text (they go back to HTTP clients); the detail is logged.
 """
 
@@ -28,8 +28,8 @@ from sim.observation import UserReports
 from sim.world import CLOSED_LOOP, World
 
 if TYPE_CHECKING:
-    from policies.checkpoints import CheckpointError
     from policies.interface import Policy
+    from policies.learned.checkpoints import CheckpointError
 
 log = logging.getLogger(__name__)
 SHIPPED_CHECKPOINTS = Path(__file__).resolve().parent.parent / "policies" / "checkpoints"
@@ -65,7 +65,7 @@ def load_policy(
     ``allowed_dirs``: a checkpoint must lie in one of these directories (``None``: anywhere, for
     the operator's own ``--policy``); it is read once, through a checked descriptor, so a link
     flipped meanwhile cannot substitute another file. ``max_bytes`` bounds the checkpoint file
-    and what its zip expands to (:func:`policies.checkpoints.load_checkpoint`).
+    and what its zip expands to (:func:`policies.learned.checkpoints.load_checkpoint`).
 
     Raises :class:`InputError` ``policy: <problem>``, without paths or library text (it may go
     back to an HTTP client); the detail, naming the file, is logged as a warning. A spec that
@@ -75,7 +75,7 @@ def load_policy(
     warning when the operator did (:func:`_check_servable`). Nothing is
     swapped in by this function, so a failure leaves the serving policy untouched.
     """
-    from policies.checkpoints import CheckpointError
+    from policies.learned.checkpoints import CheckpointError
     from policies.registry import POLICY_NAMES, close_names, resolve_policy, unknown_name
 
     spec = str(spec).strip()
@@ -132,7 +132,7 @@ def _warn_on_environment(policy: Policy, world: World) -> None:
 
 def _public_problem(error: CheckpointError, baselines: Iterable[str]) -> str:
     """What an HTTP client is told about an unusable checkpoint: the field and the problem."""
-    from policies.checkpoints import (
+    from policies.learned.checkpoints import (
         NO_SUCH_CHECKPOINT,
         OUTSIDE_ALLOWED,
         CheckpointTooLargeError,

@@ -54,7 +54,7 @@ def tiny_preset(algorithm: str = "ddpg", **overrides: Any) -> Any:
     (``overrides`` replace any field)."""
     from dataclasses import replace
 
-    from policies.presets import NetworkPreset, get_preset
+    from policies.training.presets import NetworkPreset, get_preset
 
     fields: dict[str, Any] = {
         "network": NetworkPreset(channels=(8,), hidden=32, features_dim=32, dropout=0.0),

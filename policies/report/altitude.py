@@ -1,13 +1,13 @@
 """The report's altitude figure: utility against altitude, and where each policy flew.
 
 ``tupa eval --altitude-profiles N`` writes, beside its results, the first N scenarios' curves
-(:mod:`policies.altitude`: at each altitude, the best episode utility over the zone centres).
-:func:`load_altitude_profiles` reads them from every eval file of a results directory (the first
-file that has a scenario's curve gives it); :func:`altitude_figure` draws one panel per scenario,
-at most :data:`COLUMNS` to a row, with each policy's end of episode in that scenario as a marker at
-(its altitude, its episode utility); :func:`altitude_lines` is the report's paragraph and table.
-Every profile is drawn up to :data:`MAX_PANELS`; the ones beyond are named in the figure, in a
-warning and in the paragraph (the table lists every profile).
+(:mod:`policies.placements.altitude`: at each altitude, the best episode utility over the zone
+centres). :func:`load_altitude_profiles` reads them from every eval file of a results directory (the
+first file that has a scenario's curve gives it); :func:`altitude_figure` draws one panel per
+scenario, at most :data:`COLUMNS` to a row, with each policy's end of episode in that scenario as a
+marker at (its altitude, its episode utility); :func:`altitude_lines` is the report's paragraph and
+table. Every profile is drawn up to :data:`MAX_PANELS`; the ones beyond are named in the figure, in
+a warning and in the paragraph (the table lists every profile).
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from policies.evaluation import HETEROGENEITY_BIN_WIDTH
+from policies.evaluation.evaluation import HETEROGENEITY_BIN_WIDTH
 from policies.report.curves import LearningCurves
 from policies.report.inputs import ORACLE_POLICY, PolicyResult
 from policies.report.stats import heterogeneity_bins

@@ -32,8 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from policies.evaluation import HETEROGENEITY_BIN_WIDTH, heterogeneity_bin
-from policies.fleet_evaluation import FLEET_EVAL_FORMAT, FLEET_METRICS, FLEET_ORACLE
+from policies.evaluation.evaluation import HETEROGENEITY_BIN_WIDTH, heterogeneity_bin
+from policies.evaluation.fleet_evaluation import FLEET_EVAL_FORMAT, FLEET_METRICS, FLEET_ORACLE
 from policies.report.checks import (
     check_scenario_ids,
     fail,
@@ -82,7 +82,7 @@ _PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#e377c2", "#17becf", "#
 @dataclass(frozen=True)
 class FleetResult:
     """One policy's rows from a fleet eval file, as arrays in scenario order: ``values[m]``
-    for each metric of :data:`policies.fleet_evaluation.FLEET_METRICS`."""
+    for each metric of :data:`policies.evaluation.fleet_evaluation.FLEET_METRICS`."""
 
     policy: str
     source: Path

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from policies.checkpoints import RUN_FILE, training_run
+from policies.learned.checkpoints import RUN_FILE, training_run
 from policies.report.checks import (
     check_scenario_ids,
     fail,

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from policies.evaluation import HETEROGENEITY_BIN_WIDTH, REFERENCE_POLICY
+from policies.evaluation.evaluation import HETEROGENEITY_BIN_WIDTH, REFERENCE_POLICY
 from policies.report.curves import LEARNING_CURVE_FILE, LearningCurve, LearningCurves
 from policies.report.inputs import SETTINGS, PolicyResult
 from policies.report.stats import HeterogeneityBins, headlines, heterogeneity_bins, p25, ratio

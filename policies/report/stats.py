@@ -8,7 +8,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from policies.evaluation import HETEROGENEITY_BIN_WIDTH, REFERENCE_POLICY, heterogeneity_bin
+from policies.evaluation.evaluation import (
+    HETEROGENEITY_BIN_WIDTH,
+    REFERENCE_POLICY,
+    heterogeneity_bin,
+)
 from policies.report.inputs import PolicyResult
 
 MIN_BIN_SCENARIOS = 10  # the "bins that hold at least 10 scenarios"

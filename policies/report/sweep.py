@@ -15,7 +15,8 @@ evaluation and ``learning_curve.json``, and writes to ``--out``:
   (median [p25, p75] across seeds) and the exported checkpoints.
 * ``best/<version>-e<episodes>.zip`` (+ ``.json``): per cell of the grid (a version at an
   episode budget), the seed with the highest final mean utility, exported with
-  :func:`policies.checkpoints.export_checkpoint` (the metadata says which trial it came from).
+  :func:`policies.learned.checkpoints.export_checkpoint` (the metadata says which trial it came
+  from).
 
 A seed's learning curve joins its trials of one version: the points every trial's curve file
 holds (at 100, 200, 500, ... episodes, on the first ``curve_scenarios`` test scenarios; a
@@ -306,7 +307,7 @@ def _export(
     sweep_dir: Path,
     best_dir: Path,
 ) -> list[Path]:
-    from policies.checkpoints import export_checkpoint
+    from policies.learned.checkpoints import export_checkpoint
     from sim.files import load_scenarios
 
     areas: dict[str, Any] = {}

@@ -3,8 +3,8 @@
 A sweep file (YAML, :mod:`.spec`) names the grid: algorithms, strategies, episode budgets,
 seeds, worlds, channel environments, hyper-parameters and the test sets each run is evaluated
 on. Every point of the grid is a *trial*: one ``tupa train`` run (the same
-:func:`policies.training.train`, the same ``model.zip`` + ``model.json``, learning curve and
-TensorBoard logs) in its own directory ``OUT/trials/<trial id>/``, so a sweep's run and a
+:func:`policies.training.training.train`, the same ``model.zip`` + ``model.json``, learning curve
+and TensorBoard logs) in its own directory ``OUT/trials/<trial id>/``, so a sweep's run and a
 hand-run training are interchangeable.
 
 * :mod:`.spec`: reading and checking the sweep file, expanding the grid into trials with

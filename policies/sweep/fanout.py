@@ -3,8 +3,8 @@
 The scenarios are cut into contiguous slices (about two per worker, so that a slow slice does
 not leave the others idle); each slice is one task on a backend (:mod:`.backends`,
 :mod:`.ray_backend`), which rebuilds the world and the policy from ``tupa eval``'s own options
-and runs :func:`policies.evaluation.evaluate_policy` on its slice with the fading seed its
-scenarios would have had in one run (scenario i: seed S + i). The slices' rows are joined in
+and runs :func:`policies.evaluation.evaluation.evaluate_policy` on its slice with the fading seed
+its scenarios would have had in one run (scenario i: seed S + i). The slices' rows are joined in
 order and the summary is recomputed from them as ``evaluate_policy`` computes it, so the result
 is the one an unsplit ``tupa eval`` writes. A slice that fails is retried (``retries`` times),
 then the command fails naming the policy and the slice.

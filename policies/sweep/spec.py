@@ -15,7 +15,7 @@
       seed: [1, 2, 3]
     train:                           # one value for every trial (any grid key may be here)
       preset: fast
-      preset.learning_starts: 64     # any scalar field of policies.presets.Preset
+      preset.learning_starts: 64     # any scalar field of policies.training.presets.Preset
       preset.network.hidden: 32      # and of its NetworkPreset
     evaluate:
       final: true                    # the final evaluation on the whole test set (default)
@@ -277,7 +277,7 @@ def _is_int(value: Any) -> bool:
 
 def _preset_fields() -> dict[str, Any]:
     """``{"preset.<field>": default, "preset.network.<field>": default}`` for scalar fields."""
-    from policies.presets import NetworkPreset, get_preset
+    from policies.training.presets import NetworkPreset, get_preset
 
     base = get_preset("paper", "ddqn")
     known = {
@@ -297,7 +297,7 @@ def _preset_fields() -> dict[str, Any]:
 def _check_parameter_name(key: str, where: str, fail: Any) -> None:
     if key in PARAMETERS or key in _preset_fields():
         return
-    hint = "preset.<field> (policies/presets.py)" if key.startswith("preset.") else ""
+    hint = "preset.<field> (policies/training/presets.py)" if key.startswith("preset.") else ""
     raise fail(
         where,
         f"unknown trial parameter (known: {', '.join(PARAMETERS)}, {hint or 'preset.<field>'})",
@@ -306,8 +306,8 @@ def _check_parameter_name(key: str, where: str, fail: Any) -> None:
 
 def _normalise(key: str, value: Any, where: str, test_sets: dict[str, TestSet], fail: Any) -> Any:
     """One trial parameter's value checked and in canonical JSON form."""
-    from policies.presets import ALGORITHMS, PRESET_NAMES
-    from policies.training import STRATEGIES
+    from policies.training.presets import ALGORITHMS, PRESET_NAMES
+    from policies.training.training import STRATEGIES
     from sim.config import QUEUEING_CHOICES, environment_problem
     from sim.scenarios import FAMILIES
 
@@ -500,10 +500,10 @@ def train_config(
     curve_scenarios: int = 100,
     final_eval: bool = True,
 ) -> Any:
-    """The :class:`policies.training.TrainConfig` of ``trial`` (what ``tupa train`` would
+    """The :class:`policies.training.training.TrainConfig` of ``trial`` (what ``tupa train`` would
     build from the same options), training into ``out_dir``."""
-    from policies.presets import NetworkPreset, get_preset
-    from policies.training import TrainConfig
+    from policies.training.presets import NetworkPreset, get_preset
+    from policies.training.training import TrainConfig
 
     p = trial.params
     action = p.get("action", "coordinates")

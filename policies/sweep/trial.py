@@ -66,7 +66,7 @@ def evaluate_slice(payload: dict[str, Any]) -> dict[str, Any]:
 
 
 def _evaluate_slice(payload: dict[str, Any]) -> dict[str, Any]:
-    from policies.evaluation import evaluate_policy
+    from policies.evaluation.evaluation import evaluate_policy
     from policies.registry import resolve_policy
     from policies.world_options import world_from_args
     from sim.files import load_scenarios
@@ -96,7 +96,7 @@ def one_torch_thread() -> Iterator[None]:
 
 
 def _train_and_evaluate(payload: dict[str, Any]) -> dict[str, Any]:
-    from policies.training import TrainConfig, train
+    from policies.training.training import TrainConfig, train
     from sim.atomic import atomic_write_json
     from sim.errors import InputError
 
@@ -134,7 +134,7 @@ def _train_and_evaluate(payload: dict[str, Any]) -> dict[str, Any]:
 def _evaluate_on(config: Any, scenario_file: Path, out_file: Path) -> dict[str, float]:
     """The trained checkpoint on another test set, as ``tupa eval`` scores it (fading seed 0)
     in the run's world over that set's area; the result file has ``tupa eval``'s shape."""
-    from policies.evaluation import evaluate_policy
+    from policies.evaluation.evaluation import evaluate_policy
     from policies.registry import resolve_policy
     from sim.atomic import atomic_write_json
     from sim.files import load_scenarios

@@ -27,8 +27,8 @@ import pytest
 import yaml
 
 from closed_loop.processes import TupaProcess, mock_fleet_file, start_mock_fleet, start_service
-from policies.fleet_baselines import KMeansPlacement
 from policies.interface import ReportedUsers
+from policies.placements.fleet_baselines import KMeansPlacement
 from service.frames import FrameConfig
 from sitl_mock.flavours import get_flavour
 from tests.helpers import wait_for

@@ -167,8 +167,8 @@ def _untrained_ddpg() -> Policy:
     from dataclasses import replace
 
     from policies.adapters import CheckpointPolicy
-    from policies.presets import NetworkPreset, get_preset
-    from policies.training import build_model, make_env
+    from policies.training.presets import NetworkPreset, get_preset
+    from policies.training.training import build_model, make_env
     from sim.scenarios import generate_scenarios
 
     tiny = NetworkPreset(channels=(8,), hidden=32, features_dim=32, dropout=0.0)

@@ -20,7 +20,7 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from policies.checkpoints import CHECKPOINT_FORMAT, load_checkpoint, metadata_path
+from policies.learned.checkpoints import CHECKPOINT_FORMAT, load_checkpoint, metadata_path
 from service.policy_runtime import SHIPPED_DDQN
 from sim.config import AreaConfig
 from sim.errors import InputError

@@ -1,4 +1,4 @@
-"""Utility against altitude (policies/altitude.py) and the report's altitude figure."""
+"""Utility against altitude (policies/placements/altitude.py) and the report's altitude figure."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from policies.altitude import altitude_profile
+from policies.placements.altitude import altitude_profile
 from policies.report import build_report
 from policies.report.altitude import MAX_PANELS, ProfileCurve, altitude_drawing
 from service.cli import main

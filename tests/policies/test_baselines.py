@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from policies.baselines import MinDistancePlacement, geometric_median
 from policies.interface import Placement
+from policies.placements.baselines import MinDistancePlacement, geometric_median
 from policies.registry import PLACEMENTS, make_placement
 from sim.config import AreaConfig
 from sim.scenarios import Scenario

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from policies.evaluation import (
+from policies.evaluation.evaluation import (
     evaluate_policy,
     format_results,
     heterogeneity_bin,

@@ -1,5 +1,5 @@
-"""The paper's DDQN for a fleet (policies/fleet_training.py): one masked Double DQN shared by
-the UAVs, its masks reaching the learner through the SuperSuit bridge, a checkpoint that moves
+"""The paper's DDQN for a fleet (policies/training/fleet_training.py): one masked Double DQN shared
+by the UAVs, its masks reaching the learner through the SuperSuit bridge, a checkpoint that moves
 each UAV by one of the 13 moves from its own zone (never out of the volume), for any K."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from policies.fleet_checkpoint import FleetCheckpointPolicy
-from policies.fleet_training import (
+from policies.learned.fleet_checkpoint import FleetCheckpointPolicy
+from policies.training.fleet_training import (
     FleetTrainConfig,
     make_fleet_vec_env,
     train_fleet,

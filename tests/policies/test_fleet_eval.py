@@ -1,5 +1,5 @@
-"""Fleet evaluation (policies/fleet_evaluation.py), ``tupa eval --uavs K`` and ``tupa report``'s
-fleet figures (policies/report/fleet.py): a tiny trained checkpoint and the three fleet
+"""Fleet evaluation (policies/evaluation/fleet_evaluation.py), ``tupa eval --uavs K`` and ``tupa
+report``'s fleet figures (policies/report/fleet.py): a tiny trained checkpoint and the three fleet
 baselines end to end on a small scenario file, the document's rows against
 :func:`evaluate_fleet` called directly, and the refusals (exit 2, one line, nothing written)."""
 
@@ -12,18 +12,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from policies.fleet_baselines import KMeansPlacement
-from policies.fleet_checkpoint import FleetCheckpointPolicy
-from policies.fleet_evaluation import (
+from policies.evaluation.fleet_evaluation import (
     FLEET_EVAL_FORMAT,
     FLEET_METRICS,
     add_ratio_to_oracle,
     build_fleet_candidate,
     evaluate_fleet,
 )
-from policies.fleet_training import FleetTrainConfig, train_fleet
 from policies.interface import ReportedUsers
+from policies.learned.fleet_checkpoint import FleetCheckpointPolicy
+from policies.placements.fleet_baselines import KMeansPlacement
 from policies.report import build_report
+from policies.training.fleet_training import FleetTrainConfig, train_fleet
 from service.cli import main
 from sim.atomic import atomic_write_json
 from sim.config import AreaConfig

@@ -1,7 +1,7 @@
-"""Imitation of the fleet oracle (policies/fleet_imitation.py): the teacher's residual actions
-and moves send each UAV to the oracle's target, teacher data are the same however many workers
-collect them, the fit learns what the teacher does, and `tupa train --uavs K --imitate N` writes
-a checkpoint that records it."""
+"""Imitation of the fleet oracle (policies/training/fleet_imitation.py): the teacher's residual
+actions and moves send each UAV to the oracle's target, teacher data are the same however many
+workers collect them, the fit learns what the teacher does, and `tupa train --uavs K --imitate N`
+writes a checkpoint that records it."""
 
 from __future__ import annotations
 
@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 import torch as th
 
-from policies.fleet_checkpoint import FleetCheckpointPolicy
-from policies.fleet_imitation import (
+from policies.learned.fleet_checkpoint import FleetCheckpointPolicy
+from policies.learned.fleet_residual import KMeansPrior, fleet_residual_targets
+from policies.training.fleet_imitation import (
     TEACHERS,
     ImitationConfig,
     TeacherData,
@@ -23,13 +24,12 @@ from policies.fleet_imitation import (
     teacher_actions,
     teacher_moves,
 )
-from policies.fleet_residual import KMeansPrior, fleet_residual_targets
-from policies.fleet_training import (
+from policies.training.fleet_training import (
     FleetTrainConfig,
     make_fleet_vec_env,
     train_fleet,
 )
-from policies.training import build_model
+from policies.training.training import build_model
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet_observation import fleet_observations

@@ -6,14 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from policies.fleet_baselines import KMeansPlacement, kmeans
-from policies.fleet_oracle import (
+from policies.interface import UsersLike
+from policies.placements.fleet_baselines import KMeansPlacement, kmeans
+from policies.placements.fleet_oracle import (
     FleetOracle,
     FleetOracleConfig,
     FleetStart,
     fleet_episode_utility,
 )
-from policies.interface import UsersLike
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig, FleetModel
@@ -94,7 +94,7 @@ class _Recording:
 
 
 def test_per_cluster_placement_keeps_the_partition_and_places_each_group() -> None:
-    from policies.baselines import MinDistancePlacement
+    from policies.placements.baselines import MinDistancePlacement
 
     scenario = _hot_spots()
     # The default per-cluster placement, named explicitly, gives the baseline to the bit.

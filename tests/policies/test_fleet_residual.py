@@ -1,8 +1,8 @@
-"""A fleet's residual actions (policies/fleet_residual.py): zero is the prior (the load-weighted
-k-means placement, each UAV taking its nearest share, or ``kmeans-scored`` flown from where the
-fleet is), the wrapper keeps PettingZoo's API, targets are separated and inside the volume, a
-residual fleet run trains and records its prior, and an untrained (zero-initialised) residual
-policy flies exactly its prior."""
+"""A fleet's residual actions (policies/learned/fleet_residual.py): zero is the prior (the
+load-weighted k-means placement, each UAV taking its nearest share, or ``kmeans-scored`` flown from
+where the fleet is), the wrapper keeps PettingZoo's API, targets are separated and inside the
+volume, a residual fleet run trains and records its prior, and an untrained (zero-initialised)
+residual policy flies exactly its prior."""
 
 from __future__ import annotations
 
@@ -13,24 +13,24 @@ import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test
 
-from policies.checkpoints import export_checkpoint
-from policies.fleet_baselines import KMeansPlacement
-from policies.fleet_checkpoint import FleetCheckpointPolicy, fleet_observation_shape
-from policies.fleet_evaluation import evaluate_fleet
-from policies.fleet_residual import (
+from policies.evaluation.fleet_evaluation import evaluate_fleet
+from policies.interface import ReportedUsers
+from policies.learned.checkpoints import export_checkpoint
+from policies.learned.fleet_checkpoint import FleetCheckpointPolicy, fleet_observation_shape
+from policies.learned.fleet_residual import (
     KMeansPrior,
     ScoredPrior,
     fleet_residual_targets,
     make_prior,
 )
-from policies.fleet_residual_env import FleetResidualActions
-from policies.fleet_scored import ScoredKMeansPlacement
-from policies.fleet_training import (
+from policies.learned.fleet_residual_env import FleetResidualActions
+from policies.placements.fleet_baselines import KMeansPlacement
+from policies.placements.fleet_scored import ScoredKMeansPlacement
+from policies.training.fleet_training import (
     FleetTrainConfig,
     train_fleet,
 )
-from policies.interface import ReportedUsers
-from policies.training import zero_actor_output
+from policies.training.training import zero_actor_output
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig

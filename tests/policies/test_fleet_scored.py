@@ -7,11 +7,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from policies.fleet_baselines import KMeansPlacement
-from policies.fleet_evaluation import FLEET_EVAL_POLICIES, build_fleet_candidate
-from policies.fleet_oracle import FleetStart, fleet_episode_utility
+from policies.evaluation.fleet_evaluation import FLEET_EVAL_POLICIES, build_fleet_candidate
 from policies.fleet_policy import FLEET_POLICIES, resolve_fleet_policy
-from policies.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
+from policies.placements.fleet_baselines import KMeansPlacement
+from policies.placements.fleet_oracle import FleetStart, fleet_episode_utility
+from policies.placements.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig, FleetModel

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from policies.fleet_baselines import KMeansPlacement
-from policies.fleet_oracle import FleetOracle, FleetOracleConfig
 from policies.fleet_policy import FleetPlacementPolicy
 from policies.interface import ReportedUsers
+from policies.placements.fleet_baselines import KMeansPlacement
+from policies.placements.fleet_oracle import FleetOracle, FleetOracleConfig
 from sim.fleet import FleetConfig
 from sim.geometry import min_pairwise_distance_m
 from sim.observation import UserReports

@@ -1,4 +1,4 @@
-"""Shared-parameter fleet training (policies/fleet_training.py): a tiny run end to end, the
+"""Shared-parameter fleet training (policies/training/fleet_training.py): a tiny run end to end, the
 policy flying fleets of another size, evaluation, and the CLI's refusals."""
 
 from __future__ import annotations
@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from policies.checkpoints import CheckpointError, load_checkpoint
-from policies.fleet_baselines import KMeansPlacement
-from policies.fleet_checkpoint import FleetCheckpointPolicy
-from policies.fleet_evaluation import evaluate_fleet
-from policies.fleet_training import (
+from policies.evaluation.fleet_evaluation import evaluate_fleet
+from policies.learned.checkpoints import CheckpointError, load_checkpoint
+from policies.learned.fleet_checkpoint import FleetCheckpointPolicy
+from policies.placements.fleet_baselines import KMeansPlacement
+from policies.training.fleet_training import (
     FleetTrainConfig,
     train_fleet,
 )
@@ -194,7 +194,7 @@ def test_cli_refuses_bad_fleet_sizes_and_writes_nothing(tmp_path, capsys, extra,
 
 
 def test_cli_trains_a_fleet(tmp_path, capsys, monkeypatch):
-    import policies.fleet_training as fleet_training
+    import policies.training.fleet_training as fleet_training
 
     # The CLI's own preset is too big for a test: swap in the tiny one, keep everything else.
     monkeypatch.setattr(
@@ -216,7 +216,7 @@ def test_cli_trains_a_fleet(tmp_path, capsys, monkeypatch):
 
 @pytest.mark.training
 def test_cli_imitates_a_teacher_and_says_how_well_the_fit_went(tmp_path, capsys, monkeypatch):
-    import policies.fleet_training as fleet_training
+    import policies.training.fleet_training as fleet_training
 
     monkeypatch.setattr(
         fleet_training.FleetTrainConfig, "chosen_preset", property(lambda self: TINY_PRESET)
@@ -234,7 +234,7 @@ def test_cli_imitates_a_teacher_and_says_how_well_the_fit_went(tmp_path, capsys,
 
 @pytest.mark.training
 def test_cli_imitates_the_teachers_moves_for_ddqn(tmp_path, capsys, monkeypatch):
-    import policies.fleet_training as fleet_training
+    import policies.training.fleet_training as fleet_training
 
     monkeypatch.setattr(
         fleet_training.FleetTrainConfig, "chosen_preset", property(lambda self: TINY_PRESET)
@@ -281,8 +281,8 @@ def test_training_is_deterministic_given_the_seed(tmp_path):
 
 
 def test_the_update_ratio_is_kept_per_transition():
-    from policies.fleet_training import _vector_preset
-    from policies.presets import get_preset
+    from policies.training.fleet_training import _vector_preset
+    from policies.training.presets import get_preset
 
     preset = get_preset("fast", "ddpg")  # one gradient step per 8 transitions
     assert (preset.train_freq, preset.gradient_steps) == (8, 1)

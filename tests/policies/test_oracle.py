@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from policies.evaluation import evaluate_policy
-from policies.oracle import OracleConfig, OraclePlacement, episode_utility
+from policies.evaluation.evaluation import evaluate_policy
+from policies.placements.oracle import OracleConfig, OraclePlacement, episode_utility
 from policies.registry import make_placement
 from sim.config import AreaConfig, NetworkConfig
 from sim.scenarios import Scenario, generate_scenarios

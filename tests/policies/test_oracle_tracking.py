@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from policies.baselines import MinDistancePlacement
-from policies.oracle import (
+from policies.placements.baselines import MinDistancePlacement
+from policies.placements.oracle import (
     OracleConfig,
     OraclePlacement,
     coarse_grid_positions_m,

@@ -1,5 +1,5 @@
-"""The planning oracle (policies/planning.py): named, legal, deterministic, never below the
-tracking oracle on its own objective, and close to an exhaustive search on a small case."""
+"""The planning oracle (policies/placements/planning.py): named, legal, deterministic, never below
+the tracking oracle on its own objective, and close to an exhaustive search on a small case."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from policies.interface import ReportedUsers
-from policies.planning import PlanningConfig, PlanningPolicy
+from policies.placements.planning import PlanningConfig, PlanningPolicy
 from policies.registry import POLICY_NAMES, close_names, resolve_policy, unknown_name
 from sim.config import AreaConfig
 from sim.envs import FapContinuousEnv

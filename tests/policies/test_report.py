@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from policies.evaluation import evaluate_policy
+from policies.evaluation.evaluation import evaluate_policy
 from policies.registry import make_placement
 from policies.report import ReportFiles, build_report
 from policies.report.curves import (

@@ -1,6 +1,6 @@
 """Policies on a site (issue 38/40): ``min-distance-env`` chooses the position with the least
-mean path loss the site gives (policies/baselines.py), and the fleet policies' association
-estimate hears each AP at its exact position on the site, an AP with no path never heard
+mean path loss the site gives (policies/placements/baselines.py), and the fleet policies'
+association estimate hears each AP at its exact position on the site, an AP with no path never heard
 (sim/association.py, as sim/fleet.py's association). Open field and towns are unchanged."""
 
 from __future__ import annotations
@@ -11,13 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from policies.baselines import (
+from policies.interface import ReportedUsers
+from policies.placements.baselines import (
     MinDistancePlacement,
     best_site_position_m,
     best_snr_altitude_m,
     site_mean_loss_db,
 )
-from policies.interface import ReportedUsers
 from policies.registry import make_placement
 from sim.association import associate_at, received_power_dbm
 from sim.channel import NO_LINK_LOSS_DB, area_site

@@ -24,7 +24,7 @@ from policies.sweep.runner import run_sweep
 from policies.sweep.spec import load_spec
 from policies.sweep.state import STATE_FILE, SUMMARY_FILE
 from policies.sweep.trial import WORKER_FILE
-from policies.training import CURVE_POINTS
+from policies.training.training import CURVE_POINTS
 from service.cli import main
 from tests.helpers import wait_for
 

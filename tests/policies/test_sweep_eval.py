@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from policies.evaluation import evaluate_policy
+from policies.evaluation.evaluation import evaluate_policy
 from policies.registry import make_placement
 from policies.sweep.fanout import merge_slices
 from policies.sweep.trial import evaluate_slice

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
+import sys
 import threading
+import types
 from dataclasses import replace
 from pathlib import Path
 
@@ -15,13 +18,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from policies.adapters import CheckpointPolicy
-from policies.checkpoints import load_checkpoint, save_checkpoint
-from policies.ddqn import double_dqn_targets
-from policies.evaluation import evaluate_policy
+from policies.evaluation.evaluation import evaluate_policy
 from policies.interface import ReportedUsers
-from policies.presets import NetworkPreset, get_preset
+from policies.learned.checkpoints import load_checkpoint, save_checkpoint
+from policies.learned.ddqn import double_dqn_targets
 from policies.registry import make_placement
-from policies.training import TrainConfig, build_model, make_env, train
+from policies.training.presets import NetworkPreset, get_preset
+from policies.training.training import TrainConfig, build_model, make_env, train
 from service.cli import main
 from sim.config import AreaConfig
 from sim.errors import InputError
@@ -269,7 +272,7 @@ def test_train_cli_refuses_bad_arguments(tmp_path, test_file, capsys):
 
 
 def test_export_keeps_the_weights_and_drops_the_optimizer_state(tmp_path, random_ddqn):
-    from policies.checkpoints import export_checkpoint
+    from policies.learned.checkpoints import export_checkpoint
 
     source = tmp_path / "trained.zip"
     meta = {"algorithm": "ddqn", "strategy": "spec", "observation_shape": [6, 20, 20]}
@@ -293,11 +296,50 @@ def test_export_keeps_the_weights_and_drops_the_optimizer_state(tmp_path, random
         assert k1 == k2 and th.equal(v1, v2)
 
 
+def test_a_checkpoint_saved_before_the_folders_loads_and_acts_as_saved(
+    tmp_path, random_ddqn, monkeypatch
+):
+    """A checkpoint and a replay buffer pickled when the CNN was ``policies.networks.ZoneMapsCNN``
+    and the DDQN's buffer ``policies.ddqn.MaskedReplayBuffer`` (before ``policies/`` went into
+    folders; the shipped checkpoints were): loading finds both at their current paths, and the
+    network is the one saved."""
+    from gymnasium import spaces
+
+    from policies.learned import ddqn, networks
+    from policies.learned.checkpoints import load_replay_buffer, moved_objects
+
+    source, replay = tmp_path / "old.zip", tmp_path / "old_replay.pkl"
+    moved = {"policies.networks": networks.ZoneMapsCNN, "policies.ddqn": ddqn.MaskedReplayBuffer}
+    with monkeypatch.context() as before:
+        for name, cls in moved.items():
+            module = types.ModuleType(name)
+            setattr(module, cls.__name__, cls)
+            before.setitem(sys.modules, name, module)
+            before.setattr(cls, "__module__", name)
+        meta = {"algorithm": "ddqn", "strategy": "spec", "observation_shape": [6, 20, 20]}
+        save_checkpoint(random_ddqn, source, meta)
+        buffer = ddqn.MaskedReplayBuffer(16, random_ddqn.observation_space, spaces.Discrete(13))
+        replay.write_bytes(pickle.dumps(buffer))  # as SB3's save_replay_buffer writes it
+    assert not set(moved) & set(sys.modules)
+    assert sorted(moved_objects(source)) == ["policy_kwargs", "replay_buffer_class"]
+    model, _ = load_checkpoint(source, AREA)
+    assert model.policy_kwargs["features_extractor_class"] is networks.ZoneMapsCNN
+    assert type(model.replay_buffer) is ddqn.MaskedReplayBuffer
+    obs = th.rand(4, *model.observation_space.shape)
+    with th.no_grad():
+        assert th.equal(model.policy.q_net(obs), random_ddqn.policy.q_net(obs))
+    load_replay_buffer(model, replay)
+    assert type(model.replay_buffer) is ddqn.MaskedReplayBuffer
+    assert model.replay_buffer.buffer_size == 16
+    save_checkpoint(model, tmp_path / "new.zip", meta)
+    assert moved_objects(tmp_path / "new.zip") == {}  # saved since: nothing to look up
+
+
 @pytest.mark.parametrize("algorithm", ["ddpg", "ddqn"])
 def test_a_serving_only_export_acts_as_the_source_and_is_smaller(tmp_path, test_file, algorithm):
     """The networks only learning uses are zeroed (deflate keeps them in kilobytes); the acting
     network is the source's bit for bit, and plain SB3 still loads the file."""
-    from policies.checkpoints import algorithm_class, export_checkpoint
+    from policies.learned.checkpoints import algorithm_class, export_checkpoint
     from sim.files import load_scenarios
 
     _, scenarios = load_scenarios(test_file)
@@ -350,7 +392,7 @@ def test_training_over_two_sites_draws_each_episodes_users_on_its_own_sites_grou
     """Generated training scenarios over munich and etoile: one set per site, each episode's
     users from its own site's set (on its walkable ground); it used to be the first site's set
     for both, refused by the second site's ground at the first such episode."""
-    from policies.training import _Run
+    from policies.training.training import _Run
     from sim.channel import area_site
     from sim.envs import ScenariosByEnvironment
     from sim.sites.ground import walkable_at
@@ -383,7 +425,7 @@ def test_training_over_two_sites_draws_each_episodes_users_on_its_own_sites_grou
 def test_checkpoint_files_get_the_usual_permissions(tmp_path, random_ddqn):
     """Saved and exported zips are readable like any file the user writes (umask), not 0o600
     as the temporary files they are written through."""
-    from policies.checkpoints import export_checkpoint
+    from policies.learned.checkpoints import export_checkpoint
 
     old_mask = os.umask(0o022)
     try:
@@ -405,7 +447,7 @@ def test_ctrl_c_saves_latest_with_its_replay_buffer_and_resume_continues_the_cyc
     """Ctrl-C (KeyboardInterrupt inside SB3's learn) after 4 episodes of a run asked to save its
     replay buffer: latest.zip and the buffer are saved, and --resume goes on with the 5th
     scenario of the cycle, its buffer full."""
-    from policies import training
+    from policies.training import training
     from sim.envs import ScenarioCycle
 
     out = tmp_path / "run"
@@ -463,8 +505,8 @@ def test_vectorised_training_runs_and_counts_episodes(tmp_path, test_file):
 
 def test_an_untrained_residual_ddpg_is_the_load_weighted_baseline(test_file):
     """The residual actor starts at 0: its targets are the load-weighted placements."""
-    from policies.residual import residual_target
-    from policies.training import zero_actor_output
+    from policies.learned.residual import residual_target
+    from policies.training.training import zero_actor_output
     from sim.files import load_scenarios
 
     _, scenarios = load_scenarios(test_file)

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import pytest
 
-from policies import training
-from policies.checkpoints import CheckpointError, read_checkpoint
-from policies.progress import Progress, format_duration
+from policies.learned.checkpoints import CheckpointError, read_checkpoint
+from policies.training import training
+from policies.training.progress import Progress, format_duration
 from service.cli import main
 from tests.policies.test_training import small_config
 from tests.tiers import needs

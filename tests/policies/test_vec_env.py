@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from stable_baselines3.common.monitor import Monitor
 
-from policies.ddpg import IntervalTargetDDPG
-from policies.ddqn import MaskedDoubleDQN
-from policies.vec_env import FapVecEnv, make_vec_env
+from policies.learned.ddpg import IntervalTargetDDPG
+from policies.learned.ddqn import MaskedDoubleDQN
+from policies.training.vec_env import FapVecEnv, make_vec_env
 from sim.scenarios import generate_scenarios
 from sim.vector_env import FapVectorEnv
 from sim.world import CLOSED_LOOP

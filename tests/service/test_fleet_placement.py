@@ -17,11 +17,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from policies.fleet_baselines import KMeansPlacement
-from policies.fleet_scored import ScoredKMeansPlacement
-from policies.fleet_training import FleetTrainConfig, train_fleet
 from policies.interface import ReportedUsers
-from policies.training import zero_actor_output
+from policies.placements.fleet_baselines import KMeansPlacement
+from policies.placements.fleet_scored import ScoredKMeansPlacement
+from policies.training.fleet_training import FleetTrainConfig, train_fleet
+from policies.training.training import zero_actor_output
 from service.decisions import Report
 from service.errors import InputError
 from service.fleet_placement import FleetPlacementService, load_fleet_policy

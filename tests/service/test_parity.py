@@ -4,8 +4,8 @@ decision path, must give exactly the targets the environment chose.
 The environment flies an episode in the ``closed-loop`` world (flight limits, reports one step
 old) with a checkpoint acting through the environment's action space, as in training (a DDQN
 move masked by ``info["action_mask"]``, a DDPG action, or a residual one through
-:class:`policies.residual_env.ResidualActions`); every step records the report the decision saw,
-where the vehicle was and the target the action became. The same reports then go to a
+:class:`policies.learned.residual_env.ResidualActions`); every step records the report the decision
+saw, where the vehicle was and the target the action became. The same reports then go to a
 :class:`PlacementService` serving the same policy, its link replaying the recorded vehicle
 positions: each decision's target must equal the environment's, to the bit. A difference in the
 observation, the mask, the move rule or the coordinates mapping between training and serving
@@ -26,10 +26,10 @@ import numpy as np
 import pytest
 
 from policies.adapters import StaticPolicy
-from policies.checkpoints import load_checkpoint
+from policies.learned.checkpoints import load_checkpoint
+from policies.learned.residual import residual_radius
+from policies.learned.residual_env import ResidualActions
 from policies.registry import make_placement
-from policies.residual import residual_radius
-from policies.residual_env import ResidualActions
 from service.decisions import Report
 from service.placement import PlacementService
 from service.policy_runtime import SHIPPED_CHECKPOINTS, load_policy

@@ -1,14 +1,15 @@
 """The fleet's search oracle: the best static placement of K UAVs found with the fleet model.
 
 The upper bound the fleet's policies and baselines are measured against, as
-:mod:`policies.oracle` is for one UAV. A fleet placement's *score* is the mean network utility
-over an episode of ``episode_steps`` steps holding it, expected mode, queues and associations
-carried from step to step after ``warmup_steps`` unscored steps (:func:`fleet_episode_utility`;
-the environment's reset step). The joint space (1,600 grid points per UAV, 1600^K placements)
-is too large to enumerate, so the search is **coordinate descent with restarts**:
+:mod:`policies.placements.oracle` is for one UAV. A fleet placement's *score* is the mean network
+utility over an episode of ``episode_steps`` steps holding it, expected mode, queues and
+associations carried from step to step after ``warmup_steps`` unscored steps
+(:func:`fleet_episode_utility`; the environment's reset step). The joint space (1,600 grid points
+per UAV, 1600^K placements) is too large to enumerate, so the search is **coordinate descent with
+restarts**:
 
-1. **Starts**: the two k-means placements (:mod:`policies.fleet_baselines`, so the oracle is
-   never below them on its own objective), and ``restarts`` more from ``default_rng(seed)``,
+1. **Starts**: the two k-means placements (:mod:`policies.placements.fleet_baselines`, so the oracle
+   is never below them on its own objective), and ``restarts`` more from ``default_rng(seed)``,
    alternately K users drawn by load (a UAV above each at the lowest level) and K candidate
    positions drawn uniformly. Given explicit ``candidates_m`` (a search restricted to a set of
    positions, as the exhaustive comparison needs), every start is first snapped onto them.
@@ -54,9 +55,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from policies.fleet_baselines import KMeansPlacement
 from policies.interface import UsersLike
-from policies.oracle import coarse_grid_positions_m
+from policies.placements.fleet_baselines import KMeansPlacement
+from policies.placements.oracle import coarse_grid_positions_m
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig, FleetModel, FleetState

@@ -1,6 +1,6 @@
-"""The residual action space (:mod:`policies.residual`) as a Gymnasium wrapper, for training and
-evaluating residual checkpoints; serving needs only :func:`policies.residual.residual_target`
-(and so never imports Gymnasium)."""
+"""The residual action space (:mod:`policies.learned.residual`) as a Gymnasium wrapper, for training
+and evaluating residual checkpoints; serving needs only
+:func:`policies.learned.residual.residual_target` (and so never imports Gymnasium)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from policies.residual import RESIDUAL_RADIUS_M, residual_target
+from policies.learned.residual import RESIDUAL_RADIUS_M, residual_target
 from sim.geometry import m_to_unit
 from sim.observation import UserReports
 

@@ -12,13 +12,13 @@
    run's world (``--world``, ``--world-set``: :mod:`sim.world`) with the preset's training
    episode (length and start). Learning-curve and final evaluations run in the same world with
    its own episode (100 steps from home).
-3. **Agent** from the preset (``policies.presets``) with the paper's CNN
-   (``policies.networks.ZoneMapsCNN``); GPU when torch sees one, CPU otherwise.
+3. **Agent** from the preset (``policies.training.presets``) with the paper's CNN
+   (``policies.learned.networks.ZoneMapsCNN``); GPU when torch sees one, CPU otherwise.
 4. **Callbacks**: progress on standard error (episodes, recent utility, time left:
-   :class:`policies.progress.Progress`) and, once a few episodes have been timed with learning
-   under way, one line with the estimated time of the whole run; TensorBoard logs; a checkpoint
-   every ``checkpoint_every`` episodes (``checkpoints/latest.zip``); evaluations on part of the
-   test set at 100, 200, 500, 1000, … episodes for the learning curve.
+   :class:`policies.training.progress.Progress`) and, once a few episodes have been timed with
+   learning under way, one line with the estimated time of the whole run; TensorBoard logs; a
+   checkpoint every ``checkpoint_every`` episodes (``checkpoints/latest.zip``); evaluations on part
+   of the test set at 100, 200, 500, 1000, … episodes for the learning curve.
 5. **Save**: ``checkpoints/latest.zip`` with the trained policy, then the final evaluation on
    the whole test set beside min-distance and the oracle (with its own progress), then
    ``model.zip`` and ``model.json`` (metadata with that evaluation), written atomically.
@@ -52,21 +52,23 @@ from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.noise import NormalActionNoise
 
 from policies.adapters import CheckpointPolicy
-from policies.checkpoints import (
+from policies.evaluation.evaluation import evaluate_policy
+from policies.learned.checkpoints import (
     LATEST_CHECKPOINT,
     REPLAY_BUFFER,
     RUN_FILE,
     algorithm_class,
     git_commit,
+    load_replay_buffer,
+    moved_objects,
     save_checkpoint,
 )
-from policies.evaluation import evaluate_policy
-from policies.networks import ZoneMapsCNN
-from policies.presets import NetworkPreset, Preset, get_preset
-from policies.progress import Progress, format_duration
+from policies.learned.networks import ZoneMapsCNN
+from policies.learned.residual import residual_metadata
+from policies.learned.residual_env import ResidualActions
 from policies.registry import make_placement
-from policies.residual import residual_metadata
-from policies.residual_env import ResidualActions
+from policies.training.presets import NetworkPreset, Preset, get_preset
+from policies.training.progress import Progress, format_duration
 from sim.atomic import atomic_write_json
 from sim.config import (
     ENVIRONMENTS,
@@ -93,7 +95,8 @@ ESTIMATE_EPISODES = 3
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """One training run. ``preset`` holds every hyper-parameter (see ``policies.presets``)."""
+    """One training run. ``preset`` holds every hyper-parameter (see
+    ``policies.training.presets``)."""
 
     algorithm: str
     strategy: str
@@ -247,7 +250,7 @@ def make_env(
 ) -> gym.Env:
     """The training environment: discrete moves for DDQN; absolute coordinates for DDPG, or a
     correction to the load-weighted placement with ``action="residual"``
-    (:mod:`policies.residual`). A list of scenarios is cycled; a per-environment source is
+    (:mod:`policies.learned.residual`). A list of scenarios is cycled; a per-environment source is
     drawn from by each episode's environment."""
     env: gym.Env
     source = (
@@ -658,7 +661,7 @@ def _train(config: TrainConfig, resume: bool) -> dict[str, Any]:
     if not run.test:
         raise InputError(f"{config.test_scenarios}: scenarios: empty")
     if config.envs > 1:
-        from policies.vec_env import make_vec_env
+        from policies.training.vec_env import make_vec_env
 
         env: Any = make_vec_env(
             config.algorithm, run.train_source, config.train_worlds(run.area), config.envs
@@ -669,10 +672,12 @@ def _train(config: TrainConfig, resume: bool) -> dict[str, Any]:
         )
     latest = config.out_dir / LATEST_CHECKPOINT
     if resume:
-        model = algorithm_class(config.algorithm).load(latest, env=env, device="auto")
+        model = algorithm_class(config.algorithm).load(
+            latest, env=env, device="auto", custom_objects=moved_objects(latest)
+        )
         replay = latest.with_name(REPLAY_BUFFER)
         if replay.exists():
-            model.load_replay_buffer(replay)
+            load_replay_buffer(model, replay)
         elif config.progress:
             print(
                 f"resuming {config.out_dir} with an empty replay buffer (none was saved: "

@@ -44,9 +44,10 @@ others above it (the pattern search keeps climbing from where it was), 3e-5 to 8
 average.
 
 Positions and scores are all numpy; the per-step work is the model's compiled kernel. Timings in
-ms on one core, ``python -m policies.oracle --users U`` (500 generated scenarios, seed 3; tracking
-on 50 of them, 20 decisions each, users walking 1.5 m per decision), on a shared 2-core machine
-(a few ms of noise); "before" is the search without these shortcuts, timed interleaved with it:
+ms on one core, ``python -m policies.placements.oracle --users U`` (500 generated scenarios, seed 3;
+tracking on 50 of them, 20 decisions each, users walking 1.5 m per decision), on a shared 2-core
+machine (a few ms of noise); "before" is the search without these shortcuts, timed interleaved with
+it:
 
 =====  ====================  ======================  ==================  ===============
 users  search() median, p95  before: median, p95     track() cheap path  track() cached
@@ -68,8 +69,8 @@ from typing import Literal
 
 import numpy as np
 
-from policies.baselines import MinDistancePlacement
 from policies.interface import UsersLike
+from policies.placements.baselines import MinDistancePlacement
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
 from sim.geometry import clip_to_volume
 from sim.network import NetworkModel, QueueState
@@ -583,14 +584,14 @@ def _input_key(scenario: UsersLike) -> bytes:
 
 def _benchmark(argv: list[str] | None = None) -> None:
     """Time :meth:`OraclePlacement.search` and :meth:`OraclePlacement.track` on generated scenarios
-    (``python -m policies.oracle --help``); the module doc's figures come from it."""
+    (``python -m policies.placements.oracle --help``); the module doc's figures come from it."""
     import argparse
     import time
 
     from sim.scenarios import Scenario, generate_scenarios
 
     parser = argparse.ArgumentParser(
-        prog="python -m policies.oracle", description=__doc__, allow_abbrev=False
+        prog="python -m policies.placements.oracle", description=__doc__, allow_abbrev=False
     )
     parser.add_argument("--scenarios", type=int, default=500)
     parser.add_argument("--users", type=int, default=3)

@@ -1,7 +1,7 @@
 """``kmeans-scored``: a few k-means partitions of the users, each scored on the fleet model.
 
-The k-means baselines (:mod:`policies.fleet_baselines`) commit to one partition of the users
-and place one UAV per group. Most of the fleet search oracle's margin over them is in the
+The k-means baselines (:mod:`policies.placements.fleet_baselines`) commit to one partition of the
+users and place one UAV per group. Most of the fleet search oracle's margin over them is in the
 partition, *which* users each UAV serves, not where a UAV hovers over its group
 (``benchmarks/fleet_decomposition.py``). This placement keeps k-means' speed but not its single
 partition. It builds these candidate placements:
@@ -16,8 +16,8 @@ partition. It builds these candidate placements:
   split in two (two UAVs share a loaded hot spot).
 
 It scores them all in one batch on the fleet network model
-(:func:`policies.fleet_oracle.fleet_episode_utility`, expected mode, over ``score_steps`` steps
-of ``step_s``: an evaluation episode by default) and returns the best: held from a fresh
+(:func:`policies.placements.fleet_oracle.fleet_episode_utility`, expected mode, over ``score_steps``
+steps of ``step_s``: an evaluation episode by default) and returns the best: held from a fresh
 association (:meth:`ScoredKMeansPlacement.place`) or, as a closed loop and the service ask,
 flown from where the fleet is (:meth:`ScoredKMeansPlacement.place_from`, as the fleet oracle's
 ``place_from``). The score is the model's, so the pick
@@ -33,10 +33,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from policies.baselines import MinDistancePlacement
-from policies.fleet_baselines import KMeansPlacement, kmeans, place_groups
-from policies.fleet_oracle import FleetStart, fleet_episode_utility
 from policies.interface import UsersLike
+from policies.placements.baselines import MinDistancePlacement
+from policies.placements.fleet_baselines import KMeansPlacement, kmeans, place_groups
+from policies.placements.fleet_oracle import FleetStart, fleet_episode_utility
 from sim.config import AreaConfig, NetworkConfig, UtilityConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig, FleetModel

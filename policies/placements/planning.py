@@ -1,9 +1,9 @@
 """The planning oracle (``planning-oracle``): a receding-horizon planner over flown trajectories.
 
-The tracking oracle (:meth:`policies.oracle.OraclePlacement.track`, re-placed every decision) asks
-*where is the best place to hold for an episode* and flies straight there. In a world that flies
-(``closed-loop``: 10 m/s over a 500 m area, so a far target is tens of decisions away) that
-ignores what the flight costs: the utility on the way, the backlog built while the vehicle is
+The tracking oracle (:meth:`policies.placements.oracle.OraclePlacement.track`, re-placed every
+decision) asks *where is the best place to hold for an episode* and flies straight there. In a world
+that flies (``closed-loop``: 10 m/s over a 500 m area, so a far target is tens of decisions away)
+that ignores what the flight costs: the utility on the way, the backlog built while the vehicle is
 far, the episode ending before the vehicle arrives. The planner asks instead *which trajectory
 is best for the rest of the episode*, with the same model (expected mode) and the same flight,
 and replans every decision from the latest report.
@@ -50,15 +50,15 @@ tracking oracle assumes the same). In a world without episodes (the service, no
 
 1. *Go and stay* (``A`` held) for every final target A among: the tracking oracle's answer for
    the latest report (exactly the target the ``oracle`` policy would fly to: the same
-   :class:`~policies.adapters.StaticPolicy` over the same :class:`~policies.oracle.OraclePlacement`,
-   fed the same reports), the last decision's final target, where the vehicle is (stay), the
-   ``min-distance``, ``load-weighted`` and ``min-distance-env`` positions, the best
-   ``screen_top_k`` of a short screen of a coarse grid (every ``screen_stride``-th zone at
-   every level) and the best ``screen_top_k`` to reach (the screen's value times the share of
-   the remaining steps left once there at the speed caps), the tracking answer and the
-   vehicle's position at every altitude level, points part-way from the vehicle to the
-   tracking answer, where H periods' flight in each of ``ring_headings`` directions would take
-   the vehicle (at its altitude and the answer's), and above each of the ``user_targets``
+   :class:`~policies.adapters.StaticPolicy` over the same
+   :class:`~policies.placements.oracle.OraclePlacement`, fed the same reports), the last decision's
+   final target, where the vehicle is (stay), the ``min-distance``, ``load-weighted`` and
+   ``min-distance-env`` positions, the best ``screen_top_k`` of a short screen of a coarse grid
+   (every ``screen_stride``-th zone at every level) and the best ``screen_top_k`` to reach (the
+   screen's value times the share of the remaining steps left once there at the speed caps), the
+   tracking answer and the vehicle's position at every altitude level, points part-way from the
+   vehicle to the tracking answer, where H periods' flight in each of ``ring_headings`` directions
+   would take the vehicle (at its altitude and the answer's), and above each of the ``user_targets``
    busiest users (at the same two altitudes: serve some users soon, where the best place for
    all of them is far).
 2. *Stop short, change level, two legs* for the best ``leg_targets`` final targets A of stage 1:
@@ -98,9 +98,14 @@ from typing import Any
 import numpy as np
 
 from policies.adapters import StaticPolicy
-from policies.baselines import MinDistancePlacement
 from policies.interface import Placement, PolicyKind, ReportedUsers, UsersLike
-from policies.oracle import OracleConfig, OraclePlacement, coarse_grid_positions_m, episode_utility
+from policies.placements.baselines import MinDistancePlacement
+from policies.placements.oracle import (
+    OracleConfig,
+    OraclePlacement,
+    coarse_grid_positions_m,
+    episode_utility,
+)
 from sim.flight import fly_many
 from sim.geometry import clip_to_volume
 from sim.network import NetworkModel, QueueState

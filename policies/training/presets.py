@@ -63,7 +63,7 @@ ALGORITHMS: tuple[str, ...] = ("ddqn", "ddpg")
 
 @dataclass(frozen=True)
 class NetworkPreset:
-    """The feature extractor (policies.networks.ZoneMapsCNN)."""
+    """The feature extractor (policies.learned.networks.ZoneMapsCNN)."""
 
     channels: tuple[int, ...] = (32, 32)
     hidden: int = 256
@@ -102,7 +102,7 @@ class Preset:
     # them (SB3 with ``net_arch=[]``) the critic is linear in the action, its maximum always
     # lies in a corner of the volume, and the actor learns to fly there.
     critic_hidden: tuple[int, ...] = (128, 128)
-    # DDPG actor's penalty on the action's size (policies/ddpg.py); residual actions only.
+    # DDPG actor's penalty on the action's size (policies/learned/ddpg.py); residual actions only.
     action_l2: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
@@ -137,10 +137,10 @@ _FAST_CHANGES: dict[str, Any] = {
 _FAST_DDPG_CHANGES: dict[str, Any] = {"train_freq": 8, "target_update_interval": 500, "gamma": 0.0}
 
 
-# DDPG with residual actions (policies/residual.py): 0 is the load-weighted placement, and a move
-# away from it must pay for itself; a small penalty also keeps tanh out of its saturated corners.
-# Exploration noise 0.3 (37 m on the 125 m radius) instead of 0.1: with 0.1 the actor learned a
-# constant correction for every observation (mean |delta| equal to its maximum over 200
+# DDPG with residual actions (policies/learned/residual.py): 0 is the load-weighted placement, and a
+# move away from it must pay for itself; a small penalty also keeps tanh out of its saturated
+# corners. Exploration noise 0.3 (37 m on the 125 m radius) instead of 0.1: with 0.1 the actor
+# learned a constant correction for every observation (mean |delta| equal to its maximum over 200
 # scenarios); with 0.3 it varies with the scenario (benchmarks/closed_loop.py, docs/results.md).
 RESIDUAL_CHANGES: dict[str, Any] = {"action_l2": 0.02, "action_noise_sigma": 0.3}
 

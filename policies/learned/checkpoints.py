@@ -14,13 +14,21 @@ A checkpoint is a pickle (SB3 unpickles parts of ``data``): loading one runs cod
 are read once, through descriptors that are checked as opened (optionally: inside given
 directories, never a FIFO or device, bounded in size), and the model is loaded from those bytes
 (:func:`read_checkpoint`, :func:`load_checkpoint`); the service adds the directories it trusts.
+
+Those pickles name classes by module path: the CNN in ``policy_kwargs``, a DDQN's replay buffer
+class. A checkpoint saved before ``policies/`` went into folders names them at their old paths
+(``policies.networks.ZoneMapsCNN``, ``policies.ddqn.MaskedReplayBuffer``); loading and resuming
+look those up at their current paths (:data:`MOVED_MODULES`, :func:`moved_objects`,
+:func:`load_replay_buffer`), so every such file loads and decides as it did.
 """
 
 from __future__ import annotations
 
+import base64
 import io
 import json
 import os
+import pickle
 import stat
 import subprocess
 import zipfile
@@ -44,6 +52,13 @@ LATEST_CHECKPOINT = Path("checkpoints") / "latest.zip"
 interruption)."""
 REPLAY_BUFFER = "latest_replay.pkl"
 """The replay buffer saved beside the latest checkpoint, when the run was asked to."""
+MOVED_MODULES: dict[str, str] = {
+    "policies.networks": "policies.learned.networks",
+    "policies.ddqn": "policies.learned.ddqn",
+    "policies.ddpg": "policies.learned.ddpg",
+}
+"""The modules a checkpoint's pickles may name at a path that no longer exists → where they
+are now (``policies/`` in folders by job)."""
 
 
 def metadata_path(checkpoint: Path) -> Path:
@@ -400,7 +415,7 @@ def load_checkpoint(
     zip's expanded size is bounded by ``max_bytes`` too, :func:`check_archive`), and the model
     is loaded from those bytes, never from the path again. ``observation_shape``: the shape
     the network must take when it is not the single-UAV observation of ``area`` (a fleet
-    agent's ``(9, n_x, n_y)``: :mod:`policies.fleet_training`).
+    agent's ``(9, n_x, n_y)``: :mod:`policies.training.fleet_training`).
     """
     files = read_checkpoint(path, allowed_dirs, max_bytes)
     shown, meta = files.shown, files.metadata
@@ -422,7 +437,11 @@ def load_checkpoint(
     check_archive(files.zip_bytes, shown, max_bytes)
     model_class = algorithm_class(meta["algorithm"])
     try:
-        model = model_class.load(io.BytesIO(files.zip_bytes), device=device)
+        model = model_class.load(
+            io.BytesIO(files.zip_bytes),
+            device=device,
+            custom_objects=moved_objects(files.zip_bytes),
+        )
     except Exception as exc:  # SB3 raises many kinds on a damaged file
         raise CheckpointError(
             shown, "cannot load the model", f"{type(exc).__name__}: {_reason(exc)}"
@@ -435,6 +454,65 @@ def load_checkpoint(
             f"it takes {list(model.observation_space.shape)}",
         )
     return model, meta
+
+
+class _MovedUnpickler(pickle.Unpickler):
+    """An unpickler that finds a class of :data:`MOVED_MODULES` at its current module."""
+
+    moved = False
+
+    def find_class(self, module: str, name: str) -> Any:
+        if module in MOVED_MODULES:
+            self.moved = True
+            module = MOVED_MODULES[module]
+        return super().find_class(module, name)
+
+
+def moved_objects(checkpoint: bytes | Path) -> dict[str, Any]:
+    """SB3's ``custom_objects`` for a checkpoint zip (its bytes or its path) whose ``data``
+    names classes at an old module path: each such entry unpickled with the class at its
+    current path (:data:`MOVED_MODULES`), the same objects as when it was saved. Empty for a
+    checkpoint saved since, and for a file that is not an SB3 zip (loading it says why)."""
+    try:
+        source = io.BytesIO(checkpoint) if isinstance(checkpoint, bytes) else checkpoint
+        with zipfile.ZipFile(source) as archive:
+            data = json.loads(archive.read("data"))
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error):
+        return {}
+    if not isinstance(data, dict):
+        return {}
+    objects = {}
+    for key, item in data.items():
+        if not (isinstance(item, dict) and isinstance(item.get(":serialized:"), str)):
+            continue
+        try:
+            raw = base64.b64decode(item[":serialized:"])
+        except ValueError:
+            continue
+        if not any(old.encode() in raw for old in MOVED_MODULES):
+            continue
+        unpickler = _MovedUnpickler(io.BytesIO(raw))
+        try:
+            value = unpickler.load()
+        except Exception:  # SB3 meets the same entry and says what is wrong with it
+            continue
+        if unpickler.moved:
+            objects[key] = value
+    return objects
+
+
+def load_replay_buffer(model: Any, path: Path) -> None:
+    """``model.load_replay_buffer(path)``; a buffer saved before its class moved (a DDQN's
+    ``policies.ddqn.MaskedReplayBuffer``) is read with the class at its current path
+    (:data:`MOVED_MODULES`) and handed to SB3 as such."""
+    try:
+        model.load_replay_buffer(path)
+    except ModuleNotFoundError as exc:
+        if exc.name not in MOVED_MODULES:
+            raise
+        with open(path, "rb") as handle:
+            buffer = _MovedUnpickler(handle).load()
+        model.load_replay_buffer(io.BytesIO(pickle.dumps(buffer, pickle.HIGHEST_PROTOCOL)))
 
 
 # What a policy needs only to learn, never to act: DDPG's critic and the target networks.
@@ -467,7 +545,7 @@ def export_checkpoint(
     metadata says ``"serving_only": true``.
 
     ``observation_shape``: what the network must take, as for :func:`load_checkpoint` (a fleet
-    checkpoint's: :func:`policies.fleet_checkpoint.fleet_observation_shape`).
+    checkpoint's: :func:`policies.learned.fleet_checkpoint.fleet_observation_shape`).
     """
     model, meta = load_checkpoint(source, area, device="cpu", observation_shape=observation_shape)
     for name in model._get_torch_save_params()[0]:
@@ -513,11 +591,11 @@ def export_checkpoint(
 
 def algorithm_class(algorithm: str) -> type:
     if algorithm == "ddqn":
-        from policies.ddqn import MaskedDoubleDQN
+        from policies.learned.ddqn import MaskedDoubleDQN
 
         return MaskedDoubleDQN
     if algorithm == "ddpg":
-        from policies.ddpg import IntervalTargetDDPG
+        from policies.learned.ddpg import IntervalTargetDDPG
 
         return IntervalTargetDDPG
     raise ValueError(f"algorithm: expected 'ddqn' or 'ddpg', got {algorithm!r}")

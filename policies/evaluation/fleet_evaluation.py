@@ -7,14 +7,14 @@ Protocol (:func:`evaluate_fleet`), for scenario i of the set, K UAVs, a
 * the fleet environment (:class:`sim.fleet_env.FleetParallelEnv`, continuous actions) is reset
   with ``seed + i`` from the fleet's homes (:func:`sim.fleet_env.fleet_homes`), so every policy
   meets the same fading draws, user motion and demand changes on the same scenario;
-* a fleet checkpoint (:class:`policies.fleet_checkpoint.FleetCheckpointPolicy`) decides every
-  step from the K agents' observations; a placement (``place(users) -> (K, 3)``: the k-means
-  baselines of :mod:`policies.fleet_baselines`, the search oracle of
-  :mod:`policies.fleet_oracle`) is placed on the first report the decision sees and re-placed
-  every ``replan_every`` decisions, held in between, its targets given to the vehicles by least
-  total flight (:func:`sim.geometry.assign_targets`, as the service assigns them); the oracle
-  searches from where the fleet is (:meth:`policies.fleet_oracle.FleetOracle.place_from`: the
-  vehicles' positions, the users' APs in the report, the world's flight); the environment
+* a fleet checkpoint (:class:`policies.learned.fleet_checkpoint.FleetCheckpointPolicy`) decides
+  every step from the K agents' observations; a placement (``place(users) -> (K, 3)``: the k-means
+  baselines of :mod:`policies.placements.fleet_baselines`, the search oracle of
+  :mod:`policies.placements.fleet_oracle`) is placed on the first report the decision sees and
+  re-placed every ``replan_every`` decisions, held in between, its targets given to the vehicles by
+  least total flight (:func:`sim.geometry.assign_targets`, as the service assigns them); the oracle
+  searches from where the fleet is (:meth:`policies.placements.fleet_oracle.FleetOracle.place_from`:
+  the vehicles' positions, the users' APs in the report, the world's flight); the environment
   flies the vehicles toward the targets under the world's limits (every policy pays the same
   transit).
 
@@ -46,11 +46,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from policies.fleet_baselines import FLEET_BASELINES, KMeansPlacement
-from policies.fleet_checkpoint import FleetCheckpointPolicy
-from policies.fleet_oracle import FLEET_ORACLE, FleetOracle, FleetOracleConfig
-from policies.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
 from policies.interface import ReportedUsers
+from policies.learned.fleet_checkpoint import FleetCheckpointPolicy
+from policies.placements.fleet_baselines import FLEET_BASELINES, KMeansPlacement
+from policies.placements.fleet_oracle import FLEET_ORACLE, FleetOracle, FleetOracleConfig
+from policies.placements.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
 from sim.errors import InputError
 from sim.fleet import MAX_UAVS, FleetConfig
 from sim.fleet_env import FleetParallelEnv
@@ -234,7 +234,7 @@ def build_fleet_candidate(
     period, seeded with ``seed``), or a fleet checkpoint (a ``tupa train --uavs K`` output
     directory or its ``model.zip``; any K). Anything else, a single-UAV policy or
     checkpoint included, is an :class:`InputError` naming ``option``."""
-    from policies.checkpoints import CheckpointError
+    from policies.learned.checkpoints import CheckpointError
     from policies.registry import PLACEMENTS
 
     fleet = fleet or FleetConfig(n_uavs=n_uavs)

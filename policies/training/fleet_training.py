@@ -9,20 +9,20 @@ fleet of K agents into a vector env of K environments, ``concat_vec_envs_v1`` st
 parameters are shared, the checkpoint flies any K (1..8), not only the K it trained with.
 
 * :func:`train_fleet` (``tupa train --uavs K``): builds that vector env over the world's
-  preset (the training episode of the :mod:`policies.presets` preset: length and start), the
-  agent with the paper's CNN (:func:`policies.training.build_model`, 9 input channels): DDPG
-  with absolute coordinates or residual actions around a k-means placement
-  (:mod:`policies.fleet_residual`: ``kmeans-load-weighted``, or ``kmeans-scored`` with
+  preset (the training episode of the :mod:`policies.training.presets` preset: length and start),
+  the agent with the paper's CNN (:func:`policies.training.training.build_model`, 9 input channels):
+  DDPG with absolute coordinates or residual actions around a k-means placement
+  (:mod:`policies.learned.fleet_residual`: ``kmeans-load-weighted``, or ``kmeans-scored`` with
   ``--prior``), or the masked Double DQN over the 13 moves; learns
   ``episodes × episode_steps × K`` agent-steps with a progress bar and writes ``model.zip`` +
-  ``model.json`` (:func:`policies.checkpoints.save_checkpoint`). DDQN's ε decays per episode
+  ``model.json`` (:func:`policies.learned.checkpoints.save_checkpoint`). DDQN's ε decays per episode
   of each agent (SB3 counts the K agent-environments' episodes), so K times faster per fleet
   episode than the preset's rate says.
-* :class:`~policies.fleet_checkpoint.FleetCheckpointPolicy` (its own module): such a
+* :class:`~policies.learned.fleet_checkpoint.FleetCheckpointPolicy` (its own module): such a
   checkpoint deciding K targets from K observations.
 
 Evaluation (the checkpoint against the k-means baselines and the search oracle) lives in
-:mod:`policies.fleet_evaluation`.
+:mod:`policies.evaluation.fleet_evaluation`.
 
 Update ratio: a vector step gives ``n_fleets × K`` transitions, so the preset's
 ``train_freq`` (environment steps per gradient step) is re-expressed per vector step
@@ -47,20 +47,25 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecMonitor
 from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
 
-from policies.checkpoints import git_commit, save_checkpoint
-from policies.fleet_checkpoint import FLEET_ALGORITHMS, fleet_observation_shape
-from policies.fleet_imitation import (
+from policies.learned.checkpoints import git_commit, save_checkpoint
+from policies.learned.fleet_checkpoint import FLEET_ALGORITHMS, fleet_observation_shape
+from policies.learned.fleet_residual import DEFAULT_PRIOR, PRIORS
+from policies.learned.fleet_residual_env import FleetResidualActions
+from policies.learned.residual import RESIDUAL_RADIUS_M, residual_metadata
+from policies.training.fleet_imitation import (
     TEACHERS,
     ImitationConfig,
     TeacherData,
     collect_teacher_data,
     fit_actor,
 )
-from policies.fleet_residual import DEFAULT_PRIOR, PRIORS
-from policies.fleet_residual_env import FleetResidualActions
-from policies.presets import PRESET_NAMES, Preset, get_preset
-from policies.residual import RESIDUAL_RADIUS_M, residual_metadata
-from policies.training import TRAIN_SEED_OFFSET, build_model, episode_bar, zero_actor_output
+from policies.training.presets import PRESET_NAMES, Preset, get_preset
+from policies.training.training import (
+    TRAIN_SEED_OFFSET,
+    build_model,
+    episode_bar,
+    zero_actor_output,
+)
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet import MAX_UAVS
@@ -79,7 +84,7 @@ class FleetTrainConfig:
     UAVs); ``n_fleets`` fleets step as one batch. Training scenarios are drawn by a
     :class:`sim.scenarios.ScenarioSampler` over ``families`` and ``users`` (an inclusive
     range) with a total offered load of ``load_per_uav_bps × K``. ``preset`` is a preset name
-    (``paper``, ``fast``) or a :class:`policies.presets.Preset`."""
+    (``paper``, ``fast``) or a :class:`policies.training.presets.Preset`."""
 
     n_uavs: int
     episodes: int
@@ -94,19 +99,19 @@ class FleetTrainConfig:
     n_fleets: int = 1
     action: str = "coordinates"
     """``coordinates`` (each agent's absolute target) or ``residual`` (a correction to its
-    place in the ``kmeans-load-weighted`` placement: :mod:`policies.fleet_residual`)."""
+    place in the ``kmeans-load-weighted`` placement: :mod:`policies.learned.fleet_residual`)."""
     residual_radius_m: float = RESIDUAL_RADIUS_M
     """How far (m, per axis) a residual action may move a UAV from its k-means place."""
     prior: str = DEFAULT_PRIOR
-    """The placement residual actions correct (:data:`policies.fleet_residual.PRIORS`):
+    """The placement residual actions correct (:data:`policies.learned.fleet_residual.PRIORS`):
     ``kmeans-load-weighted``, or ``kmeans-scored`` scored over the world's evaluation episode
     (``--prior``)."""
     imitate: int = 0
     """Teacher episodes flown by the search oracle whose decisions the residual actor or the
     DDQN's moves are fitted to before any reinforcement learning
-    (:mod:`policies.fleet_imitation`); 0: none."""
+    (:mod:`policies.training.fleet_imitation`); 0: none."""
     imitate_teacher: str = "search"
-    """Which oracle search teaches (:data:`policies.fleet_imitation.TEACHERS`)."""
+    """Which oracle search teaches (:data:`policies.training.fleet_imitation.TEACHERS`)."""
     imitate_symmetries: bool = False
     """Fit under the area's eight symmetries (:attr:`ImitationConfig.symmetries`)."""
     imitate_rounds: int = 0
@@ -406,9 +411,9 @@ def _metadata(
 
 
 def _imitate(model: Any, config: FleetTrainConfig, world: World, started: float) -> dict[str, Any]:
-    """Fit ``model``'s network to the search oracle's decisions (:mod:`policies.fleet_imitation`),
-    then ``config.imitate_rounds`` DAgger rounds; return the record kept in the checkpoint's
-    metadata (the last fit's, with every round's)."""
+    """Fit ``model``'s network to the search oracle's decisions
+    (:mod:`policies.training.fleet_imitation`), then ``config.imitate_rounds`` DAgger rounds; return
+    the record kept in the checkpoint's metadata (the last fit's, with every round's)."""
     imitation = ImitationConfig(
         episodes=config.imitate,
         replan_every=config.imitate_replan_every,

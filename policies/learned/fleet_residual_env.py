@@ -1,6 +1,7 @@
-"""The fleet's residual action space (:mod:`policies.fleet_residual`) as a PettingZoo wrapper,
-for training; serving needs only :func:`policies.fleet_residual.fleet_residual_targets` (and so
-never imports PettingZoo or Gymnasium)."""
+"""The fleet's residual action space (:mod:`policies.learned.fleet_residual`) as a PettingZoo
+wrapper, for training; serving needs only
+:func:`policies.learned.fleet_residual.fleet_residual_targets` (and so never imports PettingZoo or
+Gymnasium)."""
 
 from __future__ import annotations
 
@@ -10,8 +11,8 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo.utils.wrappers import BaseParallelWrapper
 
-from policies.fleet_residual import DEFAULT_PRIOR, fleet_residual_targets, make_prior
-from policies.residual import RESIDUAL_RADIUS_M
+from policies.learned.fleet_residual import DEFAULT_PRIOR, fleet_residual_targets, make_prior
+from policies.learned.residual import RESIDUAL_RADIUS_M
 from sim.fleet import FleetConfig
 from sim.fleet_env import FleetParallelEnv
 

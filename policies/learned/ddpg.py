@@ -7,7 +7,7 @@ What changes from SB3's DDPG (TD3 with one critic, no target smoothing, no polic
   (the paper: 80 % every 2000 steps) instead of a small τ at every step.
 - **Action penalty** (``action_l2``, 0 by default): the actor's loss adds
   ``action_l2 · mean(a²)``, so an action moves away from 0 only where the critic's gain pays
-  for it. With residual actions (:mod:`policies.residual`) 0 is the load-weighted placement,
+  for it. With residual actions (:mod:`policies.learned.residual`) 0 is the load-weighted placement,
   and the penalty keeps the actor out of tanh's saturated corners, where its gradient vanishes
   and a run collapses onto one corner for every observation.
 """

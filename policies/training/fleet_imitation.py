@@ -3,8 +3,8 @@
 Reinforcement learning from the fleet's one shared reward (the network utility over all users)
 has to find out which UAV's action helped; the fleet policies trained that way ended below the
 k-means placements (docs/results.md, "Fleets"). The search oracle
-(:class:`policies.fleet_oracle.FleetOracle`, flown from where the fleet is) already knows a
-better placement for a report, so its answer gives every agent a supervised target:
+(:class:`policies.placements.fleet_oracle.FleetOracle`, flown from where the fleet is) already knows
+a better placement for a report, so its answer gives every agent a supervised target:
 
 1. **Teacher episodes.** Fleets fly training scenarios (the run's sampler and world, the
    preset's training episode: its length and random starts) toward the oracle's placement,
@@ -18,7 +18,7 @@ better placement for a report, so its answer gives every agent a supervised targ
      priors by least total distance, so a mere change of which UAV takes which place is never
      learned as a move; the action is ``(target_xy − prior_xy) / radius`` and
      ``(target_z − z_min) / band``, clipped to [-1, 1]
-     (:func:`policies.fleet_residual.fleet_residual_targets` inverted);
+     (:func:`policies.learned.fleet_residual.fleet_residual_targets` inverted);
    - **moves** (DDQN): of the 13 discrete moves allowed from its zone, the one whose target
      lies nearest its own oracle target (:func:`teacher_moves`); the fleet flies those moves,
      so the states are those a fleet flying moves sees.
@@ -28,8 +28,8 @@ better placement for a report, so its answer gives every agent a supervised targ
    scores as the full search does at K = 3 and 4 but clearly below it at K = 2, where the
    restarts matter; ``local`` refines the k-means placements only, so its targets stay near
    the prior (``benchmarks/fleet_teacher.py``).
-2. **Fit.** The network that :func:`policies.fleet_training.train_fleet` builds is fitted to
-   those actions (:func:`fit_actor`): the DDPG actor by mean squared error, the DDQN's
+2. **Fit.** The network that :func:`policies.training.fleet_training.train_fleet` builds is fitted
+   to those actions (:func:`fit_actor`): the DDPG actor by mean squared error, the DDQN's
    Q-network by cross-entropy over the allowed moves (its outputs read as logits, so its
    greedy move is the predicted one); Adam, mini-batches, optionally each turned by one of the
    square area's eight symmetries (:func:`symmetry`); episodes, not single decisions, split
@@ -60,11 +60,11 @@ from typing import Any
 import numpy as np
 import torch as th
 
-from policies.fleet_checkpoint import FleetCheckpointPolicy
-from policies.fleet_oracle import FleetOracle, FleetOracleConfig
-from policies.fleet_residual import KMeansPrior
 from policies.interface import ReportedUsers
-from policies.training import episode_bar
+from policies.learned.fleet_checkpoint import FleetCheckpointPolicy
+from policies.learned.fleet_residual import KMeansPrior
+from policies.placements.fleet_oracle import FleetOracle, FleetOracleConfig
+from policies.training.training import episode_bar
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig

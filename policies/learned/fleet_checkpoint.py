@@ -1,7 +1,7 @@
 """A fleet checkpoint as a fleet policy: :class:`FleetCheckpointPolicy` (K observations → K
 targets) and what deciding with one needs (:data:`FLEET_ALGORITHMS`,
-:func:`fleet_observation_shape`). Training them is :mod:`policies.fleet_training`'s job; this
-module imports no training library, so that evaluation, imitation and serving load checkpoints
+:func:`fleet_observation_shape`). Training them is :mod:`policies.training.fleet_training`'s job;
+this module imports no training library, so that evaluation, imitation and serving load checkpoints
 without it.
 """
 
@@ -13,9 +13,9 @@ from typing import Any
 
 import numpy as np
 
-from policies.checkpoints import load_checkpoint
-from policies.fleet_residual import DEFAULT_PRIOR, fleet_residual_targets, make_prior
-from policies.residual import residual_radius
+from policies.learned.checkpoints import load_checkpoint
+from policies.learned.fleet_residual import DEFAULT_PRIOR, fleet_residual_targets, make_prior
+from policies.learned.residual import residual_radius
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet import MAX_UAVS, FleetConfig
@@ -51,7 +51,7 @@ class FleetCheckpointPolicy:
     targets: absolute coordinates in [0, 1]³ to metres, or residual actions around the
     checkpoint's prior (its metadata's ``prior``; ``kmeans-load-weighted`` when it names none)
     for ``reports`` and the UAVs at ``uav_xyz_m``
-    (:func:`policies.fleet_residual.fleet_residual_targets`, as in training); the set is
+    (:func:`policies.learned.fleet_residual.fleet_residual_targets`, as in training); the set is
     separated (:func:`sim.geometry.enforce_separation`, lower index first). Any K works: the
     network never sees K.
 
@@ -106,8 +106,8 @@ class FleetCheckpointPolicy:
         world: World | None = None,
     ) -> FleetCheckpointPolicy:
         """Load a checkpoint written by :func:`train_fleet` (shape and algorithm checked;
-        ``allowed_dirs`` and ``max_bytes`` as for :func:`policies.checkpoints.load_checkpoint`;
-        ``world`` as for the class)."""
+        ``allowed_dirs`` and ``max_bytes`` as for
+        :func:`policies.learned.checkpoints.load_checkpoint`; ``world`` as for the class)."""
         area = area or AreaConfig()
         model, meta = load_checkpoint(
             path,

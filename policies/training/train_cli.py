@@ -10,8 +10,8 @@ Train a TUPA policy on the embedded network model (paper §IV-A).
 
 Strategies: spec trains on the test scenarios cycled in order; gen10k on as many unique
 generated scenarios as episodes, each once; gen500 on 500 unique generated scenarios cycled.
-Presets (policies/presets.py): paper (the paper's hyper-parameters) or fast (tuned for 2 CPU
-cores). Writes into --out: model.zip + model.json (the final checkpoint and its metadata),
+Presets (policies/training/presets.py): paper (the paper's hyper-parameters) or fast (tuned for 2
+CPU cores). Writes into --out: model.zip + model.json (the final checkpoint and its metadata),
 checkpoints/latest.zip every --checkpoint-every episodes, learning_curve.json, run.json, and
 TensorBoard logs in tb/.
 
@@ -77,8 +77,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=1,
         metavar="K",
         help="fleet size 1..8 (default 1). K > 1 trains one network shared by the K UAVs "
-        "(policies/fleet_training.py; --algo ddpg (--action coordinates or residual) or ddqn, "
-        "--episodes, --out, --preset, --seed, --world (default closed-loop), --families, "
+        "(policies/training/fleet_training.py; --algo ddpg (--action coordinates or residual) "
+        "or ddqn, --episodes, --out, --preset, --seed, --world (default closed-loop), --families, "
         "--users (default 20), --envs fleets per batch)",
     )
     parser.add_argument(
@@ -102,7 +102,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         choices=("coordinates", "residual"),
         default="coordinates",
         help="DDPG's action: absolute coordinates (the paper) or residual, a correction to the "
-        "load-weighted placement (policies/residual.py)",
+        "load-weighted placement (policies/learned/residual.py)",
     )
     parser.add_argument(
         "--residual-radius-m",
@@ -118,7 +118,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="with --uavs K > 1 and --action residual: the placement the residual corrects: "
         "load-weighted k-means (default) or kmeans-scored, k-means partitions scored on the "
-        "fleet model from where the fleet is (policies/fleet_residual.py; slower per step)",
+        "fleet model from where the fleet is (policies/learned/fleet_residual.py; slower per step)",
     )
     parser.add_argument(
         "--imitate",
@@ -127,8 +127,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="N",
         help="experimental, with --uavs K > 1 and --algo ddqn or --action residual: first fit "
         "the DDQN's moves or the residual actor to the fleet search oracle's decisions over N "
-        "teacher episodes (policies/fleet_imitation.py; docs/results.md has what it flies); "
-        "--episodes of reinforcement learning follow (may be 0)",
+        "teacher episodes (policies/training/fleet_imitation.py; docs/results.md has what it "
+        "flies); --episodes of reinforcement learning follow (may be 0)",
     )
     parser.add_argument(
         "--teacher",
@@ -259,7 +259,7 @@ def _train(args: argparse.Namespace) -> int:
     if args.world is None:
         args.world = "paper"
     if args.resume is not None:
-        from policies.training import resume_config, train
+        from policies.training.training import resume_config, train
 
         config = resume_config(args.resume, args.episodes, args.save_replay_buffer)
         metadata = train(config, resume=True)
@@ -275,7 +275,7 @@ def _train(args: argparse.Namespace) -> int:
             raise InputError(
                 f"--out: {args.out} already holds a training run (use --resume or another dir)"
             )
-        from policies.training import config_from_args, train
+        from policies.training.training import config_from_args, train
 
         config = config_from_args(
             args.algo,
@@ -330,7 +330,7 @@ def _train_fleet(args: argparse.Namespace) -> int:
         raise InputError(f"{', '.join(missing)}: required with --uavs K > 1")
     if (args.out / "model.zip").exists():
         raise InputError(f"--out: {args.out} already holds a trained model (use another dir)")
-    from policies.fleet_training import FleetTrainConfig, train_fleet
+    from policies.training.fleet_training import FleetTrainConfig, train_fleet
 
     config = FleetTrainConfig(
         n_uavs=args.uavs,

@@ -16,8 +16,8 @@ load-weighted baseline, and training learns what the baseline misses: the MAC (a
 the 802.11 performance anomaly), which the users' positions and loads alone do not show. It is
 still the paper's DDPG (actor-critic, the same observation, the same critic); only the action's
 frame moves. :func:`residual_target` is the one function both the training environment's wrapper
-(:class:`policies.residual_env.ResidualActions`) and the service use, so they agree to the bit
-(``tests/service/test_parity.py``).
+(:class:`policies.learned.residual_env.ResidualActions`) and the service use, so they agree to the
+bit (``tests/service/test_parity.py``).
 """
 
 from __future__ import annotations
@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from policies.baselines import MinDistancePlacement
 from policies.interface import ReportedUsers
+from policies.placements.baselines import MinDistancePlacement
 from sim.config import AreaConfig
 from sim.geometry import clip_to_volume
 from sim.observation import UserReports

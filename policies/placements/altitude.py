@@ -7,8 +7,9 @@ interior maximum that depends on where the users are. :func:`altitude_profile` m
 curve for one scenario: at each of ``levels`` altitudes from the area's floor to its ceiling, the
 mean utility of an episode held at the best zone centre at that altitude (the model's expected
 mode and the world's episode, scored as the oracle scores positions:
-:func:`policies.oracle.episode_utility`). ``tupa eval --altitude-profiles N`` writes the first
-N scenarios' profiles into its results; ``tupa report`` draws them with where each policy ended.
+:func:`policies.placements.oracle.episode_utility`). ``tupa eval --altitude-profiles N`` writes the
+first N scenarios' profiles into its results; ``tupa report`` draws them with where each policy
+ended.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from policies.oracle import episode_utility
+from policies.placements.oracle import episode_utility
 from sim.network import NetworkModel
 from sim.scenarios import Scenario
 from sim.world import World

@@ -2,8 +2,8 @@
 
 The field's usual extension of a single-UAV placement to K UAVs (and the paper's baseline
 carried over): cluster the users' ground positions into K groups with k-means, then place one
-UAV per cluster with :class:`policies.baselines.MinDistancePlacement` over that cluster's users
-(minimum mean 3-D distance at the lowest altitude). Two variants:
+UAV per cluster with :class:`policies.placements.baselines.MinDistancePlacement` over that cluster's
+users (minimum mean 3-D distance at the lowest altitude). Two variants:
 
 * ``kmeans-min-distance``: plain k-means, plain min-distance per cluster (traffic-blind);
 * ``kmeans-load-weighted``: every user weighted by its offered load, in k-means (centroids are
@@ -29,8 +29,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from policies.baselines import MinDistancePlacement
 from policies.interface import Placement, UsersLike
+from policies.placements.baselines import MinDistancePlacement
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet import MAX_UAVS
@@ -106,7 +106,8 @@ class KMeansPlacement:
 
     ``per_cluster``: the single-UAV placement flown over each cluster's users instead (its
     ``place(users)`` gets the cluster's positions and loads); ``None``, the default, is
-    :class:`~policies.baselines.MinDistancePlacement`, load-weighted when ``load_weighted``."""
+    :class:`~policies.placements.baselines.MinDistancePlacement`, load-weighted when
+    ``load_weighted``."""
 
     n_uavs: int = 3
     area: AreaConfig = field(default_factory=AreaConfig)

@@ -64,7 +64,7 @@ def make_vec_env(
 ) -> FapVecEnv:
     """The training environment of ``algorithm`` (``ddqn``: moves, ``ddpg``: coordinates) as
     ``n_envs`` episodes in one batch: the vectorised counterpart of
-    ``policies.training.make_env`` (a list of scenarios is cycled, a sampler drawn from).
+    ``policies.training.training.make_env`` (a list of scenarios is cycled, a sampler drawn from).
 
     ``world``: one :class:`World` (or a list holding one). ``seed`` seeds the first reset (SB3
     reseeds with the algorithm's own seed when it is given one)."""

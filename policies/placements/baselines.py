@@ -27,8 +27,8 @@ never sees network metrics.
   takes it, so reaching every user comes first and the mean SNR second. Positions inside a
   building (at or below the roof of the ground cell the UAV hovers over) are never chosen.
 
-The ``oracle`` (:mod:`policies.oracle`: exhaustive search with the network model itself) is the
-third placement; :mod:`policies.registry` builds any of them by name.
+The ``oracle`` (:mod:`policies.placements.oracle`: exhaustive search with the network model itself)
+is the third placement; :mod:`policies.registry` builds any of them by name.
 """
 
 from __future__ import annotations

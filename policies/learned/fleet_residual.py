@@ -1,7 +1,7 @@
 """A fleet's residual action: each UAV's correction to its place in a k-means placement, the
 *prior*.
 
-The fleet counterpart of :mod:`policies.residual`. Learned from scratch with absolute
+The fleet counterpart of :mod:`policies.learned.residual`. Learned from scratch with absolute
 coordinates, the shared fleet actor put every UAV in a corner whatever it observed (0.67 × the
 search oracle, K = 2), while the k-means placements are already close to the oracle. With
 residual actions each agent outputs ``delta`` in [-1, 1]³ and flies to
@@ -16,17 +16,18 @@ Two priors (:data:`PRIORS`, named in a checkpoint's metadata):
   ``prior`` in its metadata): k-means on the users weighted by load, the load-weighted
   single-UAV placement per cluster, each UAV taking the place that keeps the fleet's total
   flight least (:func:`sim.geometry.assign_targets`);
-* ``kmeans-scored`` (:class:`ScoredPrior`): :class:`policies.fleet_scored.ScoredKMeansPlacement`
-  flown from where the fleet is (its ``place_from``: the candidates scored on the fleet model,
-  the users on the APs they are on), row i for UAV i; it needs the world's network, decision
-  period and flight, and takes tens of milliseconds a decision where k-means takes one.
+* ``kmeans-scored`` (:class:`ScoredPrior`):
+  :class:`policies.placements.fleet_scored.ScoredKMeansPlacement` flown from where the fleet is (its
+  ``place_from``: the candidates scored on the fleet model, the users on the APs they are on), row i
+  for UAV i; it needs the world's network, decision period and flight, and takes tens of
+  milliseconds a decision where k-means takes one.
 
 The actor starts at ``delta = 0`` (its last layer zeroed), so an untrained fleet policy *is*
 its prior, and training learns what the prior misses (contention within a cell, the interplay
 of cells, heavy users that need a cell of their own).
 :func:`fleet_residual_targets` is the one function both the training wrapper
-(:class:`policies.fleet_residual_env.FleetResidualActions`) and serving
-(:class:`policies.fleet_checkpoint.FleetCheckpointPolicy`) use, so they agree to the bit.
+(:class:`policies.learned.fleet_residual_env.FleetResidualActions`) and serving
+(:class:`policies.learned.fleet_checkpoint.FleetCheckpointPolicy`) use, so they agree to the bit.
 """
 
 from __future__ import annotations
@@ -37,10 +38,10 @@ from typing import Protocol
 
 import numpy as np
 
-from policies.fleet_baselines import KMeansPlacement
-from policies.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
 from policies.interface import ReportedUsers
-from policies.residual import RESIDUAL_RADIUS_M
+from policies.learned.residual import RESIDUAL_RADIUS_M
+from policies.placements.fleet_baselines import KMeansPlacement
+from policies.placements.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
 from sim.config import AreaConfig
 from sim.errors import InputError
 from sim.fleet import FleetConfig

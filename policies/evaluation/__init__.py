@@ -1,0 +1,1 @@
+"""Evaluation: ``tupa eval``, one episode per scenario, for one UAV or a fleet."""
