@@ -163,8 +163,8 @@ def _runs_alone(item: pytest.Item) -> bool:
 @pytest.hookimpl(wrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Any:
     """A ``timing`` test takes the machine room's gate (setup, call, teardown; kept while its
-    next test is one too); any other test waits while the gate is held, but one at a time may
-    run beside it (:mod:`tests.machine_room`)."""
+    next test is one too) and waits for the tests already running to end; any other test waits
+    while the gate is held, but one at a time may run beside it (:mod:`tests.machine_room`)."""
     global _room
     if _room is None:
         _room = room_from_environment()

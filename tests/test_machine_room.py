@@ -1,5 +1,6 @@
 """The machine room (tests/machine_room.py): while a ``timing`` test holds the gate, one other
-test at a time runs beside it; with the gate free, every test goes on."""
+test at a time runs beside it, and it starts only once the tests already inside have ended; with
+the gate free, every test goes on."""
 
 from __future__ import annotations
 
@@ -34,7 +35,7 @@ def test_beside_a_timing_test_one_other_test_at_a_time(tmp_path: Path) -> None:
         timing.leave()
         for room in (first, second):  # the gate free: no seat needed
             room.enter()
-            assert room.held == "nothing"
+            assert room.held == "inside"
     finally:
         for room in (timing, first, second):
             room.close()
@@ -52,7 +53,7 @@ def test_without_a_timing_test_every_test_goes_on(tmp_path: Path) -> None:
     try:
         threading.Thread(target=enter_all, daemon=True).start()
         assert entered.wait(WAIT_S), "a test waited with no timing test running"
-        assert [room.held for room in rooms] == ["nothing"] * 4
+        assert [room.held for room in rooms] == ["inside"] * 4
     finally:
         for room in rooms:
             room.close()
@@ -72,4 +73,44 @@ def test_a_timing_test_keeps_its_gate_and_a_worker_waits_no_longer_than_its_limi
         assert waiting.held is None
     finally:
         for room in (timing, seated, waiting):
+            room.close()
+
+
+def test_a_timing_test_starts_once_the_tests_already_inside_have_ended(tmp_path: Path) -> None:
+    inside, timing, newcomer = MachineRoom(tmp_path), MachineRoom(tmp_path), MachineRoom(tmp_path)
+    started = threading.Event()
+
+    def start_timing() -> None:
+        timing.enter_alone()
+        started.set()
+
+    try:
+        inside.enter()
+        assert inside.held == "inside"
+        threading.Thread(target=start_timing, daemon=True).start()
+        assert not started.wait(0.5)  # a test is still inside
+        newcomer.enter()  # the gate is taken: the newcomer gets the companion seat
+        assert newcomer.held == "companion"
+        inside.leave()
+        assert started.wait(WAIT_S)  # the one inside ended: the timing test goes on
+        assert timing.held == "gate"
+    finally:
+        for room in (inside, timing, newcomer):
+            room.close()
+
+
+def test_a_timing_test_waits_for_the_tests_inside_no_longer_than_its_limit(
+    tmp_path: Path,
+) -> None:
+    inside, timing, later = MachineRoom(tmp_path), MachineRoom(tmp_path), MachineRoom(tmp_path)
+    timing.max_wait_s = 0.2
+    try:
+        inside.enter()
+        with pytest.raises(RuntimeError, match="the tests inside"):
+            timing.enter_alone()
+        assert timing.held is None
+        later.enter()  # the gate was given back: in as usual
+        assert later.held == "inside"
+    finally:
+        for room in (inside, timing, later):
             room.close()
