@@ -48,16 +48,15 @@ llvm:
 	    echo "libllvm19 is missing (apt-get install libllvm19): a site build cannot ray-trace"; \
 	  fi
 
-# The tests run in parallel (pytest-xdist): TEST_WORKERS processes (default: one per core;
-# two per core ran the suite in 549-612 s instead of 792 s, but a timing test's latency check
-# still failed beside the tests already running: docs/results.md), and
+# The tests run in parallel (pytest-xdist): TEST_WORKERS processes (default: three for every two
+# cores, at least one: the suite mostly waits; docs/results.md has the runs), and
 # --dist loadgroup keeps each xdist_group on one worker, one test after another (the timing
 # tests, the Ray tests, the tests of one ns-3 worker or one module-wide server: tests/tiers.py).
-# Beside a timing test (they assert latencies under load), one other test at a time starts
-# (tests/machine_room.py). pytest-randomly shuffles the order and prints its seed:
-# PYTEST_ADDOPTS=--randomly-seed=N gives the same order again (which worker runs which test can
-# still differ; TEST_WORKERS=0 runs them all in one process).
-TEST_WORKERS ?= auto
+# A timing test (they assert latencies under load) starts once the tests already running have
+# ended and runs beside at most one other (tests/machine_room.py). pytest-randomly shuffles the
+# order and prints its seed: PYTEST_ADDOPTS=--randomly-seed=N gives the same order again (which
+# worker runs which test can still differ; TEST_WORKERS=0 runs them all in one process).
+TEST_WORKERS ?= $(shell n=$$(nproc 2>/dev/null || echo 2); echo $$(( n * 3 / 2 > 0 ? n * 3 / 2 : 1 )))
 PYTEST := $(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadgroup
 
 # Everything: every tier (tests/tiers.py), as CI runs it (.ci/run); the 25 slowest tests are

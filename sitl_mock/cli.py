@@ -160,6 +160,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--battery-capacity-mah", type=float, default=5000.0, help="default 5000")
     parser.add_argument(
+        "--speedup",
+        type=float,
+        default=1.0,
+        help="run the vehicles' clock this many times faster than the wall clock (their flight, "
+        "boot, telemetry and timers, as ArduPilot SITL's --speedup; at most 10; default 1: "
+        "real time)",
+    )
+    parser.add_argument(
         "--system-id",
         "--sysid-base",
         dest="system_id",
@@ -201,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
 
     from sitl_mock.config import VehicleConfig
     from sitl_mock.fleet import MAX_VEHICLES, MockFleet, fleet_listens
-    from sitl_mock.server import parse_listen
+    from sitl_mock.server import MAX_SPEEDUP, parse_listen
 
     listens: list[str] = args.listen or ["tcp:127.0.0.1:5760"]
     for listen in listens:
@@ -239,6 +247,8 @@ def run(args: argparse.Namespace) -> int:
             f"--system-id/--sysid-base: {count} vehicles from system id {args.system_id} "
             "would go past 255"
         )
+    if not (math.isfinite(args.speedup) and 0 < args.speedup <= MAX_SPEEDUP):
+        return _error(f"--speedup: must be in (0, {MAX_SPEEDUP:g}], got {args.speedup}")
     if not (math.isfinite(args.spacing_m) and args.spacing_m > 0):
         return _error(f"--spacing-m: must be a positive number, got {args.spacing_m}")
     config = VehicleConfig(
@@ -296,6 +306,7 @@ def run(args: argparse.Namespace) -> int:
         signing_key=signing_key,
         system_id_base=args.system_id,
         spacing_m=args.spacing_m,
+        speedup=args.speedup,
     )
     try:
         fleet.start()

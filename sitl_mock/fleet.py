@@ -91,6 +91,7 @@ class MockFleet:
         component_id: int = 1,
         spacing_m: float = DEFAULT_SPACING_M,
         physics_rate_hz: float = 50.0,
+        speedup: float = 1.0,
     ) -> None:
         if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= MAX_VEHICLES:
             raise ValueError(f"count: must be in 1..{MAX_VEHICLES}, got {count!r}")
@@ -118,6 +119,7 @@ class MockFleet:
                 system_id=system_id_base + i,
                 component_id=component_id,
                 physics_rate_hz=physics_rate_hz,
+                speedup=speedup,
             )
             for i in range(count)
         ]

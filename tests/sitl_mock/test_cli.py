@@ -74,6 +74,9 @@ def run_in_process(*args: str) -> int:
         (("--listen", "tcp:127.0.0.1:70000"), "--listen"),
         (("--listen", "udpout:127.0.0.1:0"), "--listen"),
         (("--system-id", "0"), "--system-id"),
+        (("--speedup", "0"), "--speedup"),
+        (("--speedup", "11"), "--speedup"),
+        (("--speedup", "nan"), "--speedup"),
     ],
 )
 def test_bad_arguments_print_one_line_and_return_2(args, option, capsys):

@@ -9,6 +9,7 @@ import time
 import pytest
 
 from sitl_mock.config import VehicleConfig
+from sitl_mock.fleet import MockFleet
 from sitl_mock.server import MAX_SPEEDUP, MockAutopilot
 from tests.conftest import GROUND_STATION_TIMERS, MOCK_SPEEDUP
 
@@ -17,6 +18,13 @@ from tests.conftest import GROUND_STATION_TIMERS, MOCK_SPEEDUP
 def test_an_impossible_speedup_is_refused_naming_it(speedup: float) -> None:
     with pytest.raises(ValueError, match=r"^speedup: must be in"):
         MockAutopilot("tcp:127.0.0.1:0", speedup=speedup)
+
+
+def test_a_fleet_runs_every_vehicle_at_its_speedup() -> None:
+    fleet = MockFleet(3, speedup=2.5)  # constructed only: nothing bound
+    assert [mock.speedup for mock in fleet] == [2.5, 2.5, 2.5]
+    with pytest.raises(ValueError, match=r"^speedup: must be in"):
+        MockFleet(2, speedup=0.0)
 
 
 def test_a_faster_clock_runs_the_vehicle_and_its_heartbeats_that_much_faster(
