@@ -41,7 +41,6 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Mapping, Sequence
-from dataclasses import replace
 from typing import TYPE_CHECKING, Any, Protocol
 
 import gymnasium as gym
@@ -64,7 +63,7 @@ from sim.observation import UserReports, build_observation, observation_shape
 from sim.scenarios import Scenario, ScenarioSampler
 from sim.users import UserDynamics, episode_users
 from sim.utility import network_utility
-from sim.world import PAPER, World
+from sim.world import World, episode_worlds
 
 if TYPE_CHECKING:
     from sim.envelope.route import Route
@@ -144,18 +143,8 @@ class _FapEnv(gym.Env, ABC):
         world: World | Sequence[World] | None = None,
         model: NetworkModel | None = None,
     ) -> None:
-        worlds = [PAPER] if world is None else [world] if isinstance(world, World) else list(world)
-        if not worlds:
-            raise ValueError("world: the list of worlds is empty")
+        worlds = episode_worlds(world)
         area = worlds[0].area
-        if any(
-            replace(w.area, environment=area.environment) != area or w.network != worlds[0].network
-            for w in worlds
-        ):
-            raise ValueError(
-                "world: the worlds of one environment must share the area (their channel "
-                "environments may differ) and the network"
-            )
         self.worlds = worlds
         self.world = worlds[0]
         if scenarios is None:

@@ -53,6 +53,7 @@ from gymnasium import spaces
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
+from sim.envs import ScenarioCycle, ScenariosByEnvironment
 from sim.errors import InputError
 from sim.fleet import FleetConfig, FleetModel, FleetState, FleetStepResult
 from sim.fleet_observation import FLEET_MAPS, fleet_maps, fleet_observations
@@ -72,7 +73,7 @@ from sim.geometry import (
 from sim.observation import UserReports
 from sim.scenarios import Scenario, ScenarioSampler
 from sim.users import UserDynamics, episode_users
-from sim.world import PAPER, World
+from sim.world import World, episode_worlds
 
 if TYPE_CHECKING:
     from sim.envelope.route import Route
@@ -122,8 +123,11 @@ class FleetParallelEnv(ParallelEnv):
     ``n_uavs`` (1..8) or ``fleet`` (a :class:`sim.fleet.FleetConfig`: channels, separation,
     hysteresis, handover outage) say how many; 3 when neither does. ``action_kind`` is
     ``discrete`` (13 moves) or ``continuous`` (coordinates in [0, 1]³). ``scenarios``: a list
-    cycled in order or a sampler (:class:`sim.scenarios.ScenarioSampler` by default); ``world``
-    a :class:`sim.world.World` (``paper`` by default)."""
+    cycled in order or a sampler (:class:`sim.scenarios.ScenarioSampler` by default; a
+    :class:`sim.envs.ScenariosByEnvironment` gives each episode its world's environment's);
+    ``world`` a :class:`sim.world.World` (``paper`` by default) or a list of them that share
+    the area and differ in their channel environment, one drawn for each episode as the single
+    environments draw it (:func:`sim.world.episode_worlds`)."""
 
     metadata = {"name": "tupa_fleet_v0", "render_modes": [], "is_parallelizable": True}  # noqa: RUF012
     render_mode = None  # nothing to render (PettingZoo's wrappers and SuperSuit read it)
@@ -133,7 +137,7 @@ class FleetParallelEnv(ParallelEnv):
         n_uavs: int | None = None,
         action_kind: str = "discrete",
         scenarios: Sequence[Scenario] | Any | None = None,
-        world: World | None = None,
+        world: World | Sequence[World] | None = None,
         fleet: FleetConfig | None = None,
         model: FleetModel | None = None,
     ) -> None:
@@ -146,19 +150,23 @@ class FleetParallelEnv(ParallelEnv):
         elif n_uavs is not None and n_uavs != fleet.n_uavs:
             raise InputError(f"n_uavs: {n_uavs!r} disagrees with the fleet's {fleet.n_uavs}")
         self.fleet = fleet
-        self.world = world if world is not None else PAPER
+        self.worlds = episode_worlds(world)
+        self.world = self.worlds[0]
         self.area = self.world.area
         self.action_kind = action_kind
         if model is None:
             model = FleetModel(fleet, self.world.network, self.area, self.world.utility)
         elif model.fleet != fleet or model.area != self.area:
             raise ValueError("model: must be built for this fleet and the world's area")
+        # One fleet model per channel environment: an episode runs in its world's.
+        self._models = {self.area.environment: model}
+        for w in self.worlds[1:]:
+            if w.area.environment not in self._models:
+                self._models[w.area.environment] = FleetModel(fleet, w.network, w.area, w.utility)
         self.model = model
         if scenarios is None:
             scenarios = ScenarioSampler(area=self.area)
         elif not hasattr(scenarios, "sample"):
-            from sim.envs import ScenarioCycle
-
             scenarios = ScenarioCycle(scenarios)
         self.scenarios = scenarios
         self.possible_agents = [f"uav_{k}" for k in range(fleet.n_uavs)]
@@ -209,8 +217,15 @@ class FleetParallelEnv(ParallelEnv):
                 self.action_space(agent).seed(seed + k)
         options = options or {}
         rng = self.np_random
+        if len(self.worlds) > 1:
+            self.world = self.worlds[int(rng.integers(len(self.worlds)))]
+            self.area = self.world.area
+            self.model = self._models[self.area.environment]
         world = self.world
-        self.scenario = options.get("scenario") or self.scenarios.sample(rng)
+        source = self.scenarios
+        if isinstance(source, ScenariosByEnvironment):
+            source = source.of(self.area.environment)
+        self.scenario = options.get("scenario") or source.sample(rng)
         self.users, self._users_rng = episode_users(
             self.scenario.users_xy_m, self.scenario.load_bps, world, self.area, rng,
             options.get("users_seed"),
@@ -478,7 +493,7 @@ class FleetGymEnv(gym.Env):
         n_uavs: int | None = None,
         action_kind: str = "discrete",
         scenarios: Sequence[Scenario] | Any | None = None,
-        world: World | None = None,
+        world: World | Sequence[World] | None = None,
         fleet: FleetConfig | None = None,
         model: FleetModel | None = None,
     ) -> None:

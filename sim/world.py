@@ -391,6 +391,27 @@ CLOSED_LOOP_MOVING = replace(
 WORLDS: dict[str, World] = {w.name: w for w in (PAPER, CLOSED_LOOP, CLOSED_LOOP_MOVING)}
 
 
+def episode_worlds(world: World | Sequence[World] | None) -> list[World]:
+    """The worlds an environment draws each episode's world from (single UAV and fleet alike):
+    ``None`` is [:data:`PAPER`], one world is a list of it, a sequence is kept in its order.
+    ValueError naming ``world`` for an empty list, or for worlds that differ in anything but
+    their area's channel environment: one area and one network, so that one observation space
+    and one kind of network model serve every episode."""
+    worlds = [PAPER] if world is None else [world] if isinstance(world, World) else list(world)
+    if not worlds:
+        raise ValueError("world: the list of worlds is empty")
+    area, network = worlds[0].area, worlds[0].network
+    if any(
+        replace(w.area, environment=area.environment) != area or w.network != network
+        for w in worlds
+    ):
+        raise ValueError(
+            "world: the worlds of one environment must share the area (their channel "
+            "environments may differ) and the network"
+        )
+    return worlds
+
+
 def get_world(name: str) -> World:
     """The preset called ``name``; ``InputError`` naming the choices otherwise."""
     try:

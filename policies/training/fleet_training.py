@@ -63,6 +63,7 @@ from policies.training.presets import PRESET_NAMES, Preset, get_preset
 from policies.training.training import (
     TRAIN_SEED_OFFSET,
     build_model,
+    check_train_environment,
     episode_bar,
     zero_actor_output,
 )
@@ -71,7 +72,7 @@ from sim.errors import InputError
 from sim.fleet import MAX_UAVS
 from sim.fleet_env import FleetParallelEnv
 from sim.scenarios import ScenarioSampler
-from sim.world import World, get_world
+from sim.world import World, get_world, world_with
 
 __all__ = ["FleetTrainConfig", "train_fleet"]
 
@@ -93,6 +94,9 @@ class FleetTrainConfig:
     preset: str | Preset = "fast"
     seed: int = 1
     world: str = "closed-loop"
+    environment: str | None = None
+    """The channel environment the fleet trains in (``--environment``: a town class or
+    ``site:PATH``); None: the world's own (the open field)."""
     families: tuple[str, ...] = ("uniform", "hotspots", "mixture")
     users: tuple[int, int] = (20, 20)
     load_per_uav_bps: float = 40e6
@@ -188,6 +192,8 @@ class FleetTrainConfig:
         if not (np.isfinite(self.load_per_uav_bps) and self.load_per_uav_bps > 0):
             raise InputError(f"load_per_uav_bps: must be > 0, got {self.load_per_uav_bps!r}")
         get_world(self.world)  # an unknown world fails here, named
+        if self.environment is not None:
+            check_train_environment(self.environment)
         self.sampler(AreaConfig())  # and so do unknown families or user counts
 
     @property
@@ -200,14 +206,19 @@ class FleetTrainConfig:
     def prior_score_steps(self) -> int:
         """Decisions a ``kmeans-scored`` prior scores each candidate over: an evaluation
         episode of the world (not the preset's shorter training episode)."""
-        return get_world(self.world).episode_steps
+        return self.base_world().episode_steps
+
+    def base_world(self) -> World:
+        """The run's world in its channel environment (``environment``), as evaluated."""
+        world = get_world(self.world)
+        if self.environment is None:
+            return world
+        return world_with(world, {"environment": self.environment})
 
     def train_world(self) -> World:
         """The world with the preset's training episode (length, start)."""
         p = self.chosen_preset
-        return replace(
-            get_world(self.world), episode_steps=p.train_episode_steps, home=p.train_start
-        )
+        return replace(self.base_world(), episode_steps=p.train_episode_steps, home=p.train_start)
 
     def sampler(self, area: AreaConfig) -> ScenarioSampler:
         return ScenarioSampler(
@@ -398,7 +409,8 @@ def _metadata(
         "n_fleets": config.n_fleets,
         "imitation": imitation,
         "seed": config.seed,
-        "world": get_world(config.world).to_dict(),
+        "world": config.base_world().to_dict(),
+        "train_environments": [world.area.environment],
         "families": list(config.families),
         "users": list(config.users),
         "load_per_uav_bps": config.load_per_uav_bps,
@@ -418,7 +430,7 @@ def _imitate(model: Any, config: FleetTrainConfig, world: World, started: float)
         episodes=config.imitate,
         replan_every=config.imitate_replan_every,
         workers=config.workers,
-        horizon_steps=get_world(config.world).episode_steps,
+        horizon_steps=config.base_world().episode_steps,
         teacher=config.imitate_teacher,
         symmetries=config.imitate_symmetries,
     )

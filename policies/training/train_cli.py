@@ -95,7 +95,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="ENV",
         help="the channel environment (open, suburban, urban, dense-urban, highrise-urban, or "
         "site:PATH, a site directory); several separated by commas: one drawn per episode (with "
-        "the world), evaluations in the first. Default: the test set's",
+        "the world), evaluations in the first; a fleet (--uavs K > 1): one. Default: the test "
+        "set's (a fleet: the world's, open)",
     )
     parser.add_argument(
         "--action",
@@ -328,6 +329,31 @@ def _train_fleet(args: argparse.Namespace) -> int:
     missing = [f"--{name}" for name in ("algo", "episodes", "out") if getattr(args, name) is None]
     if missing:
         raise InputError(f"{', '.join(missing)}: required with --uavs K > 1")
+    ignored = [
+        flag
+        for flag, given in (
+            ("--strategy", args.strategy is not None),
+            ("--test-scenarios", args.test_scenarios is not None),
+            ("--queueing", args.queueing != "fq-codel"),
+            ("--world-set", bool(args.world_set)),
+            ("--checkpoint-every", args.checkpoint_every != 500),
+            ("--curve-scenarios", args.curve_scenarios != 100),
+            ("--no-final-eval", args.no_final_eval),
+            ("--save-replay-buffer", args.save_replay_buffer),
+        )
+        if given
+    ]
+    if ignored:
+        raise InputError(
+            f"{', '.join(ignored)}: for single-UAV runs only (a fleet run, --uavs K > 1, "
+            "would not use it)"
+        )
+    environments = [e.strip() for e in (args.environment or "").split(",") if e.strip()]
+    if len(environments) > 1:
+        raise InputError(
+            f"--environment: a fleet run trains in one environment, got {len(environments)} "
+            f"({', '.join(environments)})"
+        )
     if (args.out / "model.zip").exists():
         raise InputError(f"--out: {args.out} already holds a trained model (use another dir)")
     from policies.training.fleet_training import FleetTrainConfig, train_fleet
@@ -340,6 +366,7 @@ def _train_fleet(args: argparse.Namespace) -> int:
         preset=args.preset,
         seed=args.seed,
         world=args.world or "closed-loop",
+        environment=environments[0] if environments else None,
         families=tuple(f.strip() for f in args.families.split(",")),
         users=_user_range(args.users) or (20, 20),
         n_fleets=args.envs,

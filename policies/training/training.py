@@ -93,6 +93,17 @@ ESTIMATE_EPISODES = 3
 """Episodes timed, once learning has started, before the run's estimated time is said."""
 
 
+def check_train_environment(environment: str) -> None:
+    """InputError naming ``--environment`` unless ``environment`` is a channel environment
+    (:data:`sim.config.ENVIRONMENTS`) or a sound ``site:PATH`` on disk."""
+    if site_path(environment) is None and environment not in ENVIRONMENTS:
+        raise InputError(
+            f"--environment: must be among {', '.join(ENVIRONMENTS)} or site:PATH, "
+            f"got {environment!r}"
+        )
+    check_environment(environment, "--environment", on_disk=True)
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """One training run. ``preset`` holds every hyper-parameter (see
@@ -135,12 +146,7 @@ class TrainConfig:
         if self.envs < 1:
             raise InputError(f"--envs: must be at least 1, got {self.envs}")
         for environment in self.environments:
-            if site_path(environment) is None and environment not in ENVIRONMENTS:
-                raise InputError(
-                    f"--environment: must be among {', '.join(ENVIRONMENTS)} or site:PATH, "
-                    f"got {environment!r}"
-                )
-            check_environment(environment, "--environment", on_disk=True)
+            check_train_environment(environment)
         if self.envs > 1 and (
             self.action == "residual" or "," in self.world or len(self.environments) > 1
         ):

@@ -183,6 +183,26 @@ def test_config_refuses_bad_fields(tmp_path, changes, field):
         (["--algo", "ddpg", "--teacher", "local"], "--teacher: for fleets only"),
         (["--algo", "ddpg", "--symmetries"], "--symmetries: for fleets only"),
         (["--algo", "ddpg", "--dagger", "2"], "--dagger: for fleets only"),
+        (
+            ["--uavs", "3", "--algo", "ddpg", "--environment", "mars"],
+            "--environment: must be among",
+        ),
+        (
+            ["--uavs", "3", "--algo", "ddpg", "--environment", "open,urban"],
+            "--environment: a fleet run trains in one environment, got 2",
+        ),
+        (
+            ["--uavs", "3", "--algo", "ddpg", "--strategy", "spec", "--no-final-eval"],
+            "--strategy, --no-final-eval: for single-UAV runs only",
+        ),
+        (
+            ["--uavs", "2", "--algo", "ddpg", "--test-scenarios", "spec", "--queueing", "mac-only"],
+            "--test-scenarios, --queueing: for single-UAV runs only",
+        ),
+        (
+            ["--uavs", "2", "--algo", "ddpg", "--checkpoint-every", "7", "--save-replay-buffer"],
+            "--checkpoint-every, --save-replay-buffer: for single-UAV runs only",
+        ),
     ],
 )
 def test_cli_refuses_bad_fleet_sizes_and_writes_nothing(tmp_path, capsys, extra, message):
@@ -211,7 +231,34 @@ def test_cli_trains_a_fleet(tmp_path, capsys, monkeypatch):
         ["tupa", *argv, "--users", "8", "--world", "closed-loop", "--seed", "2"]
     )
     assert "shared ddpg policy for 3 UAVs" in capsys.readouterr().out
+    assert meta["train_environments"] == ["open"] == [meta["world"]["area"]["environment"]]
     assert main(argv) == 2  # a second run into the same directory is refused
+
+
+@pytest.mark.training
+def test_a_fleet_trains_in_the_environment_it_is_given(tmp_path, monkeypatch):
+    """``--environment urban``: the fleets fly the urban channel in training, and the
+    checkpoint says so (as a single-UAV one does)."""
+    import policies.training.fleet_training as fleet_training
+
+    monkeypatch.setattr(
+        fleet_training.FleetTrainConfig, "chosen_preset", property(lambda self: TINY_PRESET)
+    )
+    built: list[FleetParallelEnv] = []
+    original = fleet_training.FleetParallelEnv
+
+    def recording(*args, **kwargs):
+        built.append(original(*args, **kwargs))
+        return built[-1]
+
+    monkeypatch.setattr(fleet_training, "FleetParallelEnv", recording)
+    out = tmp_path / "urban"
+    argv = ["train", "--uavs", "2", "--algo", "ddpg", "--episodes", "1", "--users", "6"]
+    assert main([*argv, "--environment", "urban", "--out", str(out), "--no-progress"]) == 0
+    assert [env.world.area.environment for env in built] == ["urban"]
+    assert built[0].model.area.environment == "urban"
+    meta = json.loads((out / "model.json").read_text())
+    assert meta["train_environments"] == ["urban"] == [meta["world"]["area"]["environment"]]
 
 
 @pytest.mark.training

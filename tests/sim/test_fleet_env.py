@@ -176,3 +176,40 @@ def test_bad_input() -> None:
         env.step({"uav_0": 0})
     with pytest.raises(ValueError, match="action: must be an integer"):
         env.step({"uav_0": 0, "uav_1": 13})
+
+
+def test_a_fleet_draws_each_episodes_world_from_a_list_as_the_single_environment_does() -> None:
+    """Worlds that differ in their channel environment: each episode runs in one of them, with
+    that environment's fleet model and, from a source by environment, that environment's
+    scenarios; the single environment draws the same worlds from the same seeds."""
+    from sim.envs import ScenarioCycle, ScenariosByEnvironment
+    from sim.world import world_with
+
+    worlds = [world_with(MOVING, {"environment": e}) for e in ("open", "urban")]
+    area = worlds[0].area
+    scenarios = {
+        e: Scenario(f"{e}-users", np.array([[50.0 + i, 60.0]]), np.array([1e6 * (i + 1)]))
+        for i, e in enumerate(("open", "urban"))
+    }
+    source = ScenariosByEnvironment({e: ScenarioCycle([s]) for e, s in scenarios.items()})
+    fleet = FleetParallelEnv(n_uavs=2, action_kind="continuous", scenarios=source, world=worlds)
+    single = FapContinuousEnv(scenarios=source, world=worlds)
+    seen = []
+    for seed in range(12):
+        fleet.reset(seed=seed)
+        single.reset(seed=seed)
+        environment = fleet.world.area.environment
+        assert single.world.area.environment == environment
+        assert fleet.model.area.environment == environment
+        assert fleet.scenario is scenarios[environment]
+        assert fleet.area.size_x_m == area.size_x_m
+        seen.append(environment)
+    assert set(seen) == {"open", "urban"}
+
+
+def test_a_fleets_worlds_must_share_the_area_and_be_some() -> None:
+    with pytest.raises(ValueError, match=r"^world: the list of worlds is empty"):
+        FleetParallelEnv(n_uavs=2, world=[])
+    larger = replace(MOVING, area=replace(MOVING.area, size_x_m=MOVING.area.size_x_m * 2))
+    with pytest.raises(ValueError, match=r"^world: the worlds of one environment must share"):
+        FleetParallelEnv(n_uavs=2, world=[MOVING, larger])
