@@ -45,6 +45,10 @@ from sim.envelope import (
 )
 from sim.fleet import MAX_UAVS
 
+SOLE_VEHICLE_ID = "uav1"
+"""The id of a service's one vehicle where no fleet file names it (``tupa serve --mavlink``):
+the key of its entry in every answer that lists vehicles."""
+
 DEFAULT_SEPARATION_M = 10.0
 """The fleet's default minimum distance between any two targets, metres (3-D)."""
 
@@ -206,8 +210,9 @@ def check_fleet(fleet: FleetSpec) -> None:
 def single_vehicle(
     mavlink: str, frames: FrameConfig, envelope_file: Path | None = None
 ) -> FleetSpec:
-    """The one-vehicle fleet of a plain ``tupa serve --mavlink URL`` (id ``uav1``)."""
-    return FleetSpec((VehicleSpec("uav1", mavlink, None, frames, envelope_file),))
+    """The one-vehicle fleet of a plain ``tupa serve --mavlink URL`` (id
+    :data:`SOLE_VEHICLE_ID`)."""
+    return FleetSpec((VehicleSpec(SOLE_VEHICLE_ID, mavlink, None, frames, envelope_file),))
 
 
 def fleet_from_urls(

@@ -53,6 +53,7 @@ from typing import Any
 import numpy as np
 
 from service.decisions import Decision, Report
+from service.fleet_spec import SOLE_VEHICLE_ID
 from service.live_site import buildings_layer, coverage_layer
 from service.pubsub import Hub
 from service.vehicle_link import LinkState
@@ -62,8 +63,6 @@ from sim.envelope import Envelope, area_envelope
 from sim.utility import network_utility
 
 FORMAT = "tupa-live/1"
-VEHICLE_ID = "uav1"
-"""The one vehicle's id (``GET /v1/vehicles`` calls it the same)."""
 TRACK_POINTS = 300
 """Positions kept per vehicle (a new one when it has moved ``TRACK_STEP_M`` from the last)."""
 TRACK_STEP_M = 0.5
@@ -100,7 +99,7 @@ class Moment:
 
     def vehicles(self) -> tuple[tuple[str, LinkState, Decision | None], ...]:
         """Every vehicle shown: the fleet's, or the one."""
-        return self.fleet or ((VEHICLE_ID, self.link, self.decision),)
+        return self.fleet or ((SOLE_VEHICLE_ID, self.link, self.decision),)
 
 
 class LiveView:

@@ -85,7 +85,7 @@ from service.decisions import (
     VehicleView,
     restored_decision,
 )
-from service.fleet_spec import envelope_for
+from service.fleet_spec import SOLE_VEHICLE_ID, envelope_for
 from service.live_view import LiveFrame, LiveView, Moment
 from service.policy_runtime import load_policy
 from service.settings import ServiceSettings
@@ -191,7 +191,7 @@ class PlacementService:
     ) -> None:
         self.settings = settings
         self.link = link
-        self.links: dict[str, VehicleLink] = {"uav1": link}
+        self.links: dict[str, VehicleLink] = {SOLE_VEHICLE_ID: link}
         """Every vehicle's link by id (one here; a fleet's in :mod:`service.fleet_placement`)."""
         self.world = world if world is not None else settings.policy_world()
         """The world the policy decides in (area, network, utility, decision period)."""
@@ -475,7 +475,9 @@ class PlacementService:
     def vehicles(self) -> list[VehicleView]:
         """The one vehicle as a fleet of one (``GET /v1/vehicles``), id ``uav1``."""
         state = self.link.state()
-        return [VehicleView("uav1", None, state, self.current_decision(), link_problem(state))]
+        return [
+            VehicleView(SOLE_VEHICLE_ID, None, state, self.current_decision(), link_problem(state))
+        ]
 
     def _can_decide(self) -> bool:
         """Whether the link lets a decision be taken now (the ``on-report`` watcher asks)."""
