@@ -12,6 +12,13 @@ without a vehicle):
   a ground station's command, a failsafe), a return or landing mode (also found at start-up), or
   a disarm. Leaving a take-off mode for a hold mode (PX4's AUTO.TAKEOFF -> AUTO.LOITER) is the
   autopilot's normal course, not a leave.
+* A vehicle the link finds **armed when it starts** (its first HEARTBEAT: a service started or
+  restarted beside a vehicle that flies) is the service's only in the guided mode (a previous
+  run's stream), a take-off mode or the autopilot's hold (PX4's AUTO.LOITER, where its
+  offboard-loss failsafe holds a vehicle whose stream stopped, as a restart stops it; that hold
+  starting *after* the link started, with the failsafe shown, before the link streamed anything,
+  is the same case). In any other mode — a pilot took it while the service was away — it is
+  not: the service leaves it alone until an operator hands it back.
 * Who has it then: ``autopilot`` when the new mode is a return, landing or termination mode, or
   the vehicle showed a failsafe (HEARTBEAT ``system_status`` CRITICAL or EMERGENCY, or a
   STATUSTEXT naming a failsafe or of CRITICAL severity or worse, within
@@ -44,6 +51,13 @@ TAKEOFF_MODES: dict[str, frozenset[str]] = {
     "px4": frozenset({"AUTO.TAKEOFF"}),
 }
 """Modes an autopilot leaves by itself when a take-off is done (for its hold mode)."""
+
+HOLD_MODES: dict[str, frozenset[str]] = {
+    "ardupilot": frozenset(),
+    "px4": frozenset({"AUTO.LOITER"}),
+}
+"""The autopilot's hold when the stream of setpoints stops (PX4's offboard-loss failsafe; an
+ArduCopter in GUIDED keeps its last target)."""
 
 FAILSAFE_EVIDENCE_S = 5.0
 """A failsafe STATUSTEXT this recent explains a mode change as the autopilot's."""
@@ -82,6 +96,10 @@ class Observation:
     """The vehicle's latest failsafe STATUSTEXT within :data:`FAILSAFE_EVIDENCE_S`, if any."""
     after_link_loss: bool = False
     """The first HEARTBEAT after the link was lost."""
+    at_start: bool = False
+    """The first HEARTBEAT since the link started (not the baseline after a hand-back)."""
+    streamed: bool = True
+    """The link has streamed a setpoint since it started."""
 
 
 def is_return_or_land(flavour: Flavour | None, mode: str | None) -> bool:
@@ -108,8 +126,12 @@ def after_heartbeat(control: Control, seen: Observation, now_s: float) -> Contro
         why = f"disarmed in {seen.mode}"
     elif before is not None and seen.mode != before and seen.mode != guided:
         from_takeoff = before in TAKEOFF_MODES.get(seen.flavour, frozenset())
-        if not from_takeoff or is_return_or_land(seen.flavour, seen.mode):
+        if not (from_takeoff or _stream_stopped_before_start(seen)) or is_return_or_land(
+            seen.flavour, seen.mode
+        ):
             why = f"left {before} for {seen.mode}"
+    elif seen.at_start and seen.armed and not may_take_at_start(seen.flavour, seen.mode):
+        why = f"was found armed in {seen.mode} when the link started"
     if why is None and is_return_or_land(seen.flavour, seen.mode):
         why = f"in {seen.mode}"
     if why is None:
@@ -129,6 +151,31 @@ def after_heartbeat(control: Control, seen: Observation, now_s: float) -> Contro
         details.append(f"vehicle said: {seen.failsafe_text}")
     reason = "the vehicle " + why + (f" ({'; '.join(details)})" if details else "")
     return Control("autopilot" if autopilot else "pilot", reason, now_s)
+
+
+def may_take_at_start(flavour: Flavour | None, mode: str | None) -> bool:
+    """Whether a vehicle found armed in ``mode`` when the link starts is the service's: the
+    guided mode, a take-off mode or the autopilot's hold (module docstring)."""
+    if flavour is None or mode is None:
+        return False
+    return (
+        mode == GUIDED_MODE_NAME.get(flavour)
+        or mode in TAKEOFF_MODES.get(flavour, frozenset())
+        or mode in HOLD_MODES.get(flavour, frozenset())
+    )
+
+
+def _stream_stopped_before_start(seen: Observation) -> bool:
+    """The guided mode left for the autopilot's hold by a failsafe, before this link streamed
+    anything: the stream that stopped was a previous run's (a restart), the hold the one a
+    link starting a moment later would have found (module docstring)."""
+    return (
+        not seen.streamed
+        and seen.previous_mode == GUIDED_MODE_NAME.get(seen.flavour)
+        and seen.mode in HOLD_MODES.get(seen.flavour, frozenset())
+        and (seen.failsafe_flagged or seen.failsafe_text is not None)
+        and not seen.after_link_loss
+    )
 
 
 def handback_refusal(

@@ -897,6 +897,8 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
             failsafe_flagged=self._failsafe_flagged(),
             failsafe_text=failsafe_text,
             after_link_loss=after_loss,
+            at_start=previous_mode is None and not fresh,
+            streamed=self.counters.get("setpoints_sent", 0) > 0,
         )
         self._set_control(vehicle_control.after_heartbeat(self._control, seen, now))
         if previous_armed and not self._armed and self._takeoff == "airborne":

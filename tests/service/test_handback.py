@@ -73,6 +73,29 @@ def seen(flavour: str, mode: str, previous: str | None, **fields: Any) -> Observ
         (seen("ardupilot", "GUIDED", "GUIDED", armed=False), "pilot", "disarmed in GUIDED"),
         (seen("px4", "AUTO.RTL", None), "autopilot", "in AUTO.RTL"),  # found so at start-up
         (seen("ardupilot", "STABILIZE", "GUIDED", previous_armed=None), "pilot", "STABILIZE"),
+        # Found armed, when the link starts, in a mode a pilot chose while no service flew it.
+        (seen("px4", "POSCTL", None, at_start=True), "pilot", "found armed in POSCTL"),
+        (seen("ardupilot", "LOITER", None, at_start=True), "pilot", "found armed in LOITER"),
+        # A hold that starts before the link streamed anything, without a failsafe shown, is a
+        # pilot's Hold; with one, after the link was lost, it is the autopilot's as before.
+        (seen("px4", "AUTO.LOITER", "OFFBOARD", streamed=False), "pilot", "left OFFBOARD"),
+        (
+            seen(
+                "px4",
+                "AUTO.LOITER",
+                "OFFBOARD",
+                streamed=False,
+                failsafe_flagged=True,
+                after_link_loss=True,
+            ),
+            "autopilot",
+            "while the link was lost",
+        ),
+        (
+            seen("px4", "AUTO.LOITER", "OFFBOARD", failsafe_text="Failsafe activated"),
+            "autopilot",
+            "vehicle said: Failsafe activated",
+        ),
     ],
 )
 def test_the_vehicle_leaves_the_service_on_its_own(
@@ -92,6 +115,18 @@ def test_the_vehicle_leaves_the_service_on_its_own(
         seen("px4", "AUTO.LOITER", "AUTO.TAKEOFF"),  # PX4's own end of a take-off
         seen("px4", "AUTO.LOITER", None),  # the first HEARTBEAT, in a hold mode
         seen("px4", "AUTO.LOITER", "AUTO.LOITER", armed=False, previous_armed=False),
+        # Found armed when the link starts: in the guided mode, a take-off or the hold that
+        # PX4's offboard-loss failsafe puts a vehicle in when a restart stops the stream.
+        seen("px4", "OFFBOARD", None, at_start=True),
+        seen("ardupilot", "GUIDED", None, at_start=True),
+        seen("px4", "AUTO.TAKEOFF", None, at_start=True),
+        seen("px4", "AUTO.LOITER", None, at_start=True),
+        seen("px4", "POSCTL", None, at_start=True, armed=False, previous_armed=None),  # landed
+        seen("px4", "POSCTL", None),  # the baseline after an operator's hand-back
+        # That hold starting a moment after the link started, before it streamed anything,
+        # with the failsafe shown: the same case.
+        seen("px4", "AUTO.LOITER", "OFFBOARD", streamed=False, failsafe_text="Failsafe activated"),
+        seen("px4", "AUTO.LOITER", "OFFBOARD", streamed=False, failsafe_flagged=True),
     ],
 )
 def test_what_is_not_a_takeover_keeps_the_vehicle_with_the_service(
@@ -352,3 +387,59 @@ def test_a_restart_keeps_the_vehicle_with_whoever_had_it(tmp_path: Any) -> None:
         )
     finally:
         service.stop()
+
+
+def _service_with_state(
+    mock: MockAutopilot, state_file: Any, backend: str = "pymavlink"
+) -> PlacementService:
+    config = LinkConfig(tcp_url(mock), frames=FRAMES, mode_retry_s=0.2)
+    settings = ServiceSettings(
+        mavlink=config.url, api_token="t", policy="min-distance", step_s=PERIOD_S,
+        report_max_age_s=3600.0, state_file=state_file, arm_and_takeoff=True,
+    )  # fmt: skip
+    link = links.open_link(backend, config)
+    return PlacementService(settings, link, load_policy("min-distance")).start()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("restart", ["with its state file", "afresh"])
+def test_a_service_started_beside_a_vehicle_its_pilot_flies_leaves_it_to_the_pilot(
+    start_mock: Callable[..., MockAutopilot], tmp_path: Any, restart: str
+) -> None:
+    """The service stops (a crash, an update) while it flies the vehicle; its pilot takes the
+    vehicle meanwhile (PX4's POSCTL). A service started then, with the state file that says it
+    had the vehicle or without one, must not take the vehicle back on its first decision: it
+    leaves it with the pilot, asks for no mode, and says so, until an operator hands it back."""
+    mock = start_mock("px4", gcs_failsafe_action="none", **FAST_VEHICLE)
+    state_file = tmp_path / "state.json"
+    first = _service_with_state(mock, state_file)
+    try:
+        first.submit_report(report())
+        wait_for(lambda: mock.state().mode == "OFFBOARD", 30.0, message="OFFBOARD")
+    finally:
+        first.stop()
+    mock.with_vehicle(lambda v: v.rc_mode_switch("POSCTL"))
+    if restart == "afresh":
+        state_file.unlink()
+    commands = guided_commands(mock, "OFFBOARD")
+    second = _service_with_state(mock, state_file)
+    try:
+        second.submit_report(report())
+        state = wait_for(
+            lambda: (s := second.link.state()).control != "service" and s, 10.0, message="let go"
+        )
+        assert state.control == "pilot" and "POSCTL" in state.control_reason, state
+        start = loop_passes(second)
+        wait_for(
+            lambda: loop_passes(second) >= start + QUIET_DECISIONS,
+            QUIET_DECISIONS * PERIOD_S + 10.0,
+            message="the paced loop to run on",
+        )
+        assert guided_commands(mock, "OFFBOARD") == commands
+        assert mock.state().mode == "POSCTL"
+        assert not second.link.state().streaming
+        ready, reasons = second.readiness()
+        assert not ready and any("the pilot has the vehicle" in r for r in reasons), reasons
+        assert mock.stats["arms"] == 1  # never armed again
+    finally:
+        second.stop()
