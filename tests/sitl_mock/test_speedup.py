@@ -30,9 +30,10 @@ def test_a_fleet_runs_every_vehicle_at_its_speedup() -> None:
 def test_a_faster_clock_runs_the_vehicle_and_its_heartbeats_that_much_faster(
     start_mock, connect
 ) -> None:
-    """Two mocks side by side, one at real time and one at 3x: over the same two wall-clock
-    seconds the fast one's clock and its 1 Hz heartbeats advance about three times as far (a
-    ratio measured in one run, so the machine's load cancels out)."""
+    """Two mocks side by side, one at real time and one at 3x: over the same three wall-clock
+    seconds the fast one's clock advances about three times as far and sends at least twice as
+    many of its 1 Hz heartbeats (2-4 against 8-10, by where the window falls: ratios measured
+    in one run, so the machine's load cancels out)."""
     mocks = {
         "real": start_mock("ardupilot", speedup=1.0),
         "fast": start_mock("ardupilot", speedup=3.0),
@@ -42,7 +43,7 @@ def test_a_faster_clock_runs_the_vehicle_and_its_heartbeats_that_much_faster(
         client.wait("HEARTBEAT")
         client.mark()
     clock_s = {name: mock.vehicle.time_s for name, mock in mocks.items()}
-    deadline = time.monotonic() + 2.0
+    deadline = time.monotonic() + 3.0
     while time.monotonic() < deadline:
         for client in clients.values():
             client.pump(timeout_s=0.01)
@@ -52,7 +53,7 @@ def test_a_faster_clock_runs_the_vehicle_and_its_heartbeats_that_much_faster(
         for name, client in clients.items()
     }
     assert 2.5 <= advanced_s["fast"] / advanced_s["real"] <= 3.2, advanced_s
-    assert beats["fast"] >= 2 * beats["real"] >= 2, beats
+    assert beats["fast"] >= 2 * beats["real"] >= 4, beats
 
 
 def test_start_mock_keeps_the_ground_stations_wall_clock_timers(start_mock) -> None:
