@@ -259,28 +259,23 @@ class TakeoffMixin(_Base):
         self._set_phase("waiting for the vehicle")
         self._wait_for(lambda: self._health == "up", deadline, "the vehicle's HEARTBEAT")
         with self._cond:
+            mode = self._mode_locked()
+            if (
+                self._takeoff_attempts == 1
+                and self._armed
+                and not vehicle_control.may_take_at_start(self._flavour, mode)
+            ):
+                # Armed in someone else's mode before the sequence did anything: a pilot (or
+                # the autopilot) has it, on the ground or flying; not taken, not retried.
+                autopilot = vehicle_control.is_return_or_land(self._flavour, mode) or (
+                    self._failsafe_flagged()
+                )
+                why = f"the vehicle was found armed in {mode} before its take-off"
+                self._set_control(
+                    Control("autopilot" if autopilot else "pilot", why, time.monotonic())
+                )
+                raise RuntimeError(f"{why}: left to whoever flies it (an operator hands it back)")
             if self._in_air():
-                mode = self._mode_locked()
-                first = self._takeoff_attempts == 1
-                if first and not vehicle_control.may_take_at_start(self._flavour, mode):
-                    # Flying in someone else's mode before the sequence did anything: a pilot
-                    # (or the autopilot) took it while no service flew it; not taken back.
-                    autopilot = vehicle_control.is_return_or_land(self._flavour, mode) or (
-                        self._failsafe_flagged()
-                    )
-                    self._set_control(
-                        Control(
-                            "autopilot" if autopilot else "pilot",
-                            f"the vehicle was found flying in {mode} before its take-off",
-                            time.monotonic(),
-                        )
-                    )
-                    log.warning(
-                        "the vehicle is already flying in %s: left to whoever flies it "
-                        "(an operator hands it back)",
-                        mode,
-                    )
-                    return
                 log.info("the vehicle is already flying: taken over without arming")
                 return
         self._set_phase("waiting for a position estimate")
