@@ -136,12 +136,6 @@ def after_heartbeat(control: Control, seen: Observation, now_s: float) -> Contro
         why = f"in {seen.mode}"
     if why is None:
         return control
-    autopilot = (
-        is_return_or_land(seen.flavour, seen.mode)
-        or seen.failsafe_flagged
-        or seen.failsafe_text is not None
-        or seen.after_link_loss
-    )
     details = []
     if seen.after_link_loss:
         details.append("while the link was lost")
@@ -150,7 +144,19 @@ def after_heartbeat(control: Control, seen: Observation, now_s: float) -> Contro
     if seen.failsafe_text is not None:
         details.append(f"vehicle said: {seen.failsafe_text}")
     reason = "the vehicle " + why + (f" ({'; '.join(details)})" if details else "")
-    return Control("autopilot" if autopilot else "pilot", reason, now_s)
+    return Control(holder_after_leaving(seen), reason, now_s)
+
+
+def holder_after_leaving(seen: Observation) -> ControlHolder:
+    """Who has a vehicle that has left the service's hands (module docstring): the autopilot
+    in a return or landing mode, with a failsafe shown or after a link loss; else its pilot."""
+    autopilot = (
+        is_return_or_land(seen.flavour, seen.mode)
+        or seen.failsafe_flagged
+        or seen.failsafe_text is not None
+        or seen.after_link_loss
+    )
+    return "autopilot" if autopilot else "pilot"
 
 
 def may_take_at_start(flavour: Flavour | None, mode: str | None) -> bool:

@@ -267,13 +267,10 @@ class TakeoffMixin(_Base):
             ):
                 # Armed in someone else's mode before the sequence did anything: a pilot (or
                 # the autopilot) has it, on the ground or flying; not taken, not retried.
-                autopilot = vehicle_control.is_return_or_land(self._flavour, mode) or (
-                    self._failsafe_flagged()
-                )
+                now = time.monotonic()
+                seen = self._observation(None, None, False, at_start=True, now=now)
                 why = f"the vehicle was found armed in {mode} before its take-off"
-                self._set_control(
-                    Control("autopilot" if autopilot else "pilot", why, time.monotonic())
-                )
+                self._set_control(Control(vehicle_control.holder_after_leaving(seen), why, now))
                 raise RuntimeError(f"{why}: left to whoever flies it (an operator hands it back)")
             if self._in_air():
                 log.info("the vehicle is already flying: taken over without arming")

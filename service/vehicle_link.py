@@ -880,29 +880,47 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
         take-off ``idle`` again."""
         if self._takeoff == "running" or self._flavour is None:
             return
+        fresh, self._control_fresh = self._control_fresh, False
+        seen = self._observation(
+            None if fresh else previous_mode,
+            None if fresh else previous_armed,
+            after_loss,
+            at_start=previous_mode is None and not fresh,
+            now=now,
+        )
+        self._set_control(vehicle_control.after_heartbeat(self._control, seen, now))
+        if previous_armed and not self._armed and self._takeoff == "airborne":
+            self._takeoff = "idle"
+
+    def _observation(
+        self,
+        previous_mode: str | None,
+        previous_armed: bool | None,
+        after_loss: bool,
+        at_start: bool,
+        now: float,
+    ) -> vehicle_control.Observation:
+        """What the latest HEARTBEAT shows, for :func:`service.control.after_heartbeat` (call
+        under ``self._cond``, with the flavour and mode known)."""
         mode = self._mode_locked()
-        assert mode is not None
+        assert self._flavour is not None and mode is not None
         failsafe_text = None
         if self._failsafe_text is not None:
             at, text = self._failsafe_text
             if now - at <= vehicle_control.FAILSAFE_EVIDENCE_S:
                 failsafe_text = text
-        fresh, self._control_fresh = self._control_fresh, False
-        seen = vehicle_control.Observation(
+        return vehicle_control.Observation(
             flavour=self._flavour,
             mode=mode,
             armed=self._armed,
-            previous_mode=None if fresh else previous_mode,
-            previous_armed=None if fresh else previous_armed,
+            previous_mode=previous_mode,
+            previous_armed=previous_armed,
             failsafe_flagged=self._failsafe_flagged(),
             failsafe_text=failsafe_text,
             after_link_loss=after_loss,
-            at_start=previous_mode is None and not fresh,
+            at_start=at_start,
             streamed=self.counters.get("setpoints_sent", 0) > 0,
         )
-        self._set_control(vehicle_control.after_heartbeat(self._control, seen, now))
-        if previous_armed and not self._armed and self._takeoff == "airborne":
-            self._takeoff = "idle"
 
     def _stream_setpoint(self, now: float) -> None:
         """The current setpoint of the route, if one streams; counted when it went out. A stream
