@@ -14,7 +14,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from functools import partial
 from typing import TYPE_CHECKING
 
@@ -69,12 +69,72 @@ SPEED_REASSERT_S = 10.0
 GUIDED's sub-mode resets it the same way."""
 RETURN_ATTEMPTS = 3
 """How many times the return home is asked for before the link gives up (and says so)."""
+PACE_LEAD_S = 1.0
+"""Until the autopilot holds the envelope's speed limit, a setpoint streams at most this many
+seconds of flight at the limit ahead of the vehicle (:func:`paced_setpoint`)."""
+
+
+def paced_setpoint(
+    position_m: Sequence[float],
+    setpoint_m: Sequence[float],
+    max_speed_mps: float,
+    brake_mps2: float,
+) -> tuple[float, float, float]:
+    """The point on the straight way from ``position_m`` to ``setpoint_m`` (area frame) no further
+    ahead, horizontally, than ``lead = min(max_speed_mps * PACE_LEAD_S, max_speed_mps**2 /
+    (2 * brake_mps2))``; ``setpoint_m`` itself when it is nearer.
+
+    What the link streams while the autopilot's own speed limit is not (yet) the envelope's: an
+    autopilot that flies towards a point at its own speed is kept to ``max_speed_mps`` by never
+    being given a point further away than that lead — whether its position controller is
+    proportional (speed = gain x distance, gain at most 1/s: PX4's and ArduPilot's default
+    horizontal position gains are 0.95 and 1) or plans to stop at the point braking at up to
+    ``brake_mps2`` (speed <= sqrt(2 x brake x distance)). The point lies on the vehicle's way to
+    the route's setpoint, which the route already keeps legal."""
+    here = [float(v) for v in position_m]
+    there = [float(v) for v in setpoint_m]
+    lead_m = min(max_speed_mps * PACE_LEAD_S, max_speed_mps**2 / (2.0 * brake_mps2))
+    horizontal_m = math.hypot(there[0] - here[0], there[1] - here[1])
+    if horizontal_m <= lead_m:
+        return (there[0], there[1], there[2])
+    share = lead_m / horizontal_m
+    x, y, z = (a + share * (b - a) for a, b in zip(here, there, strict=True))
+    return (x, y, z)
 
 
 class SafetyMixin(_Base):
     """The speed limit, the autopilot's fence and the battery reserve (module doc)."""
 
     # ------------------------------------------------------------------ the speed limit
+
+    def _speed_limit_held_locked(self) -> bool:
+        """Whether the autopilot is known to fly no faster than the envelope's ``max_speed_mps``
+        (call under ``self._cond``): ArduPilot took it for this stay in GUIDED; PX4's
+        ``MPC_XY_VEL_MAX`` is confirmed at or below it. Until then setpoints are paced
+        (:func:`paced_setpoint`)."""
+        wanted_mps = self._routing.envelope.max_speed_mps
+        if self._flavour == "px4":
+            held_mps = self._speed_param_mps  # NaN while a set is unanswered: not held
+        elif self._flavour == "ardupilot":
+            held_mps = self._speed_limit_mps
+        else:
+            held_mps = None
+        return held_mps is not None and held_mps <= wanted_mps
+
+    def _paced_locked(
+        self, setpoint_m: tuple[float, float, float], now: float
+    ) -> tuple[float, float, float] | None:
+        """``setpoint_m`` as it may stream now (call under ``self._cond``): itself while the
+        autopilot holds the envelope's speed limit, otherwise paced from where the vehicle is;
+        without a fresh position, the last setpoint streamed (None: none streamed yet)."""
+        if self._speed_limit_held_locked():
+            return setpoint_m
+        position = self._position_locked(now)
+        if position is None:
+            return self._streamed_area_m
+        return paced_setpoint(
+            position, setpoint_m, self._routing.envelope.max_speed_mps, self.config.brake_mps2
+        )
 
     def _speed_limit_step(self, now: float) -> None:
         """The envelope's ``max_speed_mps`` on the autopilot, asked on a worker (the I/O loop

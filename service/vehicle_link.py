@@ -404,6 +404,7 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
         self._awaiting_plan = False  # the I/O loop waits for a route plan it asked for
         self._hold_setpoints = False
         self._stream_since: float | None = None
+        self._streamed_area_m: tuple[float, float, float] | None = None  # the latest setpoint
         self._mode_wanted_until = 0.0
         self._mode_asked_at = -math.inf  # the latest guided-mode request (monotonic)
         # Take-off bookkeeping (under self._cond).
@@ -923,8 +924,9 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
         )
 
     def _stream_setpoint(self, now: float) -> None:
-        """The current setpoint of the route, if one streams; counted when it went out. A stream
-        that starts (again) plans the route from where the vehicle is now."""
+        """The current setpoint of the route, if one streams, paced while the autopilot does not
+        hold the envelope's speed limit (:meth:`_paced_locked`); counted when it went out. A
+        stream that starts (again) plans the route from where the vehicle is now."""
         with self._cond:
             self._target_dirty = False
             setpoint = None
@@ -941,10 +943,16 @@ class VehicleLinkBase(TakeoffMixin, SafetyMixin, VehicleLink):
                 )
                 if not self._streaming_now():  # changed while the lock was let go
                     setpoint = None
+                elif setpoint is not None:
+                    setpoint = self._paced_locked(setpoint, now)
+                    if setpoint is None:  # nothing to pace from yet: nothing goes out now
+                        return
             if setpoint is None:
                 self._stream_since = None
+                self._streamed_area_m = None
             else:
                 ned_m = area_to_ned(*setpoint, self.config.frames)
+                self._streamed_area_m = setpoint
                 if new:
                     self._stream_since = now
         if setpoint is None:

@@ -142,3 +142,76 @@ def test_a_px4_slower_than_the_envelope_is_left_alone(
     assert _speed(mock) == 3.0
     assert mock.stats.get("param_sets", 0) == 0  # not even its own value set again
     assert link.counters["speed_limits_set"] == 0 and link.counters["speed_limit_failures"] == 0
+
+
+def _fastest_until_there(
+    mock: MockAutopilot, link: Any, target_m: tuple[float, float, float], timeout_s: float
+) -> float:
+    """Set ``target_m`` and sample the vehicle's horizontal speed (every 20 ms of wall time)
+    until it is within 1 m of it; the fastest seen (fails when it does not get there)."""
+    link.set_target(target_m)
+    fastest = 0.0
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        state = mock.state()
+        fastest = max(fastest, math.hypot(*state.velocity_ned_mps[:2]))
+        here = link.state().position_m
+        if here is not None and math.dist(here, link.state().target_m or target_m) < 1.0:
+            return fastest
+        time.sleep(0.02)
+    raise AssertionError(f"not at {target_m} after {timeout_s} s (fastest {fastest:.2f} m/s)")
+
+
+def _refuse_px4_speed_limit(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every mock of this test keeps its own MPC_XY_VEL_MAX (a PARAM_SET of it is refused)."""
+    import sitl_mock.protocol
+
+    take = sitl_mock.protocol.set_parameter
+
+    def refuse(vehicle: Any, name: str, value: float, param_type: int) -> bool:
+        return False if name == "MPC_XY_VEL_MAX" else take(vehicle, name, value, param_type)
+
+    monkeypatch.setattr(sitl_mock.protocol, "set_parameter", refuse)
+
+
+@pytest.mark.parametrize("flavour", ["ardupilot", "px4"])
+def test_a_vehicle_that_does_not_take_the_limit_still_flies_no_faster_than_it(
+    start_mock: Callable[..., MockAutopilot],
+    open_link: Callable[..., Any],
+    monkeypatch: pytest.MonkeyPatch,
+    flavour: str,
+) -> None:
+    """Until the vehicle has confirmed the envelope's speed limit (and for good when it refuses
+    it) the link streams setpoints no further ahead than the limit allows, so the vehicle,
+    flying at its own 10 m/s, still keeps to the envelope's 4 m/s — from the first moment of the
+    flight — and gets where it was sent."""
+    from sitl_mock.flavours import MavResult
+    from sitl_mock.vehicle import CommandOutcome
+
+    if flavour == "px4":
+        _refuse_px4_speed_limit(monkeypatch)
+    mock = start_mock(flavour, **FAST_VEHICLE)
+    if flavour == "ardupilot":
+        denied = CommandOutcome(MavResult.DENIED, "no speed changes here")
+        mock.with_vehicle(lambda v: setattr(v, "change_speed", lambda *_: denied))
+    link = open_link(tcp_url(mock), envelope=Envelope.for_area(AREA, max_speed_mps=4.0))
+    link.arm_and_takeoff().result(timeout=30.0)
+    fastest = _fastest_until_there(mock, link, (55.0, 55.0, 15.0), 40.0)
+    assert _speed(mock) == 10.0  # the vehicle never took the limit
+    wait_for(lambda: link.counters["speed_limit_failures"] >= 1, 10.0, message="refused")
+    assert 2.0 < fastest <= 4.0 + 0.05, fastest
+
+
+@pytest.mark.parametrize("flavour", ["ardupilot", "px4"])
+def test_the_first_moments_of_a_flight_keep_to_the_limit_too(
+    start_mock: Callable[..., MockAutopilot], open_link: Callable[..., Any], flavour: str
+) -> None:
+    """The limit on the autopilot is set only once the service flies the vehicle (ArduPilot:
+    a second into GUIDED; PX4: after its own speeds were read); the stream keeps the vehicle
+    to it meanwhile, and flies at the limit once it is in force."""
+    mock = start_mock(flavour, **FAST_VEHICLE)
+    link = open_link(tcp_url(mock), envelope=Envelope.for_area(AREA, max_speed_mps=4.0))
+    link.arm_and_takeoff().result(timeout=30.0)
+    fastest = _fastest_until_there(mock, link, (55.0, 55.0, 15.0), 40.0)
+    assert _speed(mock) == 4.0 and link.counters["speed_limits_set"] == 1
+    assert 3.5 < fastest <= 4.0 + 0.05, fastest
