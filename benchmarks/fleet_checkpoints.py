@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from policies.evaluation.fleet_evaluation import build_fleet_candidate, evaluate_fleet
+from policies.learned.checkpoints import metadata_path
 from policies.learned.fleet_checkpoint import FleetCheckpointPolicy
 from policies.placements.fleet_scored import KMEANS_SCORED
 from sim.fleet import MAX_UAVS, FleetConfig
@@ -140,7 +141,9 @@ def int_list(text: str) -> tuple[int, ...]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("checkpoints", nargs="+", help="fleet checkpoint directories")
+    parser.add_argument(
+        "checkpoints", nargs="+", help="fleet checkpoints (a run directory or its model.zip)"
+    )
     parser.add_argument("--per-family", type=int, default=2)
     parser.add_argument("--uavs", type=int_list, default=(2, 3), help="fleet sizes, e.g. 2,3")
     parser.add_argument("--users", type=int_list, default=(20, 50), help="user counts, e.g. 20,50")
@@ -151,7 +154,9 @@ def main() -> int:
     results = validate([*args.checkpoints, *REFERENCES], args.per_family, args.uavs, args.users)
     checkpoints = {}
     for path in args.checkpoints:
-        meta = json.loads((Path(path) / "model.json").read_text())
+        checkpoint = Path(path)
+        model = checkpoint / "model.zip" if checkpoint.is_dir() else checkpoint
+        meta = json.loads(metadata_path(model).read_text())
         checkpoints[path] = {
             **{
                 key: meta.get(key)

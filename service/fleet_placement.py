@@ -434,4 +434,5 @@ def load_fleet_policy(
         raise InputError("policy: fails on a test decision (see the service log)") from None
     if targets.shape != (2, 3) or not np.all(np.isfinite(targets)):
         raise InputError("policy: gives unusable targets on a test decision")
+    policy.reset()  # the test decision's users are nobody's: their APs are forgotten
     return policy

@@ -251,6 +251,11 @@ class FakeLink(VehicleLink):
             )
         return step_m
 
+    def place_at(self, position_m: Sequence[float]) -> None:
+        """The vehicle is at ``position_m`` (area frame) now: a replay of recorded telemetry."""
+        with self._cond:
+            self._position = tuple(float(v) for v in position_m)  # type: ignore[assignment]
+
     def set_link(self, up: bool) -> None:
         """The link comes up (again) or is lost (no HEARTBEAT: ``link_lost``)."""
         with self._cond:

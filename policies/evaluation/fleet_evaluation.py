@@ -7,16 +7,17 @@ Protocol (:func:`evaluate_fleet`), for scenario i of the set, K UAVs, a
 * the fleet environment (:class:`sim.fleet_env.FleetParallelEnv`, continuous actions) is reset
   with ``seed + i`` from the fleet's homes (:func:`sim.fleet_env.fleet_homes`), so every policy
   meets the same fading draws, user motion and demand changes on the same scenario;
-* a fleet checkpoint (:class:`policies.learned.fleet_checkpoint.FleetCheckpointPolicy`) decides
-  every step from the K agents' observations; a placement (``place(users) -> (K, 3)``: the k-means
-  baselines of :mod:`policies.placements.fleet_baselines`, the search oracle of
-  :mod:`policies.placements.fleet_oracle`) is placed on the first report the decision sees and
-  re-placed every ``replan_every`` decisions, held in between, its targets given to the vehicles by
-  least total flight (:func:`sim.geometry.assign_targets`, as the service assigns them); the oracle
-  searches from where the fleet is (:meth:`policies.placements.fleet_oracle.FleetOracle.place_from`:
-  the vehicles' positions, the users' APs in the report, the world's flight); the environment
-  flies the vehicles toward the targets under the world's limits (every policy pays the same
-  transit).
+* every decision is the one ``tupa serve`` would take (:func:`as_fleet_policy`: the same
+  :meth:`~policies.fleet_policy.FleetPolicy.decide_fleet`, from the report the decision sees and
+  where the vehicles are, the users' APs estimated by the one rule of
+  :class:`~policies.fleet_policy.ReportedAssociation`, each target given to the vehicle with the
+  least total flight, :func:`sim.geometry.assign_targets`, as the service assigns them); a fleet
+  checkpoint (:class:`policies.learned.fleet_checkpoint.FleetCheckpointPolicy`) decides every
+  step; a placement (the k-means baselines of :mod:`policies.placements.fleet_baselines`,
+  ``kmeans-scored``, the search oracle of :mod:`policies.placements.fleet_oracle`, which score
+  from where the fleet is) is placed on the first report and re-placed every ``replan_every``
+  decisions, held in between; the environment flies the vehicles toward the targets under the
+  world's limits (every policy pays the same transit).
 
 Per scenario (a row of the document), over the episode's ``episode_steps`` decisions:
 
@@ -46,11 +47,16 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from policies.interface import ReportedUsers
+from policies.fleet_policy import (
+    FleetCheckpointServing,
+    FleetPlacementPolicy,
+    FleetPolicy,
+    resolve_fleet_policy,
+)
 from policies.learned.fleet_checkpoint import FleetCheckpointPolicy
-from policies.placements.fleet_baselines import FLEET_BASELINES, KMeansPlacement
-from policies.placements.fleet_oracle import FLEET_ORACLE, FleetOracle, FleetOracleConfig
-from policies.placements.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
+from policies.placements.fleet_baselines import FLEET_BASELINES
+from policies.placements.fleet_oracle import FLEET_ORACLE
+from policies.placements.fleet_scored import KMEANS_SCORED
 from sim.errors import InputError
 from sim.fleet import MAX_UAVS, FleetConfig
 from sim.fleet_env import FleetParallelEnv
@@ -65,6 +71,7 @@ __all__ = [
     "FLEET_ORACLE",
     "FleetPlacement",
     "add_ratio_to_oracle",
+    "as_fleet_policy",
     "build_fleet_candidate",
     "check_fleet_size",
     "evaluate_fleet",
@@ -92,39 +99,37 @@ class FleetPlacement(Protocol):
     def place(self, users: Any) -> np.ndarray: ...
 
 
+def as_fleet_policy(
+    policy: FleetPolicy | FleetCheckpointPolicy | FleetPlacement, world: World, fleet: FleetConfig
+) -> FleetPolicy:
+    """What ``policy`` decides as when served (:class:`policies.fleet_policy.FleetPolicy`): a
+    served policy as it is, a checkpoint (anything with ``targets``) as
+    :class:`~policies.fleet_policy.FleetCheckpointServing`, a placement built for ``fleet``'s K
+    as :class:`~policies.fleet_policy.FleetPlacementPolicy`."""
+    if hasattr(policy, "decide_fleet"):
+        return policy  # type: ignore[return-value]
+    if hasattr(policy, "targets"):
+        return FleetCheckpointServing(policy, "", world, fleet.hysteresis_db)
+    return FleetPlacementPolicy.around(policy, world, fleet)
+
+
 @dataclass
 class _Decider:
-    """Targets for one step: the checkpoint's, or the placement's (re-placed every N steps)."""
+    """Targets for one step, decided as the service decides (the same
+    :meth:`~policies.fleet_policy.FleetPolicy.decide_fleet` from the report and where the
+    vehicles are, each target to the vehicle with the least total flight); a placement's held
+    for ``replan_every`` steps, a checkpoint's every step."""
 
-    policy: FleetCheckpointPolicy | FleetPlacement
+    policy: FleetPolicy
     replan_every: int
     _held: np.ndarray | None = field(default=None, init=False)
 
-    def __call__(self, env: FleetParallelEnv, observations: np.ndarray, step: int) -> np.ndarray:
-        if isinstance(self.policy, FleetCheckpointPolicy):
-            return self.policy.targets(
-                observations, env.reports, env.uav_xyz_m, env.reported_association
-            )
-        if self._held is None or step % self.replan_every == 0:
-            users = ReportedUsers.of(env.reports)
-            if hasattr(self.policy, "place_from"):  # it scores from where the fleet is
-                placed = self.policy.place_from(
-                    users, env.uav_xyz_m, env.reported_association, env.world.flight
-                )
-            else:
-                placed = self.policy.place(users)
-            # Which vehicle takes which target: least total flight, as the service assigns.
-            self._held = assign_targets(env.uav_xyz_m, np.asarray(placed, dtype=float))
+    def __call__(self, env: FleetParallelEnv, step: int) -> np.ndarray:
+        every = self.replan_every if self.policy.kind == "placement" else 1
+        if self._held is None or step % every == 0:
+            wanted = self.policy.decide_fleet(env.reports, env.uav_xyz_m)
+            self._held = assign_targets(env.uav_xyz_m, np.asarray(wanted, dtype=float))
         return self._held
-
-
-def _policy_name(policy: Any) -> str:
-    if isinstance(policy, FleetCheckpointPolicy):
-        from policies.adapters import default_name
-
-        return default_name(policy.metadata, None)
-    name = getattr(policy, "name", None)
-    return name if isinstance(name, str) and name else type(policy).__name__
 
 
 def _progress(items: Sequence[Scenario], label: str, enabled: bool) -> Iterable[Scenario]:
@@ -172,19 +177,20 @@ def evaluate_fleet(
     fleet = fleet or FleetConfig(n_uavs=n_uavs)
     if fleet.n_uavs != n_uavs:
         raise InputError(f"n_uavs: {n_uavs} disagrees with the fleet's {fleet.n_uavs}")
-    label = name or _policy_name(policy)
+    served = as_fleet_policy(policy, world, fleet)
+    label = name or served.name
     env = FleetParallelEnv(action_kind="continuous", scenarios=list(scenarios), world=world,
                            fleet=fleet)  # fmt: skip
     heterogeneity = heterogeneity_indices(scenarios, world.area)
     rows: list[dict[str, Any]] = []
     for i, scenario in enumerate(_progress(scenarios, f"{label} K={n_uavs}", progress)):
-        decide = _Decider(policy, replan_every)
-        observations, _ = env.reset(seed=seed + i, options={"scenario": scenario})
+        served.reset()  # a new episode: the users' APs start afresh
+        decide = _Decider(served, replan_every)
+        env.reset(seed=seed + i, options={"scenario": scenario})
         sums = dict.fromkeys(_STEP_METRICS, 0.0)
         steps, handovers = 0, 0
         while env.agents:
-            joint = np.stack([observations[a] for a in env.possible_agents])
-            observations, _, _, _, infos = env.step_to(decide(env, joint, steps))
+            *_, infos = env.step_to(decide(env, steps))
             info = infos[env.possible_agents[0]]
             for key in _STEP_METRICS:
                 sums[key] += info[key]
@@ -225,57 +231,38 @@ def build_fleet_candidate(
     fleet: FleetConfig | None = None,
     seed: int = 0,
     option: str = "policy",
-) -> tuple[str, FleetCheckpointPolicy | FleetPlacement]:
-    """``(name, policy)`` for ``spec``, to evaluate a fleet of ``n_uavs`` in ``world``.
+) -> tuple[str, FleetPolicy]:
+    """``(name, policy)`` for ``spec``, to evaluate a fleet of ``n_uavs`` in ``world``: the
+    policy ``tupa serve`` would serve for it (:func:`policies.fleet_policy.resolve_fleet_policy`
+    on a fleet like ``fleet``; the search seeded with ``seed``).
 
-    ``spec``: ``kmeans-min-distance`` or ``kmeans-load-weighted`` (:class:`KMeansPlacement`),
-    ``kmeans-scored`` (:class:`ScoredKMeansPlacement` on ``world``'s network), ``fleet-oracle``
-    (:class:`FleetOracle` searching over ``world``'s network, episode length and decision
-    period, seeded with ``seed``), or a fleet checkpoint (a ``tupa train --uavs K`` output
-    directory or its ``model.zip``; any K). Anything else, a single-UAV policy or
-    checkpoint included, is an :class:`InputError` naming ``option``."""
-    from policies.learned.checkpoints import CheckpointError
+    ``spec``: ``kmeans-min-distance``, ``kmeans-load-weighted``, ``kmeans-scored``,
+    ``fleet-oracle`` (scoring over ``world``'s network, episode and decision period), or a
+    fleet checkpoint (a ``tupa train --uavs K`` output directory or its ``model.zip``; any K).
+    Anything else, a single-UAV policy or checkpoint included, is an :class:`InputError`
+    naming ``option``."""
     from policies.registry import PLACEMENTS
 
     fleet = fleet or FleetConfig(n_uavs=n_uavs)
     if fleet.n_uavs != n_uavs:
         raise InputError(f"n_uavs: {n_uavs} disagrees with the fleet's {fleet.n_uavs}")
-    sep = fleet.separation_m
     spec = str(spec).strip()
-    if spec in FLEET_BASELINES:
-        placement = KMeansPlacement(n_uavs, world.area, spec == "kmeans-load-weighted", sep)
-        return spec, placement
-    if spec == KMEANS_SCORED:
-        scored = ScoredKMeansPlacement(
-            fleet, world.area, world.network, world.utility, world.episode_steps, world.step_s
-        )
-        return spec, scored
-    if spec == FLEET_ORACLE:
-        config = FleetOracleConfig(
-            episode_steps=world.episode_steps, step_s=world.step_s, seed=seed
-        )
-        return spec, FleetOracle(fleet, world.area, world.network, world.utility, config)
     known = ", ".join(FLEET_EVAL_POLICIES)
     if spec in PLACEMENTS:
         raise InputError(
             f"{option}: {spec!r} places one UAV; a fleet is evaluated with {known} or a fleet "
             "checkpoint (tupa train --uavs K)"
         )
-    path = Path(spec)
-    if not spec or not path.exists():
+    if spec not in FLEET_EVAL_POLICIES and (not spec or not Path(spec).exists()):
         raise InputError(
             f"{option}: {spec!r} is neither a fleet policy ({known}) nor an existing checkpoint"
         )
     try:
-        policy = FleetCheckpointPolicy.load(path, world.area, sep, world=world)
-    except CheckpointError as exc:
-        raise InputError(f"{option}: {spec}: not a fleet checkpoint ({exc.problem})") from None
+        policy = resolve_fleet_policy(spec, world, fleet.separation_m, fleet=fleet, seed=seed)
     except InputError as exc:
         problem = str(exc).removeprefix("policy: ")
-        raise InputError(f"{option}: {spec}: {problem}") from None
-    from policies.adapters import default_name
-
-    return default_name(policy.metadata, path), policy
+        raise InputError(f"{option}: {spec}: not a fleet checkpoint ({problem})") from None
+    return policy.name, policy
 
 
 def add_ratio_to_oracle(documents: Sequence[dict[str, Any]]) -> bool:

@@ -19,6 +19,7 @@ from policies.evaluation.fleet_evaluation import (
     build_fleet_candidate,
     evaluate_fleet,
 )
+from policies.fleet_policy import FleetCheckpointServing
 from policies.interface import ReportedUsers
 from policies.learned.fleet_checkpoint import FleetCheckpointPolicy
 from policies.placements.fleet_baselines import KMeansPlacement
@@ -268,7 +269,8 @@ def test_the_report_refuses_bad_fleet_input_and_writes_nothing(tmp_path, capsys,
 def test_a_checkpoint_flies_another_fleet_size(checkpoint, scenario_file):
     """A checkpoint trained with 2 UAVs is evaluated with 3 (parameters shared)."""
     name, policy = build_fleet_candidate(str(checkpoint / "model.zip"), 3, WORLD)
-    assert isinstance(policy, FleetCheckpointPolicy) and name == "ddpg-fleet-shared"
+    assert isinstance(policy, FleetCheckpointServing) and name == "ddpg-fleet-shared"
+    assert isinstance(policy.policy, FleetCheckpointPolicy)
     _, scenarios = load_scenarios(scenario_file)
     result = evaluate_fleet(policy, scenarios[:1], 3, WORLD, progress=False)
     assert result["uavs"] == 3 and result["n_scenarios"] == 1

@@ -8,7 +8,12 @@ import numpy as np
 import pytest
 
 from policies.evaluation.fleet_evaluation import FLEET_EVAL_POLICIES, build_fleet_candidate
-from policies.fleet_policy import FLEET_POLICIES, resolve_fleet_policy
+from policies.fleet_policy import (
+    FLEET_POLICIES,
+    FleetPlacementPolicy,
+    ReportedAssociation,
+    resolve_fleet_policy,
+)
 from policies.placements.fleet_baselines import KMeansPlacement
 from policies.placements.fleet_oracle import FleetStart, fleet_episode_utility
 from policies.placements.fleet_scored import KMEANS_SCORED, ScoredKMeansPlacement
@@ -105,22 +110,30 @@ def test_evaluated_and_served_by_name() -> None:
     world = get_world("closed-loop")
     assert KMEANS_SCORED in FLEET_EVAL_POLICIES and KMEANS_SCORED in FLEET_POLICIES
     name, candidate = build_fleet_candidate(KMEANS_SCORED, 3, world)
-    assert name == KMEANS_SCORED and isinstance(candidate, ScoredKMeansPlacement)
     users = generate_scenarios(1, 30, 3, family="hotspots", total_load_bps=120e6)[0]
+    zeros = np.zeros(len(users.load_bps))
+    reports = UserReports.from_metrics(users.users_xy_m, users.load_bps, zeros, zeros, zeros)
+    # What is evaluated is what is served: the same decision from the same report.
+    three = np.column_stack([15.0 * np.arange(3), np.zeros(3), np.full(3, 25.0)])
+    np.testing.assert_array_equal(
+        candidate.decide_fleet(reports, three),
+        resolve_fleet_policy(KMEANS_SCORED, world, 10.0).decide_fleet(reports, three),
+    )
+    assert name == KMEANS_SCORED and isinstance(candidate, FleetPlacementPolicy)
     # Served with the service's decision period as the model's step (5 s here), as the oracle is:
     # from these vehicles, scoring with 1-s steps picks another placement.
     world = replace(world, step_s=5.0)
     served = resolve_fleet_policy(KMEANS_SCORED, world, 10.0)
-    zeros = np.zeros(len(users.load_bps))
-    reports = UserReports.from_metrics(users.users_xy_m, users.load_bps, zeros, zeros, zeros)
     for k in (3, 2):  # as many targets as vehicles fly now, scored flown from where they are
         vehicles = np.column_stack([15.0 * np.arange(k), np.zeros(k), np.full(k, 25.0)])
         targets = served.decide_fleet(reports, vehicles)
         fleet = FleetConfig(n_uavs=k)
+        # From the users' APs as the one rule estimates them (a fresh start: K changed).
+        on = ReportedAssociation(world).at(reports, vehicles)
         expected, one_second = (
             ScoredKMeansPlacement(
                 fleet, world.area, world.network, world.utility, step_s=step_s
-            ).place_from(users, vehicles, None, world.flight)
+            ).place_from(users, vehicles, on, world.flight)
             for step_s in (world.step_s, 1.0)
         )
         np.testing.assert_array_equal(targets, expected)
