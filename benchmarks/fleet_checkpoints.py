@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from policies.evaluation.fleet_evaluation import build_fleet_candidate, evaluate_fleet
-from policies.learned.checkpoints import metadata_path
+from policies.learned.checkpoints import read_metadata
 from policies.learned.fleet_checkpoint import FleetCheckpointPolicy
 from policies.placements.fleet_scored import KMEANS_SCORED
 from sim.fleet import MAX_UAVS, FleetConfig
@@ -154,9 +154,7 @@ def main() -> int:
     results = validate([*args.checkpoints, *REFERENCES], args.per_family, args.uavs, args.users)
     checkpoints = {}
     for path in args.checkpoints:
-        checkpoint = Path(path)
-        model = checkpoint / "model.zip" if checkpoint.is_dir() else checkpoint
-        meta = json.loads(metadata_path(model).read_text())
+        meta = read_metadata(Path(path))
         checkpoints[path] = {
             **{
                 key: meta.get(key)

@@ -51,6 +51,7 @@ from policies.evaluation.fleet_evaluation import (
     build_fleet_candidate,
     evaluate_fleet,
 )
+from policies.learned.checkpoints import read_metadata
 from policies.placements.fleet_scored import KMEANS_SCORED
 from sim.fleet import FleetConfig
 from sim.scenarios import generate_scenarios
@@ -199,7 +200,7 @@ def main() -> None:
                     ),
                     flush=True,
                 )
-    meta = json.loads(Path(args.checkpoint, "model.json").read_text()) if args.checkpoint else {}
+    meta = read_metadata(Path(args.checkpoint)) if args.checkpoint else {}
     report = {
         "benchmark": "fleet_policy",
         "command": "python benchmarks/fleet_policy.py " + " ".join(sys.argv[1:]),
