@@ -33,6 +33,20 @@ _USAGE = """\
        %(prog)s --uavs K --algo {ddqn,ddpg} --episodes N --out DIR [options]"""
 
 
+SINGLE_ONLY = (
+    "strategy",
+    "test_scenarios",
+    "queueing",
+    "world_set",
+    "checkpoint_every",
+    "curve_scenarios",
+    "no_final_eval",
+    "save_replay_buffer",
+)
+"""The options (argparse destinations) of a single-UAV run that a fleet run would not use: a
+fleet run refuses them, named, when they differ from the parser's defaults."""
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "train",
@@ -221,7 +235,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="DIR",
         help="continue the interrupted run in DIR (its settings; --episodes may raise the target)",
     )
-    parser.set_defaults(handler=_train)
+    parser.set_defaults(
+        handler=_train,
+        single_only_defaults={dest: parser.get_default(dest) for dest in SINGLE_ONLY},
+    )
 
 
 def _user_range(text: str | None) -> tuple[int, int] | None:
@@ -329,19 +346,11 @@ def _train_fleet(args: argparse.Namespace) -> int:
     missing = [f"--{name}" for name in ("algo", "episodes", "out") if getattr(args, name) is None]
     if missing:
         raise InputError(f"{', '.join(missing)}: required with --uavs K > 1")
+    defaults = args.single_only_defaults
     ignored = [
-        flag
-        for flag, given in (
-            ("--strategy", args.strategy is not None),
-            ("--test-scenarios", args.test_scenarios is not None),
-            ("--queueing", args.queueing != "fq-codel"),
-            ("--world-set", bool(args.world_set)),
-            ("--checkpoint-every", args.checkpoint_every != 500),
-            ("--curve-scenarios", args.curve_scenarios != 100),
-            ("--no-final-eval", args.no_final_eval),
-            ("--save-replay-buffer", args.save_replay_buffer),
-        )
-        if given
+        f"--{dest.replace('_', '-')}"
+        for dest in SINGLE_ONLY
+        if getattr(args, dest) != defaults[dest]
     ]
     if ignored:
         raise InputError(

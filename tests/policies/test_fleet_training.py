@@ -213,6 +213,7 @@ def test_cli_refuses_bad_fleet_sizes_and_writes_nothing(tmp_path, capsys, extra,
     assert not out.exists()
 
 
+@pytest.mark.training
 def test_cli_trains_a_fleet(tmp_path, capsys, monkeypatch):
     import policies.training.fleet_training as fleet_training
 
