@@ -58,7 +58,7 @@ class FleetPolicy(Protocol):
     """What the service asks of a fleet policy: ``decide_fleet(reports, vehicles_xyz_m)`` gives
     one target (K, 3), metres, area frame, for each of the K vehicles in ``vehicles_xyz_m``
     (K, 3), separated by ``separation_m`` and inside the area volume. Targets need not be in the
-    vehicles' order: the service assigns them (:func:`service.fleet_targets.assign_targets`)."""
+    vehicles' order: the service assigns them (:func:`sim.fleet_targets.assign_targets`)."""
 
     name: str
     spec: str

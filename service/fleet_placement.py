@@ -21,14 +21,14 @@ one vehicle: :mod:`service.placement`):
    to cover its users at the next decision — the **degraded mode** — and when it returns it is
    commanded again and the fleet re-places with it;
 3. each target goes to the vehicle with the least total flight
-   (:func:`~service.fleet_targets.assign_targets`), then the guard separates the targets from
+   (:func:`~sim.fleet_targets.assign_targets`), then the guard separates the targets from
    one another and from where every vehicle that is not commanded was last seen, inside the
-   volume (:func:`~service.fleet_targets.guard_targets`); a set that fails the final check is
+   volume (:func:`~sim.fleet_targets.guard_targets`); a set that fails the final check is
    not streamed at all (counted: ``decisions_rejected``); a vehicle whose flight to its target
    would come closer than the separation to another's holds where it is for this decision
-   (lower indices fly first; :func:`~service.fleet_targets.paths_held`, counted: ``path_holds``),
-   unless holding would leave two targets under the separation (two vehicles that already met
-   that close): then nothing is held (``path_holds_skipped``);
+   (lower indices fly first; :func:`~sim.fleet_targets.hold_crossing_paths`, the world's rule,
+   counted: ``path_holds``), unless holding would leave two targets under the separation
+   (two vehicles that already met that close): then nothing is held (``path_holds_skipped``);
 4. each commanded vehicle's link streams its target (clamped to its own geofence, a no-op
    after the guard); a vehicle that is not commanded has its stream cleared, so that when its
    link returns it flies nothing stale until the next decision includes it.
@@ -59,19 +59,17 @@ import numpy as np
 from policies.fleet_policy import DEFAULT_FLEET_POLICY, FleetPolicy, resolve_fleet_policy
 from service.decisions import Decision, ReportReceipt, VehicleView, restored_decision
 from service.fleet_spec import FleetSpec
-from service.fleet_targets import (
-    assign_targets,
-    check_targets,
-    guard_targets,
-    paths_held,
-    service_flight,
-)
 from service.live_view import Moment
 from service.placement import STATE_FORMAT, PlacementService, link_problem, vehicle_notes
 from service.policy_runtime import synthetic_report
 from service.settings import ServiceSettings
 from service.vehicle_link import LinkConfig, LinkState, VehicleLink
 from sim.errors import InputError
+from sim.fleet_targets import (
+    assign_targets,
+    guard_targets,
+    hold_crossing_paths,
+)
 from sim.world import World
 
 log = logging.getLogger(__name__)
@@ -378,31 +376,23 @@ class FleetPlacementService(PlacementService):
         self, flying: list[str], positions: np.ndarray, targets: np.ndarray, obstacles: np.ndarray
     ) -> np.ndarray:
         """``targets`` with each vehicle whose flight there would come too close to another's
-        held where it is for this decision (:func:`~service.fleet_targets.paths_held`, the
-        world's rule over the whole flight; counted: ``path_holds``). When holding would leave
-        two targets under the separation (two vehicles that already met that close, holding each
-        other in place), nothing is held: the guard's separated targets go out as they are,
-        and that is counted (``path_holds_skipped``)."""
+        held where it is for this decision, the world's rule
+        (:func:`sim.fleet_targets.hold_crossing_paths`; counted: ``path_holds``). When holding
+        would leave two targets under the separation (two vehicles that already met that close,
+        holding each other in place), nothing is held: the guard's separated targets go out as
+        they are, and that is counted (``path_holds_skipped``)."""
         envelopes = [self.links[vid].routing_envelope for vid in flying]
-        flight = service_flight(self.world.flight, envelopes)
-        held = paths_held(envelopes, positions, targets, flight, self.fleet.separation_m)
-        if not any(held):
-            return targets
-        out = np.asarray(targets, dtype=float).copy()
-        for k, vid in enumerate(flying):
-            if held[k]:
-                here = tuple(float(v) for v in positions[k])
-                out[k] = self.links[vid].legal_target(here) or here
-        try:
-            check_targets(out, self.fleet.separation_m, self.area, obstacles)
-        except ValueError:
+        holds = hold_crossing_paths(
+            envelopes, positions, targets, self.world.flight, self.fleet.separation_m, self.area,
+            obstacles,
+        )  # fmt: skip
+        if holds.skipped:
             self._count("path_holds_skipped")
-            return targets
         for k, vid in enumerate(flying):
-            if held[k]:
+            if holds.held[k]:
                 self._count("path_holds")
                 log.info("%s holds where it is: its flight would cross another's", vid)
-        return out
+        return holds.targets_m
 
     def _load_allowed(self, spec: str) -> FleetPolicy:  # type: ignore[override]
         return load_fleet_policy(

@@ -13,9 +13,12 @@ hysteresis, handovers, distinct or shared channels). One step:
    that leave the volume are masked, ``info["action_mask"]``, :meth:`FleetParallelEnv.
    action_masks`), or absolute coordinates in ``[0, 1]³`` (:func:`sim.geometry.unit_to_m`);
 2. the set of targets is separated (:func:`sim.geometry.enforce_separation`, the fleet's
-   ``separation_m``, lower agent index first) — the hard constraint — and the vehicles fly
-   toward them; a vehicle that would end the period too close to another goes round it, or
-   holds where it was when no detour is clear (:func:`sim.geometry.hold_separation`). In a
+   ``separation_m``, lower agent index first) — the hard constraint; a vehicle whose flight to
+   its target would come closer than the separation to another's holds where it is for this
+   decision, as the service holds it (:func:`sim.fleet_targets.hold_crossing_paths`, the one
+   rule; ``info["path_holds"]`` counts them); the vehicles fly toward their targets; a vehicle
+   that would end the period too close to another anyway goes round it, or holds where it was
+   when no detour is clear (:func:`sim.geometry.hold_separation`). In a
    world with an envelope the targets are also made legal, each vehicle flies the route the
    service's link would stream, and a vehicle whose *path* would pass closer than the
    separation to another's holds for the period, lower indices flying first
@@ -37,7 +40,7 @@ fleet. The association shown is the one of the report the decision sees.
 
 ``info`` of every agent: its position, target, the action mask and refused move (discrete),
 its own UAV utility, and the fleet's utility, served-user fraction, Jain fairness, minimum
-user throughput and handovers so far. ``reset(options=...)`` takes ``scenario``,
+user throughput, and the handovers and path holds so far. ``reset(options=...)`` takes ``scenario``,
 ``users_seed`` and ``uav_xyz_m`` (K, 3) as the single environments do.
 """
 
@@ -57,6 +60,7 @@ from sim.envs import ScenarioCycle, ScenariosByEnvironment
 from sim.errors import InputError
 from sim.fleet import FleetConfig, FleetModel, FleetState, FleetStepResult
 from sim.fleet_observation import FLEET_MAPS, fleet_maps, fleet_observations
+from sim.fleet_targets import hold_crossing_paths
 from sim.geometry import (
     MOVES,
     clip_to_volume,
@@ -191,6 +195,7 @@ class FleetParallelEnv(ParallelEnv):
         self._reports: deque[tuple[UserReports, np.ndarray]] = deque(maxlen=1)
         self._users_rng = np.random.default_rng(0)
         self._steps = 0
+        self._path_holds = 0
         self._refused = np.zeros(fleet.n_uavs, dtype=bool)
         self._index = np.zeros((fleet.n_uavs, 3), dtype=np.int64)
         self.last_result: FleetStepResult | None = None
@@ -232,6 +237,7 @@ class FleetParallelEnv(ParallelEnv):
         )  # fmt: skip
         self._state = None
         self._steps = 0
+        self._path_holds = 0
         self._refused = np.zeros(self.n_uavs, dtype=bool)
         self._reports = deque(maxlen=world.reports.age_steps + 1)
         start = options.get("uav_xyz_m")
@@ -347,7 +353,8 @@ class FleetParallelEnv(ParallelEnv):
         sep = self.fleet.separation_m
         previous_targets = self.target_xyz_m
         if world.envelope is None:
-            self.target_xyz_m = enforce_separation(targets, sep, self.area)
+            separated = enforce_separation(targets, sep, self.area)
+            self.target_xyz_m = self._hold_crossing_paths(separated, None)
             # The single environment's flight, every vehicle at once (world.fly_period).
             flown, self.uav_velocity_mps = world.fly_period(
                 self.uav_xyz_m, self.uav_velocity_mps, previous_targets, self.target_xyz_m
@@ -383,7 +390,8 @@ class FleetParallelEnv(ParallelEnv):
         world = self.world
         envelope = world.flight_envelope
         sep = self.fleet.separation_m
-        self.target_xyz_m = separated_legal_targets(envelope, targets, sep, self.area)
+        legal = separated_legal_targets(envelope, targets, sep, self.area)
+        self.target_xyz_m = self._hold_crossing_paths(legal, envelope)
         flight = fly_fleet(
             envelope, self.uav_xyz_m, self.target_xyz_m, world.flight, world.step_s, sep,
             self._routes, self.uav_velocity_mps,
@@ -393,6 +401,17 @@ class FleetParallelEnv(ParallelEnv):
             self.uav_velocity_mps = flight.velocities_mps
         self._routes = list(flight.routes)
         self.held = np.array(flight.held, dtype=bool)
+
+    def _hold_crossing_paths(self, targets: np.ndarray, envelope: Any) -> np.ndarray:
+        """The decision's targets with each vehicle whose flight there would come too close to
+        another's held where it is, as the service holds it
+        (:func:`sim.fleet_targets.hold_crossing_paths`; counted in ``info["path_holds"]``)."""
+        holds = hold_crossing_paths(
+            [envelope] * self.n_uavs, self.uav_xyz_m, targets, self.world.flight,
+            self.fleet.separation_m, self.area,
+        )  # fmt: skip
+        self._path_holds += sum(holds.held)
+        return holds.targets_m
 
     def _simulate(self) -> FleetStepResult:
         users = self.users
@@ -450,6 +469,7 @@ class FleetParallelEnv(ParallelEnv):
             "jain_fairness": float(result.jain_fairness[0]),
             "min_throughput_bps": float(result.min_throughput_bps[0]),
             "handovers": int(result.handovers[0]),
+            "path_holds": self._path_holds,
             "scenario_id": self.scenario.id if self.scenario is not None else "",
         }
         infos = {}

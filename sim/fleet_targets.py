@@ -1,6 +1,8 @@
-"""The last step before a fleet's targets are streamed: who flies where, and the safety guard.
+"""A fleet's targets before anything flies to them: who flies where, the safety guard and the
+paths — one rule for the world (:class:`sim.fleet_env.FleetParallelEnv`, so training and
+evaluation) and the service (:class:`service.fleet_placement.FleetPlacementService`).
 
-Pure functions, property-tested (``tests/service/test_fleet_targets.py``, hypothesis):
+Pure functions, property-tested (``tests/sim/test_fleet_targets.py``, hypothesis):
 
 * :func:`sim.geometry.assign_targets` (re-exported): which vehicle takes which of the policy's
   targets: the assignment with the least total flight distance, exact (every permutation).
@@ -12,9 +14,10 @@ Pure functions, property-tested (``tests/service/test_fleet_targets.py``, hypoth
 * :func:`check_targets`: the final check, raising rather than letting a violation be streamed.
 * :func:`paths_held`: the paths. Which vehicles hold where they are for this decision so that
   the flights from where the vehicles are to their targets keep the separation at every
-  instant (the world's rule, :func:`sim.envelope.flight.separate_tracks`, over the whole
-  flight rather than one period): each flight is predicted along the route its link streams
-  (:func:`sim.envelope.flight.fly_route_track`) at :func:`service_flight`'s speed caps.
+  instant (:func:`sim.envelope.flight.separate_tracks` over the whole flight, not one period):
+  each flight is predicted along the route its link streams
+  (:func:`sim.envelope.flight.fly_route_track`) at :func:`path_flight`'s speed caps;
+  :func:`hold_crossing_paths` applies it to a decision's targets.
 
 A lost vehicle's last position counts as an obstacle only while it lies inside the volume (a
 vehicle that never took off, or landed, is below every target). The paths are predicted, not
@@ -26,23 +29,27 @@ the vehicles are, and the targets' separation holds whatever the timing.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 
 from sim.config import AreaConfig
-from sim.envelope.flight import fly_route_track, separate_tracks
+from sim.envelope.flight import fly_route_track, legal_position, separate_tracks
 from sim.envelope.volume import Envelope
 from sim.flight import Flight
 from sim.geometry import assign_targets, enforce_separation, volume_bounds
 
 __all__ = [
+    "PATH_HORIZON_S",
     "SEPARATION_TOLERANCE_M",
+    "PathHolds",
     "assign_targets",
     "check_targets",
     "guard_targets",
+    "hold_crossing_paths",
     "inside_volume",
+    "path_flight",
     "paths_held",
-    "service_flight",
 ]
 
 PATH_HORIZON_S = 300.0
@@ -113,8 +120,8 @@ def check_targets(
             )
 
 
-def service_flight(flight: Flight, envelopes: Sequence[Envelope | None]) -> Flight:
-    """The speed caps the paths are predicted with: the served world's flight (its default's,
+def path_flight(flight: Flight, envelopes: Sequence[Envelope | None]) -> Flight:
+    """The speed caps the paths are predicted with: the world's flight (its default's,
     10 m/s and 3 m/s, where the world teleports), the horizontal one no faster than any
     envelope's ``max_speed_mps``."""
     horizontal = flight.horizontal_mps or Flight().horizontal_mps
@@ -145,3 +152,46 @@ def paths_held(
     ]
     starts = [(p[0], p[1], p[2]) for p in positions.tolist()]
     return separate_tracks(starts, tracks, separation_m, horizon_s)
+
+
+class PathHolds(NamedTuple):
+    """What :func:`hold_crossing_paths` decided."""
+
+    targets_m: np.ndarray
+    """The targets to fly (K, 3): a held vehicle's is where it is."""
+    held: tuple[bool, ...]
+    """Which vehicles hold for this decision."""
+    skipped: bool
+    """Whether holds were needed but none was made (two vehicles already that close)."""
+
+
+def hold_crossing_paths(
+    envelopes: Sequence[Envelope | None],
+    positions_m: np.ndarray,
+    targets_m: np.ndarray,
+    flight: Flight,
+    separation_m: float,
+    area: AreaConfig,
+    obstacles_m: np.ndarray | None = None,
+) -> PathHolds:
+    """``targets_m`` (K, 3) for the vehicles at ``positions_m`` (K, 3) in their
+    ``envelopes``, each vehicle whose flight there would come too close to another's
+    (:func:`paths_held`, at :func:`path_flight`'s caps of ``flight``) held where it is for this
+    decision (its target: its position, made legal in its envelope). When holding would leave
+    two targets (or a target and one of the ``obstacles_m``) under the separation or outside
+    the volume — two vehicles that already met that close, holding each other in place —
+    nothing is held, and that is said (``skipped``). Pure."""
+    targets = np.asarray(targets_m, dtype=float).reshape(-1, 3)
+    positions = np.asarray(positions_m, dtype=float).reshape(-1, 3)
+    held = paths_held(envelopes, positions, targets, path_flight(flight, envelopes), separation_m)
+    if not any(held):
+        return PathHolds(targets, held, False)
+    out = targets.copy()
+    for k, envelope in enumerate(envelopes):
+        if held[k]:
+            out[k] = legal_position(envelope, positions[k])
+    try:
+        check_targets(out, separation_m, area, obstacles_m)
+    except ValueError:
+        return PathHolds(targets, (False,) * len(targets), True)
+    return PathHolds(out, held, False)

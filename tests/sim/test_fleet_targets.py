@@ -1,4 +1,4 @@
-"""The fleet's last step before streaming (:mod:`service.fleet_targets`), property-tested: the
+"""The fleet's last step before streaming (:mod:`sim.fleet_targets`), property-tested: the
 guard never lets two targets closer than the separation, a target near a vehicle that cannot be
 commanded, or a target outside the area volume (the geofence) through, whatever the policy
 asked for; the assignment is the least-travel one."""
@@ -12,18 +12,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from service.fleet_targets import (
+from sim.config import AreaConfig
+from sim.envelope.flight import Track, closest_approach_m, fly_route_track
+from sim.envelope.volume import Envelope
+from sim.fleet_targets import (
     SEPARATION_TOLERANCE_M,
     assign_targets,
     check_targets,
     guard_targets,
     inside_volume,
+    path_flight,
     paths_held,
-    service_flight,
 )
-from sim.config import AreaConfig
-from sim.envelope.flight import Track, closest_approach_m, fly_route_track
-from sim.envelope.volume import Envelope
 from sim.flight import Flight
 from sim.geometry import volume_bounds
 
@@ -156,8 +156,8 @@ def test_two_flights_that_would_cross_at_once_hold_the_second_vehicle() -> None:
 
 def test_the_flight_speed_is_the_worlds_capped_by_the_envelopes() -> None:
     slow = Envelope.for_area(AREA, max_speed_mps=4.0)
-    assert service_flight(Flight(None, None), [None]) == Flight(10.0, 3.0)
-    assert service_flight(Flight(12.0, 2.0), [slow, None]) == Flight(4.0, 2.0)
+    assert path_flight(Flight(None, None), [None]) == Flight(10.0, 3.0)
+    assert path_flight(Flight(12.0, 2.0), [slow, None]) == Flight(4.0, 2.0)
 
 
 @settings(max_examples=150, deadline=None)
