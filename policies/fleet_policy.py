@@ -9,8 +9,9 @@ construction; a :class:`FleetPlacementPolicy` keeps one per K it has been asked 
 every decision, as :class:`policies.adapters.StaticPolicy` does for one vehicle.
 
 Names (``tupa serve --policy``): :data:`FLEET_POLICIES`. The fleet oracle searches with the
-fleet network model (1.5 s with 2 UAVs and 20 users, 6 s with 3 and 50, 21 s with 4 and 100 on
-one core): serve it only where a decision period allows that.
+fleet network model and takes seconds a decision (``python benchmarks/fleet_speed.py``; docs/
+results.md, "Fleets"): serve it only where a decision period allows that. The same objects are
+what ``tupa eval --uavs K`` evaluates (:func:`resolve_fleet_policy`).
 """
 
 from __future__ import annotations
