@@ -376,8 +376,9 @@ class FleetPlacementService(PlacementService):
         self, flying: list[str], positions: np.ndarray, targets: np.ndarray, obstacles: np.ndarray
     ) -> np.ndarray:
         """``targets`` with each vehicle whose flight there would come too close to another's
-        held where it is for this decision, the world's rule
-        (:func:`sim.fleet_targets.hold_crossing_paths`; counted: ``path_holds``). When holding
+        held where it is for this decision, or sent round a vehicle hovering in its way, the
+        world's rule (:func:`sim.fleet_targets.hold_crossing_paths`; counted: ``path_holds``,
+        ``path_detours``). When holding
         would leave two targets under the separation (two vehicles that already met that close,
         holding each other in place), nothing is held: the guard's separated targets go out as
         they are, and that is counted (``path_holds_skipped``)."""
@@ -392,6 +393,9 @@ class FleetPlacementService(PlacementService):
             if holds.held[k]:
                 self._count("path_holds")
                 log.info("%s holds where it is: its flight would cross another's", vid)
+            elif holds.detoured and holds.detoured[k]:
+                self._count("path_detours")
+                log.info("%s goes round a vehicle hovering in its way", vid)
         return holds.targets_m
 
     def _load_allowed(self, spec: str) -> FleetPolicy:  # type: ignore[override]

@@ -32,10 +32,12 @@ from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
+from shapely.geometry import Point
 
 from sim.config import AreaConfig
 from sim.envelope.flight import fly_route_track, legal_position, separate_tracks
-from sim.envelope.volume import Envelope
+from sim.envelope.route import plan_route
+from sim.envelope.volume import Envelope, Exclusion
 from sim.flight import Flight
 from sim.geometry import assign_targets, enforce_separation, volume_bounds
 
@@ -45,6 +47,7 @@ __all__ = [
     "PathHolds",
     "assign_targets",
     "check_targets",
+    "detour_around",
     "guard_targets",
     "hold_crossing_paths",
     "inside_volume",
@@ -154,6 +157,52 @@ def paths_held(
     return separate_tracks(starts, tracks, separation_m, horizon_s)
 
 
+STILL_M = 1.0
+"""A vehicle whose target is within this of where it is hovers (or holds) for the decision: a
+flight held behind it would wait for ever, so it goes round (:func:`detour_around`)."""
+DETOUR_MARGIN = 1.05
+"""A hovering vehicle is gone round at this many separations (its circle's 16-gon stays
+outside the separation)."""
+
+
+def detour_around(
+    envelope: Envelope | None,
+    area: AreaConfig,
+    position_m: Sequence[float],
+    target_m: Sequence[float],
+    hovering_m: np.ndarray,
+    separation_m: float,
+) -> tuple[float, float, float] | None:
+    """Where a vehicle at ``position_m`` flies now to get round the vehicles hovering at
+    ``hovering_m`` (M, 3) on its way to ``target_m``: the first waypoint of the route that keeps
+    ``DETOUR_MARGIN`` separations from each of them (a column of that radius, that much above
+    and below it, as a no-fly volume of its envelope: the route goes round or over it); None
+    when there is no such route or it is the straight flight."""
+    base = envelope if envelope is not None else Envelope.for_area(area)
+    radius_m = DETOUR_MARGIN * separation_m
+    columns = tuple(
+        Exclusion(
+            Point(float(p[0]), float(p[1])).buffer(radius_m, quad_segs=4),
+            float(p[2]) - radius_m,
+            float(p[2]) + radius_m,
+            name="a hovering vehicle",
+            on_autopilot_fence=False,
+        )
+        for p in np.asarray(hovering_m, dtype=float).reshape(-1, 3)
+    )
+    if not columns:
+        return None
+    around = Envelope(
+        base.inclusion, base.floor_m, base.ceiling_m, base.exclusions + columns,
+        base.clearance_m, base.max_speed_mps,
+    )  # fmt: skip
+    route = plan_route(around, position_m, target_m)
+    if route.holding or route.kind == "direct" or route.target_m is None:
+        return None
+    x_m, y_m, z_m = route.setpoint_m
+    return (x_m, y_m, z_m)
+
+
 class PathHolds(NamedTuple):
     """What :func:`hold_crossing_paths` decided."""
 
@@ -163,6 +212,8 @@ class PathHolds(NamedTuple):
     """Which vehicles hold for this decision."""
     skipped: bool
     """Whether holds were needed but none was made (two vehicles already that close)."""
+    detoured: tuple[bool, ...] = ()
+    """Which vehicles, held behind a hovering one, fly a detour round it instead."""
 
 
 def hold_crossing_paths(
@@ -183,15 +234,48 @@ def hold_crossing_paths(
     nothing is held, and that is said (``skipped``). Pure."""
     targets = np.asarray(targets_m, dtype=float).reshape(-1, 3)
     positions = np.asarray(positions_m, dtype=float).reshape(-1, 3)
-    held = paths_held(envelopes, positions, targets, path_flight(flight, envelopes), separation_m)
+    caps = path_flight(flight, envelopes)
+    held = paths_held(envelopes, positions, targets, caps, separation_m)
+    none = (False,) * len(targets)
     if not any(held):
-        return PathHolds(targets, held, False)
+        return PathHolds(targets, held, False, none)
+    wanted = targets.copy()
+    detoured = [False] * len(targets)
+    for k in [k for k, h in enumerate(held) if h]:
+        out = _holding(envelopes, positions, wanted, held)
+        hovering = [j for j in range(len(out)) if j != k and _still(positions[j], out[j])]
+        detour = detour_around(
+            envelopes[k], area, positions[k], targets[k], positions[hovering], separation_m
+        )
+        if detour is None:
+            continue
+        trial = wanted.copy()
+        trial[k] = detour
+        if not paths_held(envelopes, positions, trial, caps, separation_m)[k]:
+            wanted, detoured[k] = trial, True
+    held = paths_held(envelopes, positions, wanted, caps, separation_m)
+    out = _holding(envelopes, positions, wanted, held)
+    try:
+        check_targets(out, separation_m, area, obstacles_m)
+    except ValueError:
+        return PathHolds(targets, none, True, none)
+    went = tuple(d and not h for d, h in zip(detoured, held, strict=True))
+    return PathHolds(out, held, False, went)
+
+
+def _holding(
+    envelopes: Sequence[Envelope | None],
+    positions: np.ndarray,
+    targets: np.ndarray,
+    held: Sequence[bool],
+) -> np.ndarray:
+    """``targets`` with each held vehicle's replaced by where it is (made legal)."""
     out = targets.copy()
     for k, envelope in enumerate(envelopes):
         if held[k]:
             out[k] = legal_position(envelope, positions[k])
-    try:
-        check_targets(out, separation_m, area, obstacles_m)
-    except ValueError:
-        return PathHolds(targets, (False,) * len(targets), True)
-    return PathHolds(out, held, False)
+    return out
+
+
+def _still(position: np.ndarray, target: np.ndarray) -> bool:
+    return bool(np.linalg.norm(np.asarray(target) - np.asarray(position)) < STILL_M)
