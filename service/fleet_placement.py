@@ -393,7 +393,7 @@ class FleetPlacementService(PlacementService):
             if holds.held[k]:
                 self._count("path_holds")
                 log.info("%s holds where it is: its flight would cross another's", vid)
-            elif holds.detoured and holds.detoured[k]:
+            elif holds.detoured[k]:
                 self._count("path_detours")
                 log.info("%s goes round a vehicle hovering in its way", vid)
         return holds.targets_m

@@ -212,7 +212,7 @@ class PathHolds(NamedTuple):
     """Which vehicles hold for this decision."""
     skipped: bool
     """Whether holds were needed but none was made (two vehicles already that close)."""
-    detoured: tuple[bool, ...] = ()
+    detoured: tuple[bool, ...]
     """Which vehicles, held behind a hovering one, fly a detour round it instead."""
 
 
@@ -228,9 +228,11 @@ def hold_crossing_paths(
     """``targets_m`` (K, 3) for the vehicles at ``positions_m`` (K, 3) in their
     ``envelopes``, each vehicle whose flight there would come too close to another's
     (:func:`paths_held`, at :func:`path_flight`'s caps of ``flight``) held where it is for this
-    decision (its target: its position, made legal in its envelope). When holding would leave
-    two targets (or a target and one of the ``obstacles_m``) under the separation or outside
-    the volume — two vehicles that already met that close, holding each other in place —
+    decision (its target: its position, made legal in its envelope) — or, held behind vehicles
+    that hover or hold, sent along the first leg of the route round them
+    (:func:`detour_around`) when that leg keeps clear of every other flight. When holding would
+    leave two targets (or a target and one of the ``obstacles_m``) under the separation or
+    outside the volume — two vehicles that already met that close, holding each other in place —
     nothing is held, and that is said (``skipped``). Pure."""
     targets = np.asarray(targets_m, dtype=float).reshape(-1, 3)
     positions = np.asarray(positions_m, dtype=float).reshape(-1, 3)
